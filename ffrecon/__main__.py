@@ -1,0 +1,3 @@
+from ffrecon.cli import main
+
+raise SystemExit(main())

@@ -1,0 +1,43 @@
+"""Validation helpers that raise typed, readable errors (never ``assert`` on user input)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from ffrecon.errors import FFReconError, ModelError
+
+
+def check_shape(name: str, array: np.ndarray, expected: Sequence[int | None]) -> None:
+    """Raise ``ValueError`` unless ``array.shape`` matches ``expected`` (``None`` = any size).
+
+    >>> check_shape("points", np.zeros((5, 3)), (None, 3))
+    >>> check_shape("points", np.zeros((5, 2)), (None, 3))
+    Traceback (most recent call last):
+    ...
+    ValueError: points: expected shape (N, 3), got (5, 2)
+    """
+    shape = tuple(array.shape)
+    ok = len(shape) == len(expected) and all(e is None or e == s for e, s in zip(expected, shape))
+    if not ok:
+        want = ", ".join("N" if e is None else str(e) for e in expected)
+        raise ValueError(f"{name}: expected shape ({want}), got {shape}")
+
+
+def check_finite(name: str, array: np.ndarray, *, model: str = "") -> None:
+    """Raise :class:`ModelError` if a model output holds NaN or infinite values."""
+    bad = ~np.isfinite(array)
+    if bad.any():
+        raise ModelError(
+            f"model output '{name}' has {int(bad.sum())} non-finite values (NaN/inf) of {array.size}"
+            + (f" in {model}" if model else ""),
+            "the ONNX export is probably broken (fp16 overflow is a common cause): re-export in fp32, "
+            "or check the model on one image with `ffrecon inspect-model`",
+        )
+
+
+def check_positive(name: str, value: float) -> None:
+    """Raise :class:`FFReconError` unless ``value > 0``."""
+    if not value > 0:
+        raise FFReconError(f"{name} must be positive, got {value}", f"pass a positive {name}")

@@ -1,0 +1,36 @@
+"""Typed errors. Each names the problem and the fix, so the CLI can print it and exit non-zero."""
+
+from __future__ import annotations
+
+
+class FFReconError(Exception):
+    """Base class: a problem with the user's input or environment, with a suggested fix."""
+
+    exit_code = 2
+
+    def __init__(self, problem: str, fix: str = "") -> None:
+        self.problem = problem
+        self.fix = fix
+        super().__init__(f"{problem}" + (f"\n  fix: {fix}" if fix else ""))
+
+
+class InputError(FFReconError):
+    """Missing, unreadable or unsuitable images, videos or folders."""
+
+
+class ModelError(FFReconError):
+    """An ONNX model that does not match any supported contract, or produced unusable outputs."""
+
+    exit_code = 3
+
+
+class OutputExistsError(FFReconError):
+    """The output folder already holds results that the run would overwrite."""
+
+    exit_code = 4
+
+
+class GateFailed(FFReconError):
+    """A verification gate failed and the run stopped before the expensive stages."""
+
+    exit_code = 5
