@@ -83,16 +83,24 @@ class Prediction:
     names: tuple[str, ...]
     cam_from_world: np.ndarray  # [N, 3, 4] float64, OpenCV
     cameras: tuple[PinholeCamera, ...]  # per frame, original photo size
-    depth: tuple[np.ndarray, ...]  # per frame [H_i, W_i] float32 z-depth; 0 where unknown (cropped away)
-    depth_conf: tuple[np.ndarray, ...]  # per frame [H_i, W_i] float32; >= 1 where known, 0 where unknown
+    # Depth maps cover the original photo; for large photos they may be stored on a uniformly
+    # downscaled grid (long side capped), see depth_camera().
+    depth: tuple[np.ndarray, ...]  # per frame [h_i, w_i] float32 z-depth; 0 where unknown (cropped away)
+    depth_conf: tuple[np.ndarray, ...]  # per frame [h_i, w_i] float32; >= 1 where known, 0 where unknown
     model: ModelInfo
 
     def __len__(self) -> int:
         return len(self.names)
 
+    def depth_camera(self, i: int) -> PinholeCamera:
+        """Intrinsics of frame i for the grid its depth map is stored on."""
+        cam = self.cameras[i]
+        h, w = self.depth[i].shape
+        return cam if (w, h) == (cam.width, cam.height) else cam.scaled(w / cam.width, h / cam.height)
+
     def world_points(self, i: int) -> np.ndarray:
-        """``[H_i, W_i, 3]`` float64 points of frame i in the world frame (depth unprojected)."""
-        return unproject_depth(self.depth[i], self.cameras[i].K, self.cam_from_world[i])
+        """``[h_i, w_i, 3]`` float64 points of frame i in the world frame (depth unprojected)."""
+        return unproject_depth(self.depth[i], self.depth_camera(i).K, self.cam_from_world[i])
 
     def valid_mask(self, i: int, min_conf: float = 1.0) -> np.ndarray:
         """``[H_i, W_i]`` bool: depth known, positive and with confidence >= ``min_conf``."""

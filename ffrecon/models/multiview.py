@@ -1,0 +1,134 @@
+"""Multi-view (VGGT-contract) prediction over any number of frames, in overlapping chunks.
+
+One model call holds at most ``chunk_size`` frames. Each later chunk repeats the last
+``chunk_overlap`` frames of the one before; its result is brought into the first chunk's frame and
+scale by a Sim(3) fitted on the shared frames' depth points (the same pixels seen in both calls, so
+the correspondences are exact), weighted by the model's confidence.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from tqdm.auto import tqdm
+
+from ffrecon.errors import FFReconError, ModelError
+from ffrecon.geometry.alignment import Sim3, umeyama
+from ffrecon.models.vggt import PreprocessMode, decode_vggt_outputs, preprocess_vggt
+from ffrecon.types import ModelInfo, Prediction
+
+log = logging.getLogger("ffrecon.models")
+
+# VGGT-1B in fp32 on the CPU needs ~5 GB for weights plus roughly 0.3 GB per 518x392 frame of
+# activations; 16 frames fit in the 24 GB this project is developed on with room to spare.
+DEFAULT_CHUNK_SIZE = 16
+
+
+@dataclass(frozen=True, kw_only=True)
+class MultiviewOptions:
+    mode: PreprocessMode = PreprocessMode.CROP
+    chunk_size: int = DEFAULT_CHUNK_SIZE
+    chunk_overlap: int = 4
+    max_depth_side: int | None = 1024  # cap on stored depth grids (None: original resolution)
+    align_points_per_frame: int = 4000  # depth points per shared frame used for the chunk Sim(3)
+
+    def __post_init__(self) -> None:
+        if self.chunk_size < 2 or not 0 < self.chunk_overlap < self.chunk_size:
+            raise FFReconError(f"chunk size {self.chunk_size} with overlap {self.chunk_overlap} is not usable", "use chunk_size >= 2 and 0 < chunk_overlap < chunk_size")
+
+
+def plan_chunks(num_frames: int, chunk_size: int, overlap: int) -> list[list[int]]:
+    """Frame indices per model call; consecutive chunks share ``overlap`` frames.
+
+    >>> plan_chunks(10, 4, 2)
+    [[0, 1, 2, 3], [2, 3, 4, 5], [4, 5, 6, 7], [6, 7, 8, 9]]
+    >>> plan_chunks(3, 16, 4)
+    [[0, 1, 2]]
+    """
+    if num_frames <= chunk_size:
+        return [list(range(num_frames))]
+    chunks, start = [], 0
+    while True:
+        end = min(start + chunk_size, num_frames)
+        chunks.append(list(range(start, end)))
+        if end == num_frames:
+            return chunks
+        start = end - overlap
+
+
+def predict_multiview(images: Sequence[np.ndarray], names: Sequence[str], infer: Callable[[np.ndarray], dict[str, np.ndarray]], model: ModelInfo, options: MultiviewOptions = MultiviewOptions()) -> Prediction:
+    """Run a VGGT-contract model on all frames (chunked) and return one :class:`Prediction`.
+
+    Args:
+        images: N images ``[H, W, 3]`` uint8 RGB; names: N frame names.
+        infer: maps ``input_images [S, 3, H, W]`` float32 to the model's outputs.
+    """
+    chunks = plan_chunks(len(images), options.chunk_size, options.chunk_overlap)
+    parts = []
+    for chunk in tqdm(chunks, desc="feed-forward", unit="chunk", disable=None):
+        batch, transforms = preprocess_vggt([images[k] for k in chunk], options.mode)
+        outputs = infer(batch)
+        parts.append(decode_vggt_outputs(outputs, transforms, [names[k] for k in chunk], model, max_depth_side=options.max_depth_side))
+    return merge_chunks(parts, chunks, options.align_points_per_frame)
+
+
+def _sample_points(pred: Prediction, k: int, mask: np.ndarray, max_points: int) -> tuple[np.ndarray, np.ndarray]:
+    """World points and confidences at up to ``max_points`` evenly spaced pixels of ``mask``."""
+    idx = np.flatnonzero(mask)
+    idx = idx[:: max(1, len(idx) // max_points)]
+    pts = pred.world_points(k).reshape(-1, 3)[idx]
+    return pts, pred.depth_conf[k].reshape(-1)[idx]
+
+
+def chunk_alignment(ref: Prediction, ref_idx: Sequence[int], new: Prediction, new_idx: Sequence[int], max_points: int) -> Sim3:
+    """Sim(3) ``ref_world_from_new_world`` from frames present in both predictions."""
+    src, dst, weights = [], [], []
+    for a, b in zip(ref_idx, new_idx):
+        mask = ref.valid_mask(a) & new.valid_mask(b)
+        if ref.depth[a].shape != new.depth[b].shape or mask.sum() < 3:
+            continue
+        p_dst, c_dst = _sample_points(ref, a, mask, max_points)
+        p_src, c_src = _sample_points(new, b, mask, max_points)
+        src.append(p_src)
+        dst.append(p_dst)
+        weights.append(np.sqrt(c_src * c_dst))
+    if not src:
+        raise ModelError("chunks share no frame with valid depth, so they cannot be put in one frame", "increase --chunk-overlap or --chunk-size")
+    src_a, dst_a, w = np.concatenate(src), np.concatenate(dst), np.concatenate(weights)
+    sim = umeyama(src_a, dst_a, w)
+    # One reweighting pass: drop the worst 10% of residuals (depth edges, sky) and refit.
+    resid = np.linalg.norm(sim.apply(src_a) - dst_a, axis=1)
+    keep = resid <= np.quantile(resid, 0.9)
+    return umeyama(src_a[keep], dst_a[keep], w[keep]) if keep.sum() >= 3 else sim
+
+
+def merge_chunks(parts: Sequence[Prediction], chunks: Sequence[Sequence[int]], max_points: int = 4000) -> Prediction:
+    """Bring every chunk into the first chunk's world frame and scale; shared frames keep their first estimate."""
+    n = max(max(c) for c in chunks) + 1
+    poses: list[np.ndarray | None] = [None] * n
+    cameras: list = [None] * n
+    depth: list = [None] * n
+    conf: list = [None] * n
+    names: list = [None] * n
+    merged_so_far: Prediction | None = None
+    for part, chunk in zip(parts, chunks):
+        sim = Sim3.identity()
+        if merged_so_far is not None:
+            shared = [k for k in chunk if poses[k] is not None]
+            ref_idx = [merged_index[k] for k in shared]
+            sim = chunk_alignment(merged_so_far, ref_idx, part, [chunk.index(k) for k in shared], max_points)
+            log.debug("chunk %s: scale %.4f to the first chunk", chunk[:1], sim.scale)
+        for local, k in enumerate(chunk):
+            if poses[k] is not None:
+                continue
+            poses[k] = sim.transform_cam_from_world(part.cam_from_world[local])
+            cameras[k], names[k] = part.cameras[local], part.names[local]
+            depth[k] = part.depth[local] * np.float32(sim.scale)
+            conf[k] = part.depth_conf[local]
+        done = [k for k in range(n) if poses[k] is not None]
+        merged_index = {k: i for i, k in enumerate(done)}
+        merged_so_far = Prediction(tuple(names[k] for k in done), np.stack([poses[k] for k in done]), tuple(cameras[k] for k in done), tuple(depth[k] for k in done), tuple(conf[k] for k in done), parts[0].model)
+    return merged_so_far

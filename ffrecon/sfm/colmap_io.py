@@ -1,0 +1,116 @@
+"""Bridge between ffrecon's arrays and pycolmap reconstructions (pycolmap 4.x API).
+
+Images are named by their input file names so that COLMAP, pycolmap and nerfstudio find them.
+Cameras are PINHOLE with COLMAP's pixel-centre rule, which ffrecon uses throughout.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from ffrecon.geometry.rotations import matrix_to_quat_xyzw, quat_xyzw_to_matrix
+from ffrecon.types import PinholeCamera
+
+
+def rigid_from_pose(cam_from_world: np.ndarray) -> pycolmap.Rigid3d:
+    """``[3, 4]`` array to ``pycolmap.Rigid3d``."""
+    quat = matrix_to_quat_xyzw(cam_from_world[:3, :3])
+    return pycolmap.Rigid3d(pycolmap.Rotation3d(quat), np.asarray(cam_from_world[:3, 3], dtype=np.float64))
+
+
+def pose_from_rigid(rigid: pycolmap.Rigid3d) -> np.ndarray:
+    """``pycolmap.Rigid3d`` to a ``[3, 4]`` array."""
+    rot = quat_xyzw_to_matrix(np.asarray(rigid.rotation.quat))
+    return np.concatenate([rot, np.asarray(rigid.translation).reshape(3, 1)], axis=1)
+
+
+def pinhole_to_colmap(camera: PinholeCamera, camera_id: int) -> pycolmap.Camera:
+    return pycolmap.Camera(
+        model="PINHOLE",
+        width=camera.width,
+        height=camera.height,
+        params=[camera.fx, camera.fy, camera.cx, camera.cy],
+        camera_id=camera_id,
+    )
+
+
+def colmap_to_pinhole(camera: pycolmap.Camera) -> PinholeCamera:
+    """Any COLMAP camera model to a pinhole (distortion, if any, is dropped)."""
+    K = np.asarray(camera.calibration_matrix())
+    return PinholeCamera.from_K(K, camera.width, camera.height)
+
+
+def reconstruction_from_cameras(
+    names: Sequence[str],
+    cam_from_world: np.ndarray,
+    cameras: Sequence[PinholeCamera],
+    points_xyz: np.ndarray | None = None,
+    points_rgb: np.ndarray | None = None,
+    *,
+    share_identical_cameras: bool = True,
+) -> pycolmap.Reconstruction:
+    """A reconstruction holding known cameras and poses, and optionally 3D points without tracks.
+
+    Args:
+        names: N image names (input file names).
+        cam_from_world: ``[N, 3, 4]`` OpenCV poses.
+        cameras: N pinhole cameras (original image pixels).
+        points_xyz: ``[M, 3]`` world points; points_rgb: ``[M, 3]`` uint8 or float in [0, 1].
+        share_identical_cameras: one COLMAP camera for frames whose intrinsics are equal.
+    Image ids are 1..N in the order given.
+    """
+    rec = pycolmap.Reconstruction()
+    camera_ids: dict[PinholeCamera, int] = {}
+    for image_id, (name, pose, cam) in enumerate(zip(names, cam_from_world, cameras, strict=True), start=1):
+        if share_identical_cameras and cam in camera_ids:
+            camera_id = camera_ids[cam]
+        else:
+            camera_id = len(camera_ids) + 1 if share_identical_cameras else image_id
+            camera_ids[cam] = camera_id
+            rec.add_camera_with_trivial_rig(pinhole_to_colmap(cam, camera_id))
+        image = pycolmap.Image(name=name, camera_id=camera_id, image_id=image_id)
+        rec.add_image_with_trivial_frame(image, rigid_from_pose(pose))
+    if points_xyz is not None:
+        rgb = np.zeros((len(points_xyz), 3), np.uint8) if points_rgb is None else np.asarray(points_rgb)
+        if rgb.dtype != np.uint8:
+            rgb = np.clip(np.round(rgb * 255), 0, 255).astype(np.uint8)
+        for xyz, color in zip(np.asarray(points_xyz, np.float64), rgb):
+            rec.add_point3D(xyz, pycolmap.Track(), color)
+    return rec
+
+
+def write_reconstruction(rec: pycolmap.Reconstruction, path: Path, *, text: bool = False) -> Path:
+    """Write a model in COLMAP's binary format (or text); creates the folder."""
+    path = Path(path)
+    path.mkdir(parents=True, exist_ok=True)
+    if text:
+        rec.write_text(str(path))
+    else:
+        rec.write_binary(str(path))
+    return path
+
+
+def cam_from_world_by_name(rec: pycolmap.Reconstruction, names: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
+    """Poses of ``names`` in ``rec``: ``([N, 3, 4] cam_from_world, [N] registered)``.
+
+    Names absent from the model, or present but unregistered, get an identity pose and False.
+    """
+    by_name = {image.name: image for image in rec.images.values()}
+    poses = np.tile(np.concatenate([np.eye(3), np.zeros((3, 1))], 1), (len(names), 1, 1))
+    registered = np.zeros(len(names), bool)
+    for k, name in enumerate(names):
+        image = by_name.get(name)
+        if image is not None and image.has_pose:
+            poses[k] = pose_from_rigid(image.cam_from_world())
+            registered[k] = True
+    return poses, registered
+
+
+def cameras_by_name(rec: pycolmap.Reconstruction, names: Sequence[str]) -> list[PinholeCamera | None]:
+    """Pinhole intrinsics of ``names`` in ``rec`` (None where absent)."""
+    by_name = {image.name: image for image in rec.images.values()}
+    return [colmap_to_pinhole(rec.cameras[by_name[n].camera_id]) if n in by_name else None for n in names]
