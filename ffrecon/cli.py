@@ -1,0 +1,136 @@
+"""Command line: thin; parses options and calls the pipeline."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import shlex
+import sys
+from pathlib import Path
+
+from ffrecon import __version__
+from ffrecon.errors import FFReconError
+
+log = logging.getLogger("ffrecon")
+
+
+def _setup_logging(verbose: int) -> None:
+    level = logging.DEBUG if verbose > 1 else logging.INFO if verbose >= 0 else logging.WARNING
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("[%(levelname)s] %(message)s" if level == logging.DEBUG else "%(message)s"))
+    root = logging.getLogger("ffrecon")
+    root.handlers[:] = [handler]
+    root.setLevel(level)
+
+
+def _add_run_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("-o", "--out", type=Path, required=True, help="output folder (see the README for its layout)")
+    p.add_argument("--overwrite", action="store_true", help="replace results already in the output folder")
+    p.add_argument("--chunk-size", type=int, default=None, help="frames per model call (default 16)")
+    p.add_argument("--chunk-overlap", type=int, default=None, help="frames shared by consecutive chunks (default 4)")
+    p.add_argument("--preprocess", choices=["crop", "pad"], default="crop", help="VGGT preprocessing mode")
+    p.add_argument("--threads", type=int, default=0, help="CPU threads for inference (0: all)")
+    p.add_argument("-v", "--verbose", action="count", default=0)
+    p.add_argument("-q", "--quiet", action="store_true")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="ffrecon", description="Photos or a video in, a verified 3D reconstruction out.")
+    parser.add_argument("--version", action="version", version=f"ffrecon {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True)
+    run = sub.add_parser("run", help="reconstruct a folder of photos or a video")
+    run.add_argument("input", type=Path, help="folder of images (jpg, png, tiff, webp, bmp) or a video file")
+    run.add_argument("--model", type=Path, required=True, help="ONNX model (VGGT- or DUSt3R-style; see docs/exporting_models.md)")
+    run.add_argument("--video-frames", type=int, default=48, help="frames to keep from a video")
+    run.add_argument("--skip-bad-images", action="store_true", help="leave out unreadable files and non-images instead of stopping")
+    _add_run_options(run)
+    demo = sub.add_parser("demo", help="synthetic scene + simulated model through every stage (no downloads)")
+    demo.add_argument("--frames", type=int, default=24)
+    demo.add_argument("--width", type=int, default=320)
+    demo.add_argument("--height", type=int, default=240)
+    demo.add_argument("--seed", type=int, default=0)
+    _add_run_options(demo)
+    inspect = sub.add_parser("inspect-model", help="show a model's family, inputs, outputs and preprocessing")
+    inspect.add_argument("model", type=Path)
+    return parser
+
+
+def _run_options(args: argparse.Namespace, ground_truth: Path | None = None):
+    from ffrecon.capture import CaptureOptions
+    from ffrecon.models.multiview import MultiviewOptions
+    from ffrecon.models.stage import FeedForwardOptions
+    from ffrecon.models.vggt import PreprocessMode
+    from ffrecon.pipeline import RunOptions
+
+    mv_kwargs = {"mode": PreprocessMode(args.preprocess)}
+    if args.chunk_size:
+        mv_kwargs["chunk_size"] = args.chunk_size
+    if args.chunk_overlap:
+        mv_kwargs["chunk_overlap"] = args.chunk_overlap
+    capture = CaptureOptions(video_frames=getattr(args, "video_frames", 48), skip_bad_images=getattr(args, "skip_bad_images", False))
+    return RunOptions(
+        capture=capture,
+        feedforward=FeedForwardOptions(threads=args.threads, multiview=MultiviewOptions(**mv_kwargs)),
+        overwrite=args.overwrite,
+        ground_truth=ground_truth,
+        command=shlex.join(["ffrecon", *sys.argv[1:]]),
+    )
+
+
+def _print_summary(result) -> None:
+    data = result.report
+    verdict = data.get("verdict", {})
+    print(f"\nffrecon: {verdict.get('status', '?').upper()} - {verdict.get('message', '')}")
+    for row in data.get("summary_rows", []):
+        print(f"  {row['item']:<28} {row['value']}")
+    for item in data.get("skipped_stages", []):
+        print(f"  skipped {item['stage']}: {item['reason']}")
+    total = sum(v for v in data.get("timings", {}).values() if isinstance(v, (int, float)))
+    print(f"  {'time':<28} {total:.1f} s")
+    print(f"  report: {result.out_dir / 'report.html'}")
+
+
+def _inspect(path: Path) -> None:
+    from ffrecon.models.runner import OnnxModel
+    from ffrecon.types import ModelFamily
+
+    model = OnnxModel(path)
+    print(f"{path.name}: {model.family.value} model{' (SIMULATED)' if model.simulated else ''}")
+    print("inputs:\n" + "\n".join(f"  {s}" for s in model.inputs))
+    print("outputs:\n" + "\n".join(f"  {s}" for s in model.outputs))
+    if model.family is ModelFamily.MULTIVIEW:
+        print("preprocessing: RGB in [0, 1]; 'crop' (default): width 518, height rounded to a multiple of 14, centre-crop to 518; 'pad': long side 518, white padding to 518x518")
+    else:
+        print("preprocessing: RGB normalised to [-1, 1]; long side 512, sides cropped to multiples of 16; pairs from a pair graph, then global alignment")
+    for k, v in model.metadata.items():
+        print(f"  metadata {k}: {v[:200]}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    _setup_logging(-1 if getattr(args, "quiet", False) else getattr(args, "verbose", 0))
+    try:
+        if args.command == "inspect-model":
+            _inspect(args.model)
+            return 0
+        if args.command == "demo":
+            from ffrecon.demo import DemoOptions, prepare_demo
+            from ffrecon.pipeline import run
+
+            demo = prepare_demo(DemoOptions(num_frames=args.frames, width=args.width, height=args.height, seed=args.seed))
+            result = run(demo.images, args.out, demo.model, _run_options(args, ground_truth=demo.scene_dir))
+        else:
+            from ffrecon.pipeline import run
+
+            result = run(args.input, args.out, args.model, _run_options(args))
+    except FFReconError as err:
+        print(f"ffrecon: error: {err.problem}", file=sys.stderr)
+        if err.fix:
+            print(f"  fix: {err.fix}", file=sys.stderr)
+        return err.exit_code
+    except KeyboardInterrupt:
+        print("ffrecon: interrupted; earlier results are untouched", file=sys.stderr)
+        return 130
+    if not getattr(args, "quiet", False):
+        _print_summary(result)
+    return result.exit_code

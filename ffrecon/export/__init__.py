@@ -1,0 +1,1 @@
+"""Export: COLMAP models, nerfstudio transforms.json, point clouds, splats, meshes, renders, report."""

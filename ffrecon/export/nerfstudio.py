@@ -1,0 +1,50 @@
+"""nerfstudio ``transforms.json`` (CONTRACTS.md section 4).
+
+``transform_matrix`` is world_from_cam in the OpenGL camera convention (x right, y up, z back):
+the OpenCV camera's y and z axes flipped. nerfstudio's rays use pixel centres at +0.5, the same
+rule as COLMAP's, so intrinsics pass through unchanged.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from ffrecon.geometry.poses import invert_pose, to_homogeneous
+from ffrecon.types import PinholeCamera
+
+OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+def world_from_cam_opengl(cam_from_world: np.ndarray) -> np.ndarray:
+    """``[N, 3, 4]`` OpenCV cam_from_world to ``[N, 4, 4]`` OpenGL world_from_cam."""
+    return to_homogeneous(invert_pose(cam_from_world)) @ OPENCV_TO_OPENGL
+
+
+def _intrinsics(cam: PinholeCamera) -> dict:
+    return {"fl_x": cam.fx, "fl_y": cam.fy, "cx": cam.cx, "cy": cam.cy, "w": cam.width, "h": cam.height}
+
+
+def write_transforms(path: Path, file_paths: Sequence[str], cam_from_world: np.ndarray, cameras: Sequence[PinholeCamera], *, ply_file_path: str | None = None) -> Path:
+    """Write transforms.json; ``file_paths`` are relative to the file's folder.
+
+    Shared intrinsics go at the top level; per-frame ones (when cameras differ) in each frame.
+    """
+    shared = all(c == cameras[0] for c in cameras)
+    out: dict = {"camera_model": "PINHOLE"}
+    if shared:
+        out.update(_intrinsics(cameras[0]))
+    frames = []
+    for fp, pose, cam in zip(file_paths, world_from_cam_opengl(cam_from_world), cameras, strict=True):
+        frame = {"file_path": fp, "transform_matrix": pose.tolist()}
+        if not shared:
+            frame.update(_intrinsics(cam))
+        frames.append(frame)
+    out["frames"] = frames
+    if ply_file_path:
+        out["ply_file_path"] = ply_file_path
+    path.write_text(json.dumps(out, indent=2))
+    return path

@@ -1,0 +1,78 @@
+"""Fused, coloured point clouds from depth maps (open3d for downsampling and PLY I/O)."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import open3d as o3d
+
+from ffrecon.types import Prediction
+
+log = logging.getLogger("ffrecon.export")
+
+
+@dataclass(frozen=True, kw_only=True)
+class FuseOptions:
+    conf_quantile: float = 0.3  # drop the least confident 30% of each frame's valid pixels
+    min_conf: float = 1.0
+    voxel_fraction: float = 1 / 400  # voxel size as a fraction of the cloud's robust extent
+    max_points_per_frame: int = 200_000
+    remove_outliers: bool = True
+
+
+def fuse_prediction(prediction: Prediction, images: Sequence[np.ndarray], options: FuseOptions = FuseOptions()) -> tuple[np.ndarray, np.ndarray]:
+    """Confidence-filtered points of every frame in the world frame.
+
+    Returns ``(xyz [M, 3] float64 world, rgb [M, 3] float32 in [0, 1])``, voxel-downsampled.
+    """
+    xyz_all, rgb_all = [], []
+    for k in range(len(prediction)):
+        valid = prediction.valid_mask(k, options.min_conf)
+        if valid.sum() == 0:
+            continue
+        conf = prediction.depth_conf[k]
+        valid &= conf >= np.quantile(conf[valid], options.conf_quantile)
+        h, w = valid.shape
+        colour = images[k] if images[k].shape[:2] == (h, w) else cv2.resize(images[k], (w, h), interpolation=cv2.INTER_AREA)
+        idx = np.flatnonzero(valid)
+        idx = idx[:: max(1, len(idx) // options.max_points_per_frame)]
+        xyz_all.append(prediction.world_points(k).reshape(-1, 3)[idx])
+        rgb_all.append(colour.reshape(-1, 3)[idx].astype(np.float32) / 255.0)
+    if not xyz_all:
+        return np.zeros((0, 3)), np.zeros((0, 3), np.float32)
+    return downsample(np.concatenate(xyz_all), np.concatenate(rgb_all), options)
+
+
+def downsample(xyz: np.ndarray, rgb: np.ndarray, options: FuseOptions = FuseOptions()) -> tuple[np.ndarray, np.ndarray]:
+    """Voxel-downsample (voxel from the 2-98% extent) and drop statistical outliers, with open3d."""
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz.astype(np.float64)))
+    cloud.colors = o3d.utility.Vector3dVector(np.clip(rgb, 0, 1).astype(np.float64))
+    lo, hi = np.quantile(xyz, [0.02, 0.98], axis=0)
+    voxel = float(np.linalg.norm(hi - lo)) * options.voxel_fraction
+    if voxel > 0:
+        cloud = cloud.voxel_down_sample(voxel)
+    if options.remove_outliers and len(cloud.points) > 50:
+        cloud, _ = cloud.remove_statistical_outlier(nb_neighbors=16, std_ratio=2.5)
+    return np.asarray(cloud.points), np.asarray(cloud.colors, dtype=np.float32)
+
+
+def write_point_cloud(path: Path, xyz: np.ndarray, rgb: np.ndarray) -> Path:
+    """Binary PLY with float xyz and uchar colours (open3d writes it; trimesh and COLMAP read it)."""
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(xyz, np.float64)))
+    cloud.colors = o3d.utility.Vector3dVector(np.clip(np.asarray(rgb, np.float64), 0, 1))
+    if not o3d.io.write_point_cloud(str(path), cloud, write_ascii=False):
+        raise OSError(f"open3d could not write {path}")
+    return path
+
+
+def write_depth_maps(folder: Path, prediction: Prediction) -> Path:
+    """Per frame: ``<name>.npz`` with ``depth``, ``depth_conf``, ``K`` (for the depth grid) and ``cam_from_world``."""
+    folder.mkdir(parents=True, exist_ok=True)
+    for k, name in enumerate(prediction.names):
+        np.savez_compressed(folder / f"{Path(name).stem}.npz", depth=prediction.depth[k], depth_conf=prediction.depth_conf[k], K=prediction.depth_camera(k).K, cam_from_world=prediction.cam_from_world[k])
+    return folder

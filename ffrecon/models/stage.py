@@ -1,0 +1,74 @@
+"""The feed-forward pose stage: ONNX model in, cameras, depth and point maps out."""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ffrecon.capture import Capture
+from ffrecon.export.pointcloud import FuseOptions, fuse_prediction, write_depth_maps, write_point_cloud
+from ffrecon.models.multiview import MultiviewOptions, predict_multiview
+from ffrecon.models.runner import MULTIVIEW_INPUT, OnnxModel
+from ffrecon.sfm.colmap_io import reconstruction_from_cameras, write_reconstruction
+from ffrecon.types import ModelFamily, Prediction
+
+log = logging.getLogger("ffrecon.models")
+
+
+@dataclass(frozen=True, kw_only=True)
+class FeedForwardOptions:
+    threads: int = 0  # onnxruntime intra-op threads (0: all cores)
+    multiview: MultiviewOptions = field(default_factory=MultiviewOptions)
+    pairwise: object | None = None  # ffrecon.models.pairwise.PairwiseOptions (None: its defaults)
+    fuse: FuseOptions = field(default_factory=FuseOptions)
+
+
+@dataclass(frozen=True)
+class FeedForwardResult:
+    prediction: Prediction
+    points_xyz: np.ndarray  # [M, 3] fused, world frame of the model
+    points_rgb: np.ndarray  # [M, 3] float in [0, 1]
+    sparse_dir: Path
+    seconds: float
+    providers: tuple[str, ...]
+
+    def to_report(self) -> dict:
+        m = self.prediction.model
+        return {
+            "model": {"path": m.path, "family": m.family.value, "simulated": m.simulated, "description": m.description, "providers": list(self.providers)},
+            "num_frames": len(self.prediction),
+            "num_points": int(len(self.points_xyz)),
+            "seconds": self.seconds,
+            "cameras": [{"name": n, "fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy, "width": c.width, "height": c.height} for n, c in zip(self.prediction.names, self.prediction.cameras)],
+        }
+
+
+def predict(model: OnnxModel, capture: Capture, options: FeedForwardOptions) -> Prediction:
+    """Run the model's family adapter on every frame of the capture."""
+    images = [f.image for f in capture.frames]
+    names = list(capture.names)
+    if model.family is ModelFamily.MULTIVIEW:
+        return predict_multiview(images, names, lambda batch: model.run({MULTIVIEW_INPUT: batch}), model.info(), options.multiview)
+    from ffrecon.models import pairwise  # imported lazily: the pairwise path pulls in the torch aligner
+
+    pw_options = options.pairwise or pairwise.PairwiseOptions()
+    return pairwise.predict_pairwise(images, lambda v1, v2: model.run({"view1": v1, "view2": v2}), pw_options, names=names, model=model.info())
+
+
+def run_feedforward(capture: Capture, model_path: Path, options: FeedForwardOptions, out_dir: Path) -> FeedForwardResult:
+    """Predict, then write ``out_dir/feedforward/{sparse,depth}`` and return the prediction."""
+    start = time.perf_counter()
+    model = OnnxModel(model_path, threads=options.threads)
+    log.info("feed-forward model %s (%s%s) on %d frames", Path(model_path).name, model.family.value, ", SIMULATED" if model.simulated else "", len(capture.frames))
+    prediction = predict(model, capture, options)
+    xyz, rgb = fuse_prediction(prediction, [f.image for f in capture.frames], options.fuse)
+    ff_dir = Path(out_dir) / "feedforward"
+    rec = reconstruction_from_cameras(prediction.names, prediction.cam_from_world, prediction.cameras, xyz, rgb)
+    sparse_dir = write_reconstruction(rec, ff_dir / "sparse")
+    write_point_cloud(ff_dir / "points.ply", xyz, rgb)
+    write_depth_maps(ff_dir / "depth", prediction)
+    return FeedForwardResult(prediction, xyz, rgb, sparse_dir, time.perf_counter() - start, model.providers)
