@@ -1,0 +1,41 @@
+# Two commands do everything on a fresh machine:  make demo   and   make test
+# Each sets up on first use what it needs (Debian's libusb for open3d, a virtual environment,
+# torch 2.13.0 CPU first so nothing pulls a CUDA build, then ffrecon with its test extras).
+
+PYTHON ?= python3
+VENV ?= .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.ffrecon-installed
+DEMO_OUT ?= demo_out
+
+.PHONY: demo test test-fast setup clean bench
+
+setup: $(STAMP)
+
+$(STAMP): pyproject.toml
+	@if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so'; then \
+		echo "installing Debian's libusb-1.0-0 (open3d needs it)"; \
+		SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
+		$$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq libusb-1.0-0; \
+	fi
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q torch==2.13.0
+	$(PY) -m pip install -q -e '.[test]'
+	@touch $(STAMP)
+
+demo: $(STAMP)
+	$(VENV)/bin/ffrecon demo -o $(DEMO_OUT) --overwrite
+
+test: $(STAMP)
+	$(PY) -m pytest
+
+test-fast: $(STAMP)
+	$(PY) -m pytest -m "not slow"
+
+bench: $(STAMP)
+	$(PY) tools/bench_refine.py
+	$(PY) tools/bench_splat.py
+
+clean:
+	rm -rf $(VENV) $(DEMO_OUT) .pytest_cache

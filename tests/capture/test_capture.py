@@ -1,0 +1,125 @@
+"""Capture: formats, bit depths, EXIF orientation and focal length, video frames, bad input."""
+
+import cv2
+import numpy as np
+import pytest
+from PIL import Image, ImageOps
+
+from ffrecon.capture import CaptureOptions, run_capture
+from ffrecon.capture.images import load_image
+from ffrecon.capture.video import extract_video_frames
+from ffrecon.errors import InputError
+
+
+def _pattern(h=60, w=80, seed=0):
+    rng = np.random.default_rng(seed)
+    img = cv2.resize(rng.integers(0, 255, (h // 4, w // 4, 3), dtype=np.uint8), (w, h), interpolation=cv2.INTER_CUBIC)
+    return img
+
+
+@pytest.mark.parametrize("ext", [".jpg", ".png", ".tif", ".webp", ".bmp"])
+def test_formats_load_as_rgb8(tmp_path, ext):
+    rgb = _pattern()
+    path = tmp_path / f"a{ext}"
+    Image.fromarray(rgb).save(path, **({"quality": 100} if ext == ".jpg" else {"lossless": True} if ext == ".webp" else {}))
+    out, focal, converted = load_image(path)
+    assert out.shape == rgb.shape and out.dtype == np.uint8 and focal is None and not converted
+    if ext == ".jpg":  # lossy: compare with Pillow's decode of the same file (decoders differ by rounding)
+        with Image.open(path) as ref:
+            diff = np.abs(out.astype(int) - np.asarray(ref.convert("RGB")).astype(int))
+        assert diff.mean() < 1.0 and diff.max() <= 8
+    else:
+        assert np.array_equal(out, rgb)
+
+
+def test_grayscale_rgba_and_16bit(tmp_path):
+    rgb = _pattern()
+    gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+    cv2.imwrite(str(tmp_path / "g.png"), gray)
+    out, _, converted = load_image(tmp_path / "g.png")
+    assert converted and out.shape == rgb.shape and np.array_equal(out[..., 0], gray) and np.array_equal(out[..., 1], gray)
+    # RGBA: fully transparent pixels become white, opaque ones keep their colour.
+    rgba = np.dstack([rgb, np.full(rgb.shape[:2], 255, np.uint8)])
+    rgba[:10, :, 3] = 0
+    Image.fromarray(rgba).save(tmp_path / "a.png")
+    out, _, converted = load_image(tmp_path / "a.png")
+    assert converted and np.all(out[:10] == 255) and np.array_equal(out[10:], rgb[10:])
+    # 16-bit RGB TIFF: scaled to 8 bits.
+    rgb16 = rgb.astype(np.uint16) * 257
+    cv2.imwrite(str(tmp_path / "d.tif"), cv2.cvtColor(rgb16, cv2.COLOR_RGB2BGR))
+    out, _, converted = load_image(tmp_path / "d.tif")
+    assert converted and np.array_equal(out, rgb)
+
+
+@pytest.mark.parametrize("orientation", range(1, 9))
+def test_exif_orientation_matches_pil(tmp_path, orientation):
+    rgb = _pattern(40, 70)
+    img = Image.fromarray(rgb)
+    exif = img.getexif()
+    exif[0x0112] = orientation
+    path = tmp_path / "o.png"
+    img.save(path, exif=exif)
+    out, _, converted = load_image(path)
+    with Image.open(path) as ref:
+        expected = np.asarray(ImageOps.exif_transpose(ref).convert("RGB"))
+    assert np.array_equal(out, expected)
+    assert converted == (orientation != 1)
+
+
+def test_exif_focal_35mm_gives_pixels(tmp_path):
+    img = Image.fromarray(_pattern(60, 80))
+    exif = img.getexif()
+    exif.get_ifd(0x8769)[0xA405] = 24  # 24 mm equivalent
+    path = tmp_path / "f.jpg"
+    img.save(path, exif=exif, quality=95)
+    _, focal, _ = load_image(path)
+    assert focal == pytest.approx(24 / 36 * 80)
+
+
+def test_video_keeps_sharpest_frame_per_window(tmp_path):
+    path = tmp_path / "clip.avi"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10, (80, 60))
+    base = cv2.cvtColor(_pattern(), cv2.COLOR_RGB2BGR)
+    sharp_index = {0: 2, 1: 7}  # in each window of 5 frames, one sharp frame
+    for k in range(10):
+        frame = base if k in sharp_index.values() else cv2.GaussianBlur(base, (0, 0), 3)
+        writer.write(frame)
+    writer.release()
+    frames = extract_video_frames(path, 2)
+    assert [n for n, _ in frames] == ["clip_000002.png", "clip_000007.png"]
+
+
+def test_folder_capture_writes_images_and_flags_blur(tmp_path):
+    src = tmp_path / "in"
+    src.mkdir()
+    for k in range(4):
+        img = _pattern(120, 160, seed=k)
+        if k == 2:
+            img = cv2.GaussianBlur(img, (0, 0), 6)
+        Image.fromarray(img).save(src / f"im{k}.png")
+    cap = run_capture(src, CaptureOptions(), tmp_path / "out")
+    assert cap.names == ("im0.png", "im1.png", "im2.png", "im3.png")
+    assert all((tmp_path / "out" / "images" / n).is_file() for n in cap.names)
+    assert cap.quality.flagged("blur") == ["im2.png"]
+
+
+def test_bad_inputs_have_clear_messages(tmp_path):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(InputError, match="no images found"):
+        run_capture(empty, CaptureOptions(), tmp_path / "o1")
+    mixed = tmp_path / "mixed"
+    mixed.mkdir()
+    Image.fromarray(_pattern()).save(mixed / "a.png")
+    (mixed / "notes.txt").write_text("hello")
+    with pytest.raises(InputError, match="not images.*notes.txt") as err:
+        run_capture(mixed, CaptureOptions(), tmp_path / "o2")
+    assert "--skip-bad-images" in err.value.fix
+    (mixed / "broken.jpg").write_bytes(b"\xff\xd8\xff\xe0 not really a jpeg")
+    cap = run_capture(mixed, CaptureOptions(skip_bad_images=True), tmp_path / "o3")
+    assert cap.names == ("a.png",) and {n for n, _ in cap.skipped} == {"notes.txt", "broken.jpg"}
+    (mixed / "notes.txt").unlink()
+    with pytest.raises(InputError, match="cannot decode image broken.jpg"):
+        run_capture(mixed, CaptureOptions(), tmp_path / "o4")
+    with pytest.raises(InputError, match="not found"):
+        run_capture(tmp_path / "missing", CaptureOptions(), tmp_path / "o5")
