@@ -30,6 +30,14 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--chunk-overlap", type=int, default=None, help="frames shared by consecutive chunks (default 4)")
     p.add_argument("--preprocess", choices=["crop", "pad"], default="crop", help="VGGT preprocessing mode")
     p.add_argument("--threads", type=int, default=0, help="CPU threads for inference (0: all)")
+    p.add_argument("--no-colmap", action="store_true", help="skip the COLMAP cross-check")
+    p.add_argument("--no-refine", action="store_true", help="skip the bundle-adjustment refinement")
+    p.add_argument("--no-splat", action="store_true", help="skip the Gaussian splat")
+    p.add_argument("--force", action="store_true", help="go on past failed verification gates")
+    p.add_argument("--min-registration", type=float, default=None, help="registration-ratio gate (default 0.85)")
+    p.add_argument("--splat-seconds", type=float, default=None, help="splat optimisation budget in seconds (default 120)")
+    p.add_argument("--mesh", action="store_true", help="also write a Poisson mesh (mesh.ply, mesh.glb) from the point cloud")
+    p.add_argument("--reference", type=Path, default=None, help="a reference COLMAP model to score the cameras against")
     p.add_argument("-v", "--verbose", action="count", default=0)
     p.add_argument("-q", "--quiet", action="store_true")
 
@@ -68,12 +76,33 @@ def _run_options(args: argparse.Namespace, ground_truth: Path | None = None):
     if args.chunk_overlap:
         mv_kwargs["chunk_overlap"] = args.chunk_overlap
     capture = CaptureOptions(video_frames=getattr(args, "video_frames", 48), skip_bad_images=getattr(args, "skip_bad_images", False))
+    extra = {}
+    if args.no_colmap:
+        extra["colmap"] = None
+    if args.no_refine:
+        extra["refine"] = None
+    if args.no_splat:
+        extra["splat"] = None
+    else:
+        from ffrecon.splat import SplatOptions
+
+        splat_kwargs = {"mesh": args.mesh}
+        if args.splat_seconds is not None:
+            splat_kwargs["max_seconds"] = args.splat_seconds
+        extra["splat"] = SplatOptions(**splat_kwargs)
+    if args.min_registration is not None:
+        from ffrecon.sfm.gates import GateOptions
+
+        extra["gates"] = GateOptions(min_registration_ratio=args.min_registration)
     return RunOptions(
         capture=capture,
         feedforward=FeedForwardOptions(threads=args.threads, multiview=MultiviewOptions(**mv_kwargs)),
         overwrite=args.overwrite,
+        force=args.force,
         ground_truth=ground_truth,
+        reference=args.reference,
         command=shlex.join(["ffrecon", *sys.argv[1:]]),
+        **extra,
     )
 
 

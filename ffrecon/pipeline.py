@@ -1,4 +1,8 @@
-"""run(...) chains the stages: Capture -> Pose (feed-forward, COLMAP) -> Refine -> Splat -> Export/Report."""
+"""run(...) chains the stages: Capture -> Pose (feed-forward, COLMAP) -> Refine -> Splat -> Export/Report.
+
+Every stage writes under the staging folder (see :mod:`ffrecon.workspace`); OUT is replaced only
+when the run ends with a report, so failures never destroy earlier results.
+"""
 
 from __future__ import annotations
 
@@ -8,24 +12,53 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from ffrecon import __version__
-from ffrecon.capture import CaptureOptions, run_capture
+from ffrecon.capture import Capture, CaptureOptions, run_capture
+from ffrecon.errors import GateFailed
 from ffrecon.export.nerfstudio import write_transforms
 from ffrecon.export.pointcloud import write_point_cloud
 from ffrecon.export.report import ReportBuilder
-from ffrecon.models.stage import FeedForwardOptions, run_feedforward
-from ffrecon.report_sections import add_capture, add_feedforward, finish_report
+from ffrecon.models.stage import FeedForwardOptions, FeedForwardResult, run_feedforward
+from ffrecon import report_sections as sections
 from ffrecon.workspace import staged_output
 
 log = logging.getLogger("ffrecon")
 
 
+def _default_colmap():
+    from ffrecon.sfm.crosscheck import ColmapOptions
+
+    return ColmapOptions()
+
+
+def _default_refine():
+    from ffrecon.sfm.refine import RefineOptions
+
+    return RefineOptions()
+
+
+def _default_splat():
+    from ffrecon.splat import SplatOptions
+
+    return SplatOptions()
+
+
 @dataclass(frozen=True, kw_only=True)
 class RunOptions:
+    """What to run. A stage whose options are None is skipped (and the report says so)."""
+
     capture: CaptureOptions = field(default_factory=CaptureOptions)
     feedforward: FeedForwardOptions = field(default_factory=FeedForwardOptions)
+    colmap: object | None = field(default_factory=_default_colmap)  # sfm.crosscheck.ColmapOptions
+    gates: object | None = None  # sfm.gates.GateOptions (None: defaults)
+    refine: object | None = field(default_factory=_default_refine)  # sfm.refine.RefineOptions
+    splat: object | None = field(default_factory=_default_splat)  # splat.SplatOptions
+    force: bool = False  # go on past failed gates
     overwrite: bool = False
     ground_truth: Path | None = None  # a synthetic scene folder (ground_truth.json) to score against
+    reference: Path | None = None  # a reference COLMAP model to score against
     command: str = ""  # the command line, recorded in the report
 
 
@@ -36,33 +69,83 @@ class RunResult:
     exit_code: int = 0
 
 
-def run(source: Path, out_dir: Path, model: Path, options: RunOptions = RunOptions()) -> RunResult:
-    """Reconstruct ``source`` (folder of photos or a video) with ``model`` into ``out_dir``."""
-    report = ReportBuilder()
-    report.data.update({"ffrecon_version": __version__, "created": dt.datetime.now().isoformat(timespec="seconds"), "command": options.command, "skipped_stages": [], "timings": {}})
-    with staged_output(Path(out_dir), overwrite=options.overwrite) as work:
-        t0 = time.perf_counter()
-        capture = run_capture(Path(source), options.capture, work)
-        report.data["timings"]["capture"] = time.perf_counter() - t0
-        add_capture(report, capture)
+def _timed(report: ReportBuilder, name: str, fn, *args, **kwargs):
+    start = time.perf_counter()
+    result = fn(*args, **kwargs)
+    report.data["timings"][name] = time.perf_counter() - start
+    return result
 
+
+def _skip(report: ReportBuilder, stage: str, reason: str) -> None:
+    log.info("skipping %s: %s", stage, reason)
+    report.data["skipped_stages"].append({"stage": stage, "reason": reason})
+
+
+def _focal_prior(capture: Capture, ff: FeedForwardResult) -> list[float]:
+    """Per-image focal prior for COLMAP: EXIF where known, else the feed-forward model's."""
+    return [f.focal_prior_px or float(np.sqrt(c.fx * c.fy)) for f, c in zip(capture.frames, ff.prediction.cameras)]
+
+
+def run(source: Path, out_dir: Path, model: Path, options: RunOptions | None = None) -> RunResult:
+    """Reconstruct ``source`` (folder of photos or a video) with ``model`` into ``out_dir``."""
+    options = options or RunOptions()
+    report = ReportBuilder()
+    report.data.update({"ffrecon_version": __version__, "created": dt.datetime.now().isoformat(timespec="seconds"), "command": options.command, "skipped_stages": [], "timings": {}, "forced": options.force})
+    exit_code = 0
+    with staged_output(Path(out_dir), overwrite=options.overwrite) as work:
+        capture = _timed(report, "capture", run_capture, Path(source), options.capture, work)
+        sections.add_capture(report, capture)
         ff = run_feedforward(capture, Path(model), options.feedforward, work)
         report.data["timings"]["feedforward"] = ff.seconds
-        add_feedforward(report, ff, capture)
+        sections.add_feedforward(report, ff, capture)
+        truth = sections.load_references(options.ground_truth, options.reference, capture.names)
 
-        if len(capture.frames) < 2:
+        final_cam_from_world, final_cameras = ff.prediction.cam_from_world, ff.prediction.cameras
+        seed_xyz, seed_rgb = ff.points_xyz, ff.points_rgb
+        multi = len(capture.frames) >= 2
+        if not multi:
             for stage in ("colmap cross-check", "pose comparison", "refinement"):
-                report.data["skipped_stages"].append({"stage": stage, "reason": "needs two or more views; this run has one photo (its depth, camera and point cloud are still produced)"})
+                _skip(report, stage, "needs two or more views; this run has one photo (its depth, camera and point cloud are still produced)")
+        colmap = None
+        if multi and options.colmap is not None:
+            from ffrecon.sfm.crosscheck import run_colmap
+
+            colmap = _timed(report, "colmap", run_colmap, capture.image_dir, capture.names, options.colmap, work / "colmap", focal_prior_px=_focal_prior(capture, ff))
+            sections.add_colmap(report, colmap, ff)
+        elif multi:
+            _skip(report, "colmap cross-check", "turned off (--no-colmap)")
+
+        if multi:
+            verdicts = sections.add_gates(report, capture, ff, colmap, options.gates)
+            failed = [v for v in verdicts if v.status.value == "fail"]
+            if failed and not options.force:
+                for stage in ("refinement", "splat"):
+                    _skip(report, stage, f"gate '{failed[0].name}' failed: {failed[0].reason}")
+                exit_code = GateFailed.exit_code
+        refined = None
+        if multi and exit_code == 0 and options.refine is not None:
+            from ffrecon.sfm.refine import run_refine
+
+            refined = _timed(report, "refine", run_refine, capture.image_dir, ff.prediction, options.refine, work)
+            sections.add_refine(report, refined)
+            keep = refined.registered
+            if keep.sum() >= 2:
+                final_cam_from_world, final_cameras = refined.cam_from_world, refined.cameras
+        elif multi and exit_code == 0:
+            _skip(report, "refinement", "turned off (--no-refine)")
+        sections.add_pose_comparisons(report, capture, ff, colmap, refined, truth)
+
+        if exit_code == 0 and options.splat is not None:
+            from ffrecon.splat import run_splat
+
+            splat = _timed(report, "splat", run_splat, [f.image for f in capture.frames], capture.names, final_cam_from_world, final_cameras, seed_xyz, seed_rgb, options.splat, work)
+            sections.add_splat(report, splat)
+        elif exit_code == 0:
+            _skip(report, "splat", "turned off (--no-splat)")
 
         write_point_cloud(work / "points.ply", ff.points_xyz, ff.points_rgb)
-        write_transforms(work / "transforms.json", [f"images/{n}" for n in capture.names], ff.prediction.cam_from_world, ff.prediction.cameras, ply_file_path="points.ply")
-        report.data["outputs"] = {
-            "feed-forward COLMAP model": "feedforward/sparse",
-            "feed-forward depth maps": "feedforward/depth",
-            "nerfstudio transforms": "transforms.json",
-            "point cloud": "points.ply",
-            "images": "images",
-        }
-        finish_report(report, ok_message=f"{len(capture.frames)} frame(s) reconstructed")
+        write_transforms(work / "transforms.json", [f"images/{n}" for n in capture.names], final_cam_from_world, final_cameras, ply_file_path="points.ply")
+        sections.add_outputs(report, work)
+        sections.finish_report(report, ok_message=f"{len(capture.frames)} frame(s) reconstructed")
         report.write(work)
-    return RunResult(Path(out_dir), report.data)
+    return RunResult(Path(out_dir), report.data, exit_code)

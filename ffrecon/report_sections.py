@@ -2,10 +2,17 @@
 
 from __future__ import annotations
 
+import logging
+from pathlib import Path
+
+import numpy as np
+
 from ffrecon.capture import Capture
 from ffrecon.export.report import ReportBuilder, depth_preview
+from ffrecon.geometry.metrics import pose_errors
 from ffrecon.models.stage import FeedForwardResult
 
+log = logging.getLogger("ffrecon")
 MAX_THUMBNAILS = 12
 
 
@@ -25,19 +32,126 @@ def add_feedforward(report: ReportBuilder, ff: FeedForwardResult, capture: Captu
         report.add_image("feedforward", f"{pred.names[k]} depth", depth_preview(pred.depth[k]), 160)
 
 
+def load_references(ground_truth: Path | None, reference: Path | None, names) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Reference poses by label: ``{"ground truth": (cam_from_world [N,3,4], registered [N])}``."""
+    refs = {}
+    if ground_truth is not None:
+        from ffrecon.synthetic import load_scene
+
+        scene = load_scene(Path(ground_truth))
+        index = {n: k for k, n in enumerate(scene.names)}
+        have = np.array([n in index for n in names])
+        poses = np.stack([scene.cam_from_world[index[n]] if n in index else np.eye(3, 4) for n in names])
+        refs["ground truth"] = (poses, have)
+    if reference is not None:
+        import pycolmap
+
+        from ffrecon.sfm.colmap_io import cam_from_world_by_name
+
+        refs["reference model"] = cam_from_world_by_name(pycolmap.Reconstruction(str(reference)), names)
+    return refs
+
+
+def add_colmap(report: ReportBuilder, colmap, ff: FeedForwardResult) -> None:
+    report.data["colmap"] = colmap.to_report()
+
+
+def add_gates(report: ReportBuilder, capture: Capture, ff: FeedForwardResult, colmap, options) -> list:
+    from ffrecon.sfm.gates import GateOptions, evaluate_gates
+
+    verdicts = evaluate_gates(capture=capture, prediction=ff.prediction, colmap=colmap, options=options or GateOptions())
+    report.data["gates"] = [v.to_report() for v in verdicts]
+    for v in verdicts:
+        (log.warning if v.status.value == "fail" else log.info)("gate %s: %s (%s)", v.name, v.status.value.upper(), v.reason)
+    return verdicts
+
+
+def add_refine(report: ReportBuilder, refined) -> None:
+    report.data["refine"] = refined.to_report()
+    report.data["refine_rows"] = [{"frame": w["name"], "status": "FLAGGED", "why": w["message"]} for w in report.data["refine"]["flagged"]]
+
+
+def _error_row(label: str, err) -> dict:
+    return {
+        "comparison": label,
+        "registered": f"{err.num_registered}/{err.num_images}",
+        **{f"RRA@{k}": err.rra[k] for k in err.rra},
+        **{f"RTA@{k}": err.rta[k] for k in err.rta},
+        **{f"AUC@{k}": err.auc[k] for k in err.auc},
+        "ATE": err.ate,
+        "ATE/extent": err.ate_relative,
+        "median rot (deg)": err.median_rotation_deg,
+    }
+
+
+def add_pose_comparisons(report: ReportBuilder, capture: Capture, ff: FeedForwardResult, colmap, refined, truth: dict) -> dict:
+    """Pose error tables: feed-forward vs COLMAP, and every estimate vs each reference."""
+    names = list(capture.names)
+    estimates = {"feed-forward": (ff.prediction.cam_from_world, np.ones(len(names), bool))}
+    if colmap is not None and colmap.num_registered >= 2:
+        estimates["COLMAP"] = (colmap.cam_from_world, colmap.registered)
+    if refined is not None:
+        estimates["refined"] = (refined.cam_from_world, refined.registered)
+    results, rows = {}, []
+    if "COLMAP" in estimates:
+        poses, reg = estimates["COLMAP"]
+        err = pose_errors(ff.prediction.cam_from_world, poses, reg)
+        results["feedforward_vs_colmap"] = err.to_dict()
+        rows.append(_error_row("feed-forward vs COLMAP", err))
+    for ref_label, (ref_poses, ref_have) in truth.items():
+        for est_label, (poses, reg) in estimates.items():
+            err = pose_errors(poses, ref_poses, reg & ref_have)
+            results[f"{est_label}_vs_{ref_label}".replace(" ", "_").replace("-", "")] = err.to_dict()
+            rows.append(_error_row(f"{est_label} vs {ref_label}", err))
+    report.data["pose_errors"] = results
+    report.data["pose_error_rows"] = rows
+    return results
+
+
+def add_splat(report: ReportBuilder, splat) -> None:
+    data = splat.to_report()
+    report.data["splat"] = data
+
+
+def add_outputs(report: ReportBuilder, work: Path) -> None:
+    candidates = {
+        "refined COLMAP model (use this)": "sparse/0",
+        "COLMAP cross-check model": "colmap/sparse/0",
+        "feed-forward COLMAP model": "feedforward/sparse",
+        "feed-forward depth maps": "feedforward/depth",
+        "nerfstudio transforms": "transforms.json",
+        "point cloud": "points.ply",
+        "Gaussian splat": "splat.ply",
+        "fly-through video": "flythrough.mp4",
+        "mesh": "mesh.glb",
+        "held-out renders": "renders",
+        "images": "images",
+    }
+    report.data["outputs"] = {k: v for k, v in candidates.items() if (work / v).exists()}
+
+
 def finish_report(report: ReportBuilder, *, ok_message: str) -> None:
     """Verdict, summary and timing rows from what the stages recorded."""
     data = report.data
     failed = [g for g in data.get("gates", []) if g.get("status") == "FAIL"]
     if failed and not data.get("forced"):
-        data["verdict"] = {"status": "gate_failed", "message": "; ".join(g["reason"] for g in failed)}
+        data["verdict"] = {"status": "gate_failed", "message": "; ".join(f"{g['name']}: {g['reason']} — {g.get('fix', '')}" for g in failed)}
     else:
-        data["verdict"] = {"status": "ok", "message": ok_message}
+        data["verdict"] = {"status": "ok", "message": ok_message + (" (failed gates forced past)" if failed else "")}
     ff = data.get("feedforward", {})
-    data["summary_rows"] = [
+    rows = [
         {"item": "frames", "value": data.get("inputs", {}).get("num_frames")},
-        {"item": "model", "value": f"{ff.get('model', {}).get('path')} ({ff.get('model', {}).get('family')}{', simulated' if ff.get('model', {}).get('simulated') else ''})"},
+        {"item": "model", "value": f"{Path(ff.get('model', {}).get('path', '?')).name} ({ff.get('model', {}).get('family')}{', SIMULATED' if ff.get('model', {}).get('simulated') else ''})"},
         {"item": "fused points", "value": ff.get("num_points")},
-        *data.get("extra_summary_rows", []),
     ]
+    if "colmap" in data:
+        rows.append({"item": "COLMAP registered", "value": f"{data['colmap']['num_registered']}/{data['colmap']['num_images']}"})
+    if "refine" in data:
+        rows.append({"item": "refined frames", "value": f"{data['refine']['num_refined']}/{data['refine']['num_images']} (reprojection {data['refine'].get('mean_reprojection_error_px') or float('nan'):.2f} px)"})
+    for key, err in data.get("pose_errors", {}).items():
+        rows.append({"item": f"AUC@5 {key.replace('_', ' ')}", "value": f"{err['AUC@5']:.3f} (median rot {err['median_rotation_deg']:.3f} deg)"})
+    if "splat" in data:
+        s = data["splat"]
+        rows.append({"item": "splat held-out PSNR", "value": f"{s.get('psnr_seed', float('nan')):.2f} -> {s.get('psnr', float('nan')):.2f} dB"})
+    data["summary_rows"] = rows
     data["timing_rows"] = [{"stage": k, "seconds": v} for k, v in data.get("timings", {}).items()]

@@ -1,0 +1,25 @@
+"""Shared fixtures: synthetic scenes with ground truth, the simulated model, tiny models."""
+
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+MODELS = REPO / "models"
+
+
+@pytest.fixture(scope="session")
+def demo_cache(tmp_path_factory):
+    """A private FFRECON_CACHE so tests never read or write the user's cache."""
+    return tmp_path_factory.mktemp("ffrecon-cache")
+
+
+@pytest.fixture(scope="session")
+def small_demo(demo_cache):
+    """8 frames at 224x168 with the simulated model (fast): DemoInputs."""
+    import os
+
+    from ffrecon.demo import DemoOptions, prepare_demo
+
+    os.environ["FFRECON_CACHE"] = str(demo_cache)
+    return prepare_demo(DemoOptions(num_frames=8, width=224, height=168, seed=1))

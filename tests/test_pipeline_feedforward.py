@@ -1,0 +1,135 @@
+"""Issue 2 end to end: photos -> feed-forward cameras, depth, point maps -> COLMAP / nerfstudio / PLY."""
+
+import json
+import shutil
+
+import numpy as np
+import open3d as o3d
+import pycolmap
+import pytest
+import trimesh
+
+from ffrecon.cli import main
+from ffrecon.geometry.metrics import pose_errors
+from ffrecon.geometry.poses import camera_centers
+from ffrecon.geometry.rotations import rotation_angle_deg
+from ffrecon.models.multiview import MultiviewOptions, predict_multiview
+from ffrecon.models.runner import MULTIVIEW_INPUT, OnnxModel
+from ffrecon.pipeline import RunOptions, run
+from ffrecon.synthetic import SceneOptions, make_scene
+from ffrecon.synthetic.simulated_model import SimulationOptions, build_simulated_vggt
+from tests.onnx_builders import vggt_like
+
+FF_ONLY = dict(colmap=None, refine=None, splat=None)
+
+
+@pytest.fixture(scope="module")
+def simulated(tmp_path_factory):
+    """A 12-frame scene, its simulated model and what the model injects."""
+    folder = tmp_path_factory.mktemp("sim")
+    scene = make_scene(SceneOptions(num_frames=12, width=224, height=168, seed=3))
+    truth = build_simulated_vggt(scene, folder / "sim.onnx", SimulationOptions(seed=3, bad_frames=(5,)))
+    return scene, truth, OnnxModel(folder / "sim.onnx")
+
+
+def _predict(model, scene, **kw):
+    infer = lambda batch: model.run({MULTIVIEW_INPUT: batch})  # noqa: E731
+    return predict_multiview(list(scene.images), list(scene.names), infer, model.info(), MultiviewOptions(**kw))
+
+
+def test_pose_error_through_onnx_equals_injected_error(simulated):
+    scene, truth, model = simulated
+    pred = _predict(model, scene)
+    assert model.simulated and pred.model.simulated
+    measured = pose_errors(pred.cam_from_world, scene.cam_from_world)
+    injected = pose_errors(truth.cam_from_world, scene.cam_from_world)
+    np.testing.assert_allclose(measured.per_image_rotation_deg, injected.per_image_rotation_deg, atol=0.02)
+    assert measured.auc[5] == pytest.approx(injected.auc[5], abs=0.02)
+    assert injected.per_image_rotation_deg.max() > 10, "the injected bad frame shows up"
+    # Intrinsics come back in original pixels with the injected focal error.
+    np.testing.assert_allclose([c.fx for c in pred.cameras], truth.K[:, 0, 0], rtol=1e-3)
+
+
+def test_chunked_prediction_agrees_with_one_call(simulated):
+    scene, _, model = simulated
+    whole = _predict(model, scene, chunk_size=16)
+    chunked = _predict(model, scene, chunk_size=4, chunk_overlap=2)
+    # Both live in frame 0's world; the chunk Sim(3)s must bring scale and frame back exactly.
+    rot_diff = rotation_angle_deg(np.swapaxes(whole.cam_from_world[:, :, :3], 1, 2) @ chunked.cam_from_world[:, :, :3])
+    assert rot_diff.max() < 0.1
+    c_whole, c_chunk = camera_centers(whole.cam_from_world), camera_centers(chunked.cam_from_world)
+    assert np.abs(c_whole - c_chunk).max() < 1e-3 * np.ptp(c_whole, axis=0).max()
+
+
+def test_outputs_open_in_colmap_nerfstudio_open3d_trimesh(small_demo, tmp_path):
+    out = tmp_path / "out"
+    result = run(small_demo.images, out, small_demo.model, RunOptions(**FF_ONLY))
+    rec = pycolmap.Reconstruction(str(out / "feedforward" / "sparse"))
+    names = sorted(p.name for p in small_demo.images.iterdir())
+    assert sorted(im.name for im in rec.images.values()) == names and rec.num_points3D() > 100
+    # transforms.json: nerfstudio fields; OpenGL camera (looks down -z, y up).
+    tf = json.loads((out / "transforms.json").read_text())
+    assert {"fl_x", "fl_y", "cx", "cy", "w", "h", "camera_model", "frames"} <= tf.keys()
+    assert len(tf["frames"]) == 8 and all((out / f["file_path"]).is_file() for f in tf["frames"])
+    cloud = o3d.io.read_point_cloud(str(out / "points.ply"))
+    pts = np.asarray(cloud.points)
+    assert len(pts) > 500 and cloud.has_colors()
+    for frame in tf["frames"]:
+        world_from_cam = np.array(frame["transform_matrix"])
+        cam = (pts - world_from_cam[:3, 3]) @ world_from_cam[:3, :3]  # points in the OpenGL camera
+        in_front = cam[:, 2] < 0
+        x = tf["fl_x"] * cam[in_front, 0] / -cam[in_front, 2] + tf["cx"]
+        y = tf["fl_y"] * -cam[in_front, 1] / -cam[in_front, 2] + tf["cy"]
+        visible = (x > 0) & (x < tf["w"]) & (y > 0) & (y < tf["h"])
+        assert visible.sum() > 0.1 * len(pts), "the cloud must project into every view as nerfstudio projects it"
+    mesh_cloud = trimesh.load(out / "points.ply")
+    assert len(mesh_cloud.vertices) == len(pts)
+    report = json.loads((out / "report.json").read_text())
+    assert report["feedforward"]["model"]["simulated"] is True
+    assert "Simulated model" in (out / "report.html").read_text()
+    assert result.exit_code == 0
+
+
+def test_single_photo_gives_depth_camera_and_cloud(small_demo, tmp_path):
+    one = tmp_path / "one"
+    one.mkdir()
+    shutil.copy(next(iter(sorted(small_demo.images.iterdir()))), one)
+    out = tmp_path / "out"
+    run(one, out, small_demo.model, RunOptions())
+    rec = pycolmap.Reconstruction(str(out / "feedforward" / "sparse"))
+    assert rec.num_images() == 1 and rec.num_points3D() > 100
+    report = json.loads((out / "report.json").read_text())
+    skipped = {s["stage"] for s in report["skipped_stages"]}
+    assert {"colmap cross-check", "refinement"} <= skipped
+    assert all("one photo" in s["reason"] for s in report["skipped_stages"])
+    assert len(list((out / "feedforward" / "depth").glob("*.npz"))) == 1
+
+
+def test_bad_models_and_existing_output_leave_results_intact(small_demo, tmp_path, capsys):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "report.json").write_text("{\"earlier\": true}")
+    # An existing OUT with results: refused, untouched.
+    assert main(["run", str(small_demo.images), "-o", str(out), "--model", str(small_demo.model)]) == 4
+    assert "already holds results" in capsys.readouterr().err
+    # A model whose outputs hold NaNs: refused even with --overwrite, OUT untouched.
+    nan_model = vggt_like(tmp_path / "nan.onnx", fill=float("nan"))
+    assert main(["run", str(small_demo.images), "-o", str(out), "--model", str(nan_model), "--overwrite"]) == 3
+    assert "non-finite" in capsys.readouterr().err
+    # A model with unknown inputs: the message names what was found and what was expected.
+    odd = vggt_like(tmp_path / "odd.onnx", input_name="pixels")
+    assert main(["run", str(small_demo.images), "-o", str(out), "--model", str(odd), "--overwrite"]) == 3
+    err = capsys.readouterr().err
+    assert "pixels" in err and "input_images" in err
+    # A file that is not ONNX at all.
+    junk = tmp_path / "junk.onnx"
+    junk.write_bytes(b"not a model")
+    assert main(["run", str(small_demo.images), "-o", str(out), "--model", str(junk), "--overwrite"]) == 3
+    assert json.loads((out / "report.json").read_text()) == {"earlier": True}
+    assert sorted(p.name for p in out.iterdir()) == ["report.json"]
+
+
+def test_inspect_model_prints_contract(small_demo, capsys):
+    assert main(["inspect-model", str(small_demo.model)]) == 0
+    text = capsys.readouterr().out
+    assert "multiview" in text and "SIMULATED" in text and "input_images" in text and "pose_enc" in text
