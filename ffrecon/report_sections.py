@@ -8,8 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from ffrecon.capture import Capture
-from ffrecon.export.report import ReportBuilder, depth_preview
-from ffrecon.geometry.metrics import pose_errors
+from ffrecon.export.report import Figure, ReportBuilder, depth_preview
 from ffrecon.models.stage import FeedForwardResult
 
 log = logging.getLogger("ffrecon")
@@ -59,10 +58,8 @@ def add_colmap(report: ReportBuilder, colmap, ff: FeedForwardResult) -> None:
 def add_gates(report: ReportBuilder, capture: Capture, ff: FeedForwardResult, colmap, options) -> list:
     from ffrecon.sfm.gates import GateOptions, evaluate_gates
 
-    verdicts = evaluate_gates(capture=capture, prediction=ff.prediction, colmap=colmap, options=options or GateOptions())
+    verdicts = evaluate_gates(colmap=colmap, prediction=ff.prediction, image_dir=capture.image_dir, options=options or GateOptions())
     report.data["gates"] = [v.to_report() for v in verdicts]
-    for v in verdicts:
-        (log.warning if v.status.value == "fail" else log.info)("gate %s: %s (%s)", v.name, v.status.value.upper(), v.reason)
     return verdicts
 
 
@@ -71,9 +68,10 @@ def add_refine(report: ReportBuilder, refined) -> None:
     report.data["refine_rows"] = [{"frame": w["name"], "status": "FLAGGED", "why": w["message"]} for w in report.data["refine"]["flagged"]]
 
 
-def _error_row(label: str, err) -> dict:
+def _error_row(comp) -> dict:
+    err = comp.errors
     return {
-        "comparison": label,
+        "comparison": f"{comp.estimate} vs {comp.reference}",
         "registered": f"{err.num_registered}/{err.num_images}",
         **{f"RRA@{k}": err.rra[k] for k in err.rra},
         **{f"RTA@{k}": err.rta[k] for k in err.rta},
@@ -81,31 +79,49 @@ def _error_row(label: str, err) -> dict:
         "ATE": err.ate,
         "ATE/extent": err.ate_relative,
         "median rot (deg)": err.median_rotation_deg,
+        "disagreeing": len(comp.disagreements),
     }
 
 
 def add_pose_comparisons(report: ReportBuilder, capture: Capture, ff: FeedForwardResult, colmap, refined, truth: dict) -> dict:
-    """Pose error tables: feed-forward vs COLMAP, and every estimate vs each reference."""
+    """Pose error: feed-forward vs COLMAP, every estimate vs each reference; plots and thumbnails."""
+    from ffrecon.export.plots import PathSeries, camera_paths_png, error_bars_png, up_from_cameras
+    from ffrecon.sfm.compare import compare_poses
+
     names = list(capture.names)
-    estimates = {"feed-forward": (ff.prediction.cam_from_world, np.ones(len(names), bool))}
+    n = len(names)
+    estimates = {"feed-forward": (ff.prediction.cam_from_world, np.ones(n, bool))}
     if colmap is not None and colmap.num_registered >= 2:
         estimates["COLMAP"] = (colmap.cam_from_world, colmap.registered)
     if refined is not None:
         estimates["refined"] = (refined.cam_from_world, refined.registered)
-    results, rows = {}, []
+    comparisons = []
     if "COLMAP" in estimates:
         poses, reg = estimates["COLMAP"]
-        err = pose_errors(ff.prediction.cam_from_world, poses, reg)
-        results["feedforward_vs_colmap"] = err.to_dict()
-        rows.append(_error_row("feed-forward vs COLMAP", err))
+        comparisons.append(compare_poses(ff.prediction.cam_from_world, poses, names, None, ref_registered=reg, estimate="feed-forward", reference="COLMAP"))
+    # Plots use the most trustworthy reference: ground truth, a reference model, else COLMAP.
+    primary: list = []
     for ref_label, (ref_poses, ref_have) in truth.items():
-        for est_label, (poses, reg) in estimates.items():
-            err = pose_errors(poses, ref_poses, reg & ref_have)
-            results[f"{est_label}_vs_{ref_label}".replace(" ", "_").replace("-", "")] = err.to_dict()
-            rows.append(_error_row(f"{est_label} vs {ref_label}", err))
-    report.data["pose_errors"] = results
-    report.data["pose_error_rows"] = rows
-    return results
+        group = [compare_poses(poses, ref_poses, names, reg, ref_registered=ref_have, estimate=est_label, reference=ref_label) for est_label, (poses, reg) in estimates.items()]
+        comparisons += group
+        primary = primary or group
+    primary = primary or comparisons[:1]
+    report.data["pose_errors"] = {f"{c.estimate}_vs_{c.reference}".replace(" ", "_").replace("-", "").lower(): c.to_report() for c in comparisons}
+    report.data["pose_error_rows"] = [_error_row(c) for c in comparisons]
+    if not primary or n < 2:
+        return report.data["pose_errors"]
+    ref = primary[0]
+    series = [PathSeries(ref.reference, ref.reference_centers)] + [PathSeries(c.estimate, c.aligned_centers) for c in primary]
+    ref_poses = truth[ref.reference][0] if ref.reference in truth else estimates["COLMAP"][0]
+    disagreeing = sorted({names.index(d) for c in primary for d in c.disagreeing})
+    report.add_figure("poses", Figure(f"Camera paths aligned to {ref.reference}", camera_paths_png(series, up=up_from_cameras(ref_poses), names=names, highlight=disagreeing), f"Top-down view of the camera centres, each set Sim(3)-aligned to {ref.reference}; red circles mark images that disagree."))
+    extent = float(np.linalg.norm(np.nanmax(ref.reference_centers, 0) - np.nanmin(ref.reference_centers, 0)))
+    report.add_figure("poses", Figure("Per-image error", error_bars_png(names, {c.estimate: c.per_image_rotation_deg for c in primary}, {c.estimate: c.per_image_center_error / max(extent, 1e-12) for c in primary}, rotation_threshold_deg=5.0, center_threshold=0.05, center_unit=f"fraction of the {ref.reference} camera extent"), f"Rotation and centre error of each image against {ref.reference}, after the Sim(3) alignment."))
+    for c in comparisons:
+        for d in c.disagreements[:MAX_THUMBNAILS]:
+            k = names.index(d.name)
+            report.add_image("poses", f"{d.name}: {c.estimate} vs {c.reference}: {d.reason}", capture.frames[k].image, 200)
+    return report.data["pose_errors"]
 
 
 def add_splat(report: ReportBuilder, splat) -> None:
@@ -133,7 +149,7 @@ def add_outputs(report: ReportBuilder, work: Path) -> None:
 def finish_report(report: ReportBuilder, *, ok_message: str) -> None:
     """Verdict, summary and timing rows from what the stages recorded."""
     data = report.data
-    failed = [g for g in data.get("gates", []) if g.get("status") == "FAIL"]
+    failed = [g for g in data.get("gates", []) if g.get("status") == "fail"]
     if failed and not data.get("forced"):
         data["verdict"] = {"status": "gate_failed", "message": "; ".join(f"{g['name']}: {g['reason']} — {g.get('fix', '')}" for g in failed)}
     else:
@@ -148,8 +164,9 @@ def finish_report(report: ReportBuilder, *, ok_message: str) -> None:
         rows.append({"item": "COLMAP registered", "value": f"{data['colmap']['num_registered']}/{data['colmap']['num_images']}"})
     if "refine" in data:
         rows.append({"item": "refined frames", "value": f"{data['refine']['num_refined']}/{data['refine']['num_images']} (reprojection {data['refine'].get('mean_reprojection_error_px') or float('nan'):.2f} px)"})
-    for key, err in data.get("pose_errors", {}).items():
-        rows.append({"item": f"AUC@5 {key.replace('_', ' ')}", "value": f"{err['AUC@5']:.3f} (median rot {err['median_rotation_deg']:.3f} deg)"})
+    for comp in data.get("pose_errors", {}).values():
+        m = comp["metrics"]
+        rows.append({"item": f"{comp['estimate']} vs {comp['reference']}", "value": f"AUC@5 {m['AUC@5']:.3f}, median rotation {m['median_rotation_deg'] or float('nan'):.3f} deg, ATE {m['ATE_relative'] or float('nan'):.2%} of extent"})
     if "splat" in data:
         s = data["splat"]
         rows.append({"item": "splat held-out PSNR", "value": f"{s.get('psnr_seed', float('nan')):.2f} -> {s.get('psnr', float('nan')):.2f} dB"})

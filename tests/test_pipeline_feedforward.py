@@ -77,9 +77,10 @@ def test_outputs_open_in_colmap_nerfstudio_open3d_trimesh(small_demo, tmp_path):
     for frame in tf["frames"]:
         world_from_cam = np.array(frame["transform_matrix"])
         cam = (pts - world_from_cam[:3, 3]) @ world_from_cam[:3, :3]  # points in the OpenGL camera
+        k = {key: frame.get(key, tf[key]) for key in ("fl_x", "fl_y", "cx", "cy")}  # per-frame overrides
         in_front = cam[:, 2] < 0
-        x = tf["fl_x"] * cam[in_front, 0] / -cam[in_front, 2] + tf["cx"]
-        y = tf["fl_y"] * -cam[in_front, 1] / -cam[in_front, 2] + tf["cy"]
+        x = k["fl_x"] * cam[in_front, 0] / -cam[in_front, 2] + k["cx"]
+        y = k["fl_y"] * -cam[in_front, 1] / -cam[in_front, 2] + k["cy"]
         visible = (x > 0) & (x < tf["w"]) & (y > 0) & (y < tf["h"])
         assert visible.sum() > 0.1 * len(pts), "the cloud must project into every view as nerfstudio projects it"
     mesh_cloud = trimesh.load(out / "points.ply")

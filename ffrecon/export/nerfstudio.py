@@ -31,12 +31,11 @@ def _intrinsics(cam: PinholeCamera) -> dict:
 def write_transforms(path: Path, file_paths: Sequence[str], cam_from_world: np.ndarray, cameras: Sequence[PinholeCamera], *, ply_file_path: str | None = None) -> Path:
     """Write transforms.json; ``file_paths`` are relative to the file's folder.
 
-    Shared intrinsics go at the top level; per-frame ones (when cameras differ) in each frame.
+    The first camera's intrinsics go at the top level (tools that read only those still work);
+    when cameras differ, each frame carries its own, which nerfstudio's dataparser prefers.
     """
     shared = all(c == cameras[0] for c in cameras)
-    out: dict = {"camera_model": "PINHOLE"}
-    if shared:
-        out.update(_intrinsics(cameras[0]))
+    out: dict = {"camera_model": "PINHOLE", **_intrinsics(cameras[0])}
     frames = []
     for fp, pose, cam in zip(file_paths, world_from_cam_opengl(cam_from_world), cameras, strict=True):
         frame = {"file_path": fp, "transform_matrix": pose.tolist()}
