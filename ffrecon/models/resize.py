@@ -63,8 +63,8 @@ class ResizeTransform:
         ys = (np.arange(h) + 0.5) * (oh / h) * self.scale_y + self.offset_y - 0.5
         map_x = np.broadcast_to(xs[None, :], (h, w)).astype(np.float32)
         map_y = np.broadcast_to(ys[:, None], (h, w)).astype(np.float32)
-        out = cv2.remap(np.ascontiguousarray(net_map, dtype=np.float32), map_x, map_y, interpolation, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
-        # Samples within half a pixel of the border are clamped by remap; anything beyond is outside.
+        out = cv2.remap(np.ascontiguousarray(net_map, dtype=np.float32), map_x, map_y, interpolation, borderMode=cv2.BORDER_REPLICATE)
+        # Samples within half a pixel of the border take the edge value; anything beyond was cropped away.
         wn, hn = self.net_size_wh
         outside = (map_x < -0.5) | (map_x > wn - 0.5) | (map_y < -0.5) | (map_y > hn - 0.5)
         out[outside] = 0.0

@@ -69,6 +69,14 @@ class OnnxModel:
     def simulated(self) -> bool:
         return self.metadata.get("ffrecon.simulated", "").lower() == "true"
 
+    def fixed_size_hw(self, input_name: str) -> tuple[int, int] | None:
+        """``(H, W)`` if the export fixed the spatial size of ``input_name``, else None."""
+        spec = next((i for i in self.inputs if i.name == input_name), None)
+        if spec is None or len(spec.shape) < 2:
+            return None
+        h, w = spec.shape[-2:]
+        return (h, w) if isinstance(h, int) and isinstance(w, int) else None
+
     def info(self) -> ModelInfo:
         desc = self.metadata.get("ffrecon.description", "")
         return ModelInfo(str(self.path), self.family, self.simulated, desc)

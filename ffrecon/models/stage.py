@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from dataclasses import dataclass, field
@@ -10,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from ffrecon.capture import Capture
+from ffrecon.errors import ModelError
 from ffrecon.export.pointcloud import FuseOptions, fuse_prediction, write_depth_maps, write_point_cloud
 from ffrecon.models.multiview import MultiviewOptions, predict_multiview
 from ffrecon.models.runner import MULTIVIEW_INPUT, OnnxModel
@@ -52,11 +54,32 @@ def predict(model: OnnxModel, capture: Capture, options: FeedForwardOptions) -> 
     images = [f.image for f in capture.frames]
     names = list(capture.names)
     if model.family is ModelFamily.MULTIVIEW:
-        return predict_multiview(images, names, lambda batch: model.run({MULTIVIEW_INPUT: batch}), model.info(), options.multiview)
+        return predict_multiview(images, names, lambda batch: _run_checked(model, MULTIVIEW_INPUT, {MULTIVIEW_INPUT: batch}), model.info(), options.multiview)
     from ffrecon.models import pairwise  # imported lazily: the pairwise path pulls in the torch aligner
 
     pw_options = options.pairwise or pairwise.PairwiseOptions()
-    return pairwise.predict_pairwise(images, lambda v1, v2: model.run({"view1": v1, "view2": v2}), pw_options, names=names, model=model.info())
+    fixed = model.fixed_size_hw("view1")
+    if fixed is not None and pw_options.size_hw is None:  # exports bake H and W in: resize to them
+        pw_options = dataclasses.replace(pw_options, size_hw=fixed)
+    infer = lambda v1, v2: _run_checked(model, "view1", {"view1": v1, "view2": v2})  # noqa: E731
+    if len(images) > 1:
+        return pairwise.predict_pairwise(images, names, infer, model.info(), pw_options)
+    # One photo: pair it with itself (what DUSt3R's own demo does) and keep the first view.
+    log.info("one photo with a pairwise model: pairing it with itself")
+    both = pairwise.predict_pairwise(images * 2, [names[0], names[0] + "#self"], infer, model.info(), pw_options)
+    return Prediction(both.names[:1], both.cam_from_world[:1], both.cameras[:1], both.depth[:1], both.depth_conf[:1], both.model)
+
+
+def _run_checked(model: OnnxModel, image_input: str, feeds: dict) -> dict:
+    """Run, first checking the batch against sizes the export baked in (a clearer error than onnxruntime's)."""
+    fixed = model.fixed_size_hw(image_input)
+    got = tuple(feeds[image_input].shape[-2:])
+    if fixed is not None and got != fixed:
+        raise ModelError(
+            f"{model.path.name} was exported for {fixed[1]}x{fixed[0]} inputs, but these photos preprocess to {got[1]}x{got[0]}",
+            "re-export the model for this aspect ratio (tools/export_vggt_onnx.py --height/--width), or use photos of the aspect ratio it was exported for",
+        )
+    return model.run(feeds)
 
 
 def run_feedforward(capture: Capture, model_path: Path, options: FeedForwardOptions, out_dir: Path) -> FeedForwardResult:

@@ -1,0 +1,433 @@
+"""DUSt3R-style global alignment: one pose, focal and depth map per view from pairwise point maps.
+
+Each pair ``(i, j)`` gives view i's points and view j's points, both in view i's camera frame and
+in a scale of the pair's own. The unknowns are, per view, a ``world_from_cam`` rigid pose, one
+focal length (principal point at the image centre, COLMAP pixel-centre rule) and a depth map; per
+pair, a similarity ``world_from_pair`` placing the pair's frame (view i's camera) in the world.
+
+1. Initialisation: a maximum spanning tree over the views, each edge weighted by the mean
+   confidences of its best pair, is walked from view 0; every new view's points are brought into
+   the world with a confidence-weighted Umeyama fit on the view already placed. Poses come from
+   fitting each view's own-frame points to its world points, focals from pixel rays vs points.
+2. Refinement: Adam on the confidence-weighted 3D alignment loss
+   ``sum_pairs sum_{v in (i, j)} w * || world point of v from (pose, focal, depth) - world_from_pair * pair point ||``
+   with a fixed gauge: view 0's pose is the identity and the mean log pair scale keeps its initial
+   value (so the world is view 0's camera frame, in the scale of the pairs).
+
+Everything here works on plain arrays; no ONNX. The optimisation is deterministic (no random step).
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+import math
+from collections import deque
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import torch
+import torch.nn.functional as F
+from kornia.geometry.conversions import axis_angle_to_rotation_matrix
+
+from ffrecon.errors import FFReconError, ModelError
+from ffrecon.geometry.alignment import Sim3, umeyama
+from ffrecon.geometry.poses import invert_pose
+from ffrecon.geometry.projection import pixel_centers
+
+log = logging.getLogger("ffrecon.models.global_alignment")
+
+MAX_FIT_POINTS = 20000  # points per Umeyama / focal fit (evenly strided), plenty for 7 unknowns
+FOCAL_RANGE = (0.1, 20.0)  # plausible focal lengths, in units of the long image side (157 to 3 degrees)
+
+
+@dataclass(frozen=True)
+class PairPrediction:
+    """A pairwise model's output for one ordered pair, in network pixels (``H x W``).
+
+    ``pts_i_in_i``: ``[H, W, 3]`` float32, view i's points in view i's camera frame (pair scale);
+    ``conf_i``: ``[H, W]`` float32 >= 1; ``pts_j_in_i``: ``[H, W, 3]`` float32, view j's points,
+    also in view i's camera frame; ``conf_j``: ``[H, W]`` float32 >= 1.
+    """
+
+    i: int
+    j: int
+    pts_i_in_i: np.ndarray
+    conf_i: np.ndarray
+    pts_j_in_i: np.ndarray
+    conf_j: np.ndarray
+
+    def points_of(self, view: int) -> tuple[np.ndarray, np.ndarray]:
+        """``(points [H, W, 3] in view i's frame, conf [H, W])`` of ``view`` (i or j)."""
+        return (self.pts_i_in_i, self.conf_i) if view == self.i else (self.pts_j_in_i, self.conf_j)
+
+
+class ConfidenceWeight(enum.Enum):
+    LOG = "log"  # w = log(conf): DUSt3R's default; pixels with conf 1 carry (almost) no weight
+    LINEAR = "linear"  # w = conf
+
+
+@dataclass(frozen=True, kw_only=True)
+class AlignmentOptions:
+    iterations: int = 300  # Adam steps (0: initialisation only)
+    lr: float = 0.01  # Adam learning rate; lengths are normalised so the median depth is 1
+    lr_min: float = 1e-5  # end of the cosine schedule
+    confidence_weight: ConfidenceWeight = ConfidenceWeight.LOG
+    depth_downsample: int = 1  # depth unknowns on a grid this many times coarser (bilinear up)
+    optimize_focal: bool = True
+    keep_best: bool = True  # return the lowest-loss iterate (False: the last one)
+
+    def __post_init__(self) -> None:
+        if self.iterations < 0 or self.lr <= 0 or self.depth_downsample < 1:
+            raise FFReconError(f"unusable alignment options {self}", "use iterations >= 0, lr > 0 and depth_downsample >= 1")
+
+
+@dataclass(frozen=True)
+class AlignmentResult:
+    """Globally aligned views in network pixels; world = view 0's camera frame.
+
+    ``cam_from_world``: ``[N, 3, 4]`` float64, OpenCV; ``focal``: ``[N]`` float64 pixels (principal
+    point at ``(W/2, H/2)``); ``depth``: ``[N, H, W]`` float32 z-depth; ``conf``: ``[N, H, W]``
+    float32, the best confidence any pair gave the pixel. ``loss`` is the weighted mean distance
+    of the returned iterate (``initial_loss`` after initialisation), in the units of ``depth``.
+    """
+
+    cam_from_world: np.ndarray
+    focal: np.ndarray
+    depth: np.ndarray
+    conf: np.ndarray
+    size_hw: tuple[int, int]
+    loss: float
+    initial_loss: float
+    iterations: int  # Adam steps taken
+    best_iteration: int  # the step whose parameters are returned (0: the initialisation)
+    initial_cam_from_world: np.ndarray  # [N, 3, 4], after the spanning-tree initialisation
+    initial_focal: np.ndarray  # [N]
+
+    def K(self, i: int) -> np.ndarray:
+        """``[3, 3]`` intrinsics of view i in network pixels."""
+        h, w = self.size_hw
+        return np.array([[self.focal[i], 0.0, w / 2], [0.0, self.focal[i], h / 2], [0.0, 0.0, 1.0]])
+
+
+def estimate_focal(points_cam: np.ndarray, weights: np.ndarray, size_hw: tuple[int, int], *, iterations: int = 10) -> float:
+    """Focal length (pixels) that best maps camera-frame points to their pixels.
+
+    Minimises ``sum w * ||(x, y) - f * (X/Z, Y/Z)||`` (robust L1 via Weiszfeld reweighting, starting
+    from the weighted least-squares solution), with ``(x, y)`` pixel centres relative to the image centre.
+
+    Args:
+        points_cam: ``[H, W, 3]`` points in the camera frame (any scale); weights: ``[H, W]`` >= 0.
+    """
+    xy = (pixel_centers(*size_hw) - np.array([size_hw[1] / 2, size_hw[0] / 2])).reshape(-1, 2)
+    pts = points_cam.reshape(-1, 3).astype(np.float64)
+    w = weights.reshape(-1).astype(np.float64)
+    z = pts[:, 2]
+    valid = (z > 1e-6 * max(np.abs(z).max(), 1e-30)) & (w > 0)
+    if valid.sum() < 2:
+        raise ModelError("cannot estimate a focal length: no predicted point lies in front of the camera", "check the pairwise model's outputs (point maps in the camera frame, z > 0)")
+    step = max(1, int(valid.sum()) // MAX_FIT_POINTS)
+    xy, ab, w = xy[valid][::step], (pts[valid, :2] / z[valid, None])[::step], w[valid][::step]
+    focal = float((w * (xy * ab).sum(1)).sum() / max((w * (ab**2).sum(1)).sum(), 1e-30))
+    for _ in range(iterations):
+        resid = np.linalg.norm(xy - focal * ab, axis=1)
+        wr = w / np.maximum(resid, 1e-8)
+        focal = float((wr * (xy * ab).sum(1)).sum() / max((wr * (ab**2).sum(1)).sum(), 1e-30))
+    lo, hi = FOCAL_RANGE[0] * max(size_hw), FOCAL_RANGE[1] * max(size_hw)
+    if not lo <= focal <= hi:  # points that do not look like a pinhole view (e.g. an untrained model)
+        log.warning("focal estimate %.4g px is outside [%.4g, %.4g]: clamped", focal, lo, hi)
+        focal = float(np.clip(np.nan_to_num(focal, nan=lo), lo, hi))
+    return focal
+
+
+def _camera_from_foreign_points(points: np.ndarray, weights: np.ndarray, size_hw: tuple[int, int]) -> np.ndarray:
+    """``[3, 4]`` cam_from_frame for a view known only through points in another view's frame.
+
+    PnP (OpenCV SQPnP) with the focal length that minimises the reprojection error: a coarse
+    geometric grid, then a golden-section search around its best value. Used for views that are
+    never the first of any pair (non-symmetric pair graphs).
+    """
+    h, w = size_hw
+    uv = pixel_centers(h, w).reshape(-1, 2)
+    pts = points.reshape(-1, 3).astype(np.float64)
+    keep = np.flatnonzero(weights.reshape(-1) > 0)
+    keep = keep[:: max(1, len(keep) // 2000)]
+    uv, pts = uv[keep], pts[keep]
+
+    def solve(log_focal: float) -> tuple[float, np.ndarray]:
+        focal = math.exp(log_focal)
+        K = np.array([[focal, 0, w / 2], [0, focal, h / 2], [0, 0, 1]])
+        # uv and K are both in COLMAP pixel coordinates; PnP only needs them to agree.
+        ok, rvec, tvec = cv2.solvePnP(pts, uv, K, None, flags=cv2.SOLVEPNP_SQPNP)
+        if not ok:
+            return math.inf, np.eye(3, 4)
+        proj, _ = cv2.projectPoints(pts, rvec, tvec, K, None)
+        err = float(np.mean(np.sum((proj[:, 0] - uv) ** 2, axis=1)))
+        return err, np.concatenate([cv2.Rodrigues(rvec)[0], tvec], axis=1)
+
+    grid = np.log(np.geomspace(0.2 * max(h, w), 5.0 * max(h, w), 25))
+    best = int(np.argmin([solve(g)[0] for g in grid]))
+    lo, hi = grid[max(best - 1, 0)], grid[min(best + 1, len(grid) - 1)]
+    ratio = (math.sqrt(5) - 1) / 2
+    for _ in range(40):  # golden-section search on log focal
+        a, b = hi - ratio * (hi - lo), lo + ratio * (hi - lo)
+        if solve(a)[0] < solve(b)[0]:
+            hi = b
+        else:
+            lo = a
+    return solve((lo + hi) / 2)[1]
+
+
+def _fit_sim3(src: np.ndarray, dst: np.ndarray, weights: np.ndarray) -> Sim3:
+    """Weighted Umeyama ``dst_from_src`` on up to MAX_FIT_POINTS evenly strided points."""
+    src, dst, weights = src.reshape(-1, 3), dst.reshape(-1, 3), weights.reshape(-1)
+    step = max(1, len(src) // MAX_FIT_POINTS)
+    return umeyama(src[::step].astype(np.float64), dst[::step].astype(np.float64), weights[::step].astype(np.float64) + 1e-12)
+
+
+def _weights(conf: np.ndarray, kind: ConfidenceWeight) -> np.ndarray:
+    conf = np.maximum(conf, 1.0)
+    w = np.log(conf) if kind is ConfidenceWeight.LOG else conf
+    return (w + 1e-6).astype(np.float32)  # the floor keeps all-ones confidence usable (uniform weights)
+
+
+def maximum_spanning_tree(num_views: int, pairs: Sequence[PairPrediction]) -> list[int]:
+    """Indices into ``pairs`` of a maximum spanning tree over the views (Kruskal).
+
+    An edge's weight is ``mean(conf_i) * mean(conf_j)`` of its best pair (both directions compete).
+    Raises :class:`FFReconError` if the pairs do not connect all views.
+    """
+    scores = [float(p.conf_i.mean() * p.conf_j.mean()) for p in pairs]
+    parent = list(range(num_views))
+
+    def root(a: int) -> int:
+        while parent[a] != a:
+            parent[a] = parent[parent[a]]
+            a = parent[a]
+        return a
+
+    tree = []
+    for e in sorted(range(len(pairs)), key=lambda k: -scores[k]):
+        ra, rb = root(pairs[e].i), root(pairs[e].j)
+        if ra != rb:
+            parent[ra] = rb
+            tree.append(e)
+    if len(tree) != num_views - 1:
+        raise FFReconError(f"the {len(pairs)} pairs do not connect all {num_views} views", "use a connected pair graph (complete, sliding window or one-reference)")
+    return tree
+
+
+@dataclass(frozen=True)
+class _Init:
+    world_from_cam: np.ndarray  # [N, 3, 4]
+    focal: np.ndarray  # [N]
+    depth: np.ndarray  # [N, H, W]
+    world_from_pair: list[Sim3]  # [E]
+
+
+def initialise(pairs: Sequence[PairPrediction], num_views: int, size_hw: tuple[int, int], kind: ConfidenceWeight) -> _Init:
+    """Spanning-tree initialisation (see the module docstring); world = view 0's camera frame."""
+    scores = [float(p.conf_i.mean() * p.conf_j.mean()) for p in pairs]
+    # Each view's points in its own camera frame, from its most confident pair as view i.
+    own: list[np.ndarray | None] = [None] * num_views
+    own_w: list[np.ndarray | None] = [None] * num_views
+    for e in sorted(range(len(pairs)), key=lambda k: -scores[k]):
+        p = pairs[e]
+        if own[p.i] is None:
+            own[p.i], own_w[p.i] = p.pts_i_in_i.astype(np.float64), _weights(p.conf_i, kind)
+    for e in sorted(range(len(pairs)), key=lambda k: -scores[k]):
+        p = pairs[e]
+        if own[p.j] is None:  # never first in a pair: place it in the pair frame by PnP
+            w = _weights(p.conf_j, kind)
+            cam_from_pair = _camera_from_foreign_points(p.pts_j_in_i, w, size_hw)
+            own[p.j], own_w[p.j] = p.pts_j_in_i @ cam_from_pair[:, :3].T + cam_from_pair[:, 3], w
+            log.debug("view %d is never first in a pair: placed by PnP in pair (%d, %d)", p.j, p.i, p.j)
+
+    tree = maximum_spanning_tree(num_views, pairs)
+    neighbours: dict[int, list[int]] = {v: [] for v in range(num_views)}
+    for e in tree:
+        neighbours[pairs[e].i].append(e)
+        neighbours[pairs[e].j].append(e)
+    world_pts: list[np.ndarray | None] = [None] * num_views
+    world_w: list[np.ndarray | None] = [None] * num_views
+    world_pts[0], world_w[0] = own[0], own_w[0]
+    sims: dict[int, Sim3] = {}
+    queue = deque([0])
+    while queue:
+        a = queue.popleft()
+        for e in neighbours[a]:
+            p = pairs[e]
+            b = p.j if p.i == a else p.i
+            if world_pts[b] is not None:
+                continue
+            pts_a, conf_a = p.points_of(a)
+            sims[e] = _fit_sim3(pts_a, world_pts[a], _weights(conf_a, kind) * world_w[a])
+            pts_b, conf_b = p.points_of(b)
+            world_pts[b], world_w[b] = sims[e].apply(pts_b.astype(np.float64)), _weights(conf_b, kind)
+            queue.append(b)
+
+    h, w = size_hw
+    world_from_cam = np.zeros((num_views, 3, 4))
+    depth = np.zeros((num_views, h, w))
+    focal = np.zeros(num_views)
+    for v in range(num_views):
+        sim = Sim3.identity() if v == 0 else _fit_sim3(own[v], world_pts[v], own_w[v])
+        world_from_cam[v] = np.concatenate([sim.rotation, sim.translation[:, None]], axis=1)
+        depth[v] = sim.scale * own[v][..., 2]
+        focal[v] = estimate_focal(own[v], own_w[v], size_hw)
+    for e, p in enumerate(pairs):  # pairs off the tree: fit both views at once
+        if e not in sims:
+            src = np.concatenate([p.pts_i_in_i.reshape(-1, 3), p.pts_j_in_i.reshape(-1, 3)])
+            dst = np.concatenate([world_pts[p.i].reshape(-1, 3), world_pts[p.j].reshape(-1, 3)])
+            wts = np.concatenate([(_weights(p.conf_i, kind) * world_w[p.i]).reshape(-1), (_weights(p.conf_j, kind) * world_w[p.j]).reshape(-1)])
+            sims[e] = _fit_sim3(src, dst, wts)
+    return _Init(world_from_cam, focal, depth, [sims[e] for e in range(len(pairs))])
+
+
+def _check_pairs(pairs: Sequence[PairPrediction], size_hw: tuple[int, int]) -> int:
+    if not pairs:
+        raise FFReconError("global alignment needs at least one pair", "pass the pairs of a pair graph over two or more views")
+    h, w = size_hw
+    for p in pairs:
+        shapes = (p.pts_i_in_i.shape, p.conf_i.shape, p.pts_j_in_i.shape, p.conf_j.shape)
+        if shapes != ((h, w, 3), (h, w), (h, w, 3), (h, w)):
+            raise FFReconError(f"pair ({p.i}, {p.j}) has shapes {shapes}; expected points [{h}, {w}, 3] and confidences [{h}, {w}]", "pass pairs predicted at image_size_hw")
+        if p.i == p.j or min(p.i, p.j) < 0:
+            raise FFReconError(f"pair ({p.i}, {p.j}) is not a pair of two views", "use make_pairs to build the pair graph")
+    num_views = max(max(p.i, p.j) for p in pairs) + 1
+    seen = {p.i for p in pairs} | {p.j for p in pairs}
+    if len(seen) != num_views:
+        raise FFReconError(f"views {sorted(set(range(num_views)) - seen)} are in no pair", "every view 0..N-1 must be in at least one pair")
+    return num_views
+
+
+def global_align(pairs: Sequence[PairPrediction], image_size_hw: tuple[int, int], options: AlignmentOptions = AlignmentOptions()) -> AlignmentResult:
+    """One pose, focal and depth map per view from all pairs (spanning-tree init, then Adam).
+
+    Args:
+        pairs: pairwise predictions over views ``0..N-1`` at network size ``image_size_hw``.
+        image_size_hw: ``(H, W)`` of the point maps.
+    Returns:
+        :class:`AlignmentResult`; world = view 0's camera frame, lengths in the pairs' scale.
+    """
+    size_hw = (int(image_size_hw[0]), int(image_size_hw[1]))
+    num_views = _check_pairs(pairs, size_hw)
+    init = initialise(pairs, num_views, size_hw, options.confidence_weight)
+    unit = float(np.median(init.depth[init.depth > 0])) if (init.depth > 0).any() else 1.0
+    problem = _Problem(pairs, init, size_hw, unit, options)
+    with torch.no_grad():
+        initial_loss = problem.loss().item() * unit
+    initial_cam_from_world, initial_focal = problem.export()[:2]
+    optimiser = torch.optim.Adam(problem.parameters(), lr=options.lr)
+    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimiser, T_max=max(options.iterations, 1), eta_min=options.lr_min)
+    # Adam takes steps of about lr whatever the gradient's size, so from a very good start it can
+    # wander along weak directions (near-planar views): by default keep the lowest-loss iterate.
+    best_loss, best_step, best_state = math.inf, 0, None
+    for step in range(options.iterations + 1):
+        optimiser.zero_grad()
+        loss = problem.loss()
+        if not math.isfinite(loss.item()):
+            log.warning("global alignment: non-finite loss at step %d, keeping step %d", step, best_step)
+            break
+        if loss.item() < best_loss or not options.keep_best:
+            best_loss, best_step = loss.item(), step
+            best_state = {k: v.detach().clone() for k, v in problem.named_parameters()}
+        if step == options.iterations:
+            break
+        loss.backward()
+        optimiser.step()
+        schedule.step()
+        if step % 100 == 0:
+            log.debug("global alignment step %d: loss %.6g", step, loss.item() * unit)
+    if best_state is None:
+        raise ModelError("global alignment failed: the initial alignment of the pairs is not finite", "check the pairwise model's outputs (they must be finite point maps with z > 0)")
+    with torch.no_grad():
+        for name, value in problem.named_parameters():
+            value.copy_(best_state[name])
+    cam_from_world, focal, depth = problem.export()
+    final_loss = best_loss * unit
+    log.info("global alignment of %d views, %d pairs: loss %.4g -> %.4g (best at step %d of %d)", num_views, len(pairs), initial_loss, final_loss, best_step, options.iterations)
+    conf = np.zeros((num_views, *size_hw), np.float32)
+    for p in pairs:
+        conf[p.i] = np.maximum(conf[p.i], p.conf_i)
+        conf[p.j] = np.maximum(conf[p.j], p.conf_j)
+    return AlignmentResult(cam_from_world, focal, depth, conf, size_hw, final_loss, initial_loss, options.iterations, best_step, initial_cam_from_world, initial_focal)
+
+
+class _Problem(torch.nn.Module):
+    """The unknowns and the alignment loss, in lengths divided by ``unit`` (median initial depth)."""
+
+    def __init__(self, pairs: Sequence[PairPrediction], init: _Init, size_hw: tuple[int, int], unit: float, options: AlignmentOptions) -> None:
+        super().__init__()
+        f32 = torch.float32
+        n, e = len(init.focal), len(pairs)
+        self.size_hw, self.unit, self.options = size_hw, unit, options
+        self.register_buffer("rot0", torch.tensor(init.world_from_cam[:, :, :3], dtype=f32))
+        self.register_buffer("free", (torch.arange(n) > 0).to(f32)[:, None])  # view 0 is the gauge
+        self.rot_delta = torch.nn.Parameter(torch.zeros(n, 3))
+        self.trans = torch.nn.Parameter(torch.tensor(init.world_from_cam[:, :, 3] / unit, dtype=f32))
+        self.log_focal = torch.nn.Parameter(torch.tensor(np.log(init.focal), dtype=f32), requires_grad=options.optimize_focal)
+        log_depth = torch.tensor(np.log(np.maximum(init.depth / unit, 1e-4)), dtype=f32)[:, None]
+        k = options.depth_downsample
+        if k > 1:
+            log_depth = F.adaptive_avg_pool2d(log_depth, (math.ceil(size_hw[0] / k), math.ceil(size_hw[1] / k)))
+        self.log_depth = torch.nn.Parameter(log_depth)
+        h, w = size_hw  # pixel-centre offsets from the principal point (W/2, H/2)
+        self.register_buffer("ray_xy", torch.tensor(pixel_centers(h, w) - np.array([w / 2, h / 2]), dtype=f32))
+        # Pairs: the similarity world_from_pair, and the stacked point maps and weights.
+        self.register_buffer("pair_rot0", torch.tensor(np.stack([s.rotation for s in init.world_from_pair]), dtype=f32))
+        self.pair_rot_delta = torch.nn.Parameter(torch.zeros(e, 3))
+        self.pair_trans = torch.nn.Parameter(torch.tensor(np.stack([s.translation for s in init.world_from_pair]) / unit, dtype=f32))
+        self.register_buffer("pair_log_scale0", torch.tensor([math.log(s.scale / unit) for s in init.world_from_pair], dtype=f32))
+        self.pair_log_scale_delta = torch.nn.Parameter(torch.zeros(e))
+        self.register_buffer("idx_i", torch.tensor([p.i for p in pairs]))
+        self.register_buffer("idx_j", torch.tensor([p.j for p in pairs]))
+        self.register_buffer("pts_i", torch.tensor(np.stack([p.pts_i_in_i for p in pairs]), dtype=f32))
+        self.register_buffer("pts_j", torch.tensor(np.stack([p.pts_j_in_i for p in pairs]), dtype=f32))
+        self.register_buffer("w_i", torch.tensor(np.stack([_weights(p.conf_i, options.confidence_weight) for p in pairs])))
+        self.register_buffer("w_j", torch.tensor(np.stack([_weights(p.conf_j, options.confidence_weight) for p in pairs])))
+
+    def depth(self) -> torch.Tensor:
+        """``[N, H, W]`` depth, normalised units."""
+        log_depth = self.log_depth
+        if self.options.depth_downsample > 1:
+            log_depth = F.interpolate(log_depth, size=self.size_hw, mode="bilinear", align_corners=False)
+        return log_depth[:, 0].exp()
+
+    def world_from_cam(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """``([N, 3, 3] rotation, [N, 3] translation)``; view 0 stays at its initial pose."""
+        rot = self.rot0 @ axis_angle_to_rotation_matrix(self.rot_delta * self.free)
+        return rot, self.trans * self.free + self.trans.detach() * (1 - self.free)
+
+    def world_points(self) -> torch.Tensor:
+        """``[N, H, W, 3]`` world points of every view from pose, focal and depth."""
+        depth = self.depth()
+        focal = self.log_focal.exp()[:, None, None, None]
+        xy = self.ray_xy[None] / focal * depth[..., None]
+        pts_cam = torch.cat([xy, depth[..., None]], dim=-1)
+        rot, trans = self.world_from_cam()
+        return torch.einsum("nij,nhwj->nhwi", rot, pts_cam) + trans[:, None, None, :]
+
+    def loss(self) -> torch.Tensor:
+        world = self.world_points()
+        rot = self.pair_rot0 @ axis_angle_to_rotation_matrix(self.pair_rot_delta)
+        log_scale = self.pair_log_scale0 + self.pair_log_scale_delta - self.pair_log_scale_delta.mean()
+        scaled_rot = log_scale.exp()[:, None, None] * rot
+        total = torch.zeros(())
+        for pts, weight, idx in ((self.pts_i, self.w_i, self.idx_i), (self.pts_j, self.w_j, self.idx_j)):
+            aligned = torch.einsum("eij,ehwj->ehwi", scaled_rot, pts) + self.pair_trans[:, None, None, :]
+            total = total + (weight * (world[idx] - aligned).norm(dim=-1)).sum()
+        return total / (2 * self.w_i.numel())
+
+    @torch.no_grad()
+    def export(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(cam_from_world [N, 3, 4] float64, focal [N] float64, depth [N, H, W] float32)`` in pair units."""
+        rot, trans = self.world_from_cam()
+        world_from_cam = np.concatenate([rot.double().numpy(), trans.double().numpy()[:, :, None] * self.unit], axis=2)
+        # Re-orthonormalise (float32 products drift by ~1e-7).
+        u, _, vt = np.linalg.svd(world_from_cam[:, :, :3])
+        world_from_cam[:, :, :3] = u @ vt
+        depth = (self.depth() * self.unit).numpy().astype(np.float32)
+        return invert_pose(world_from_cam), self.log_focal.exp().double().numpy(), depth

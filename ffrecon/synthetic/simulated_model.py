@@ -1,0 +1,269 @@
+"""A simulated VGGT-contract ONNX model: a synthetic scene's ground truth plus controlled, realistic error.
+
+No real weights can be downloaded in CI, so the demo and the end-to-end tests run this instead. The
+graph stores, per scene frame, a noisy pose, noisy intrinsics and a noisy depth map at network
+resolution. For any subset and order of the scene's frames it behaves like VGGT:
+
+1. it identifies each input frame by a signature (the frame average-pooled to 8 x 8) and gathers the
+   stored outputs of the nearest stored signature;
+2. it re-expresses everything in the first input frame's camera (whose pose becomes identity);
+3. it normalises the scale per call by the mean distance of all the call's points from the origin
+   (the first camera), as VGGT does.
+
+The injected errors (:class:`SimulatedTruth`) are returned so that tests can compare against them.
+The model says it is simulated in its metadata: ``metadata_props["ffrecon.simulated"] == "true"``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import onnx
+
+from ffrecon.geometry.poses import camera_centers, compose_poses, invert_pose
+from ffrecon.geometry.projection import pixel_centers
+from ffrecon.geometry.rotations import axis_angle_to_matrix, matrix_to_quat_xyzw
+from ffrecon.models.vggt import PreprocessMode, encode_pose_enc, preprocess_vggt
+from ffrecon.synthetic import render
+from ffrecon.synthetic.onnx_graph import GraphBuilder, quat_product_basis
+from ffrecon.synthetic.scene import SyntheticScene, scene_geometry
+
+logger = logging.getLogger("ffrecon.synthetic")
+
+SIGNATURE_GRID = 8  # frames are identified by their 8 x 8 average-pooled thumbnails
+METADATA_KEY = "ffrecon.simulated"
+_CONF_MAX = 10.0
+
+
+@dataclass(frozen=True, kw_only=True)
+class SimulationOptions:
+    rotation_noise_deg: float = 2.5  # per-frame rotation error: random axis, angle uniform in [0.5, 1.5] x this
+    translation_noise: float = 0.03  # per-frame centre error (RMS), fraction of the scene distance (mean median depth)
+    focal_error: float = 0.03  # relative focal error: one signed value for the model, plus 20% of it per frame
+    depth_error: float = 0.03  # std of a smooth multiplicative depth error field (per frame)
+    bad_frames: tuple[int, ...] = ()  # frames whose pose is badly wrong
+    bad_rotation_deg: float = 20.0  # rotation error of the bad frames (their centre error is 5x too)
+    target_size: int = 518  # network width of preprocess_vggt (CROP mode) the model is built for
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class SimulatedTruth:
+    """What was injected, at the ORIGINAL image resolution, in the ground-truth world frame."""
+
+    cam_from_world: np.ndarray  # [N, 3, 4] float64 noisy poses, OpenCV
+    K: np.ndarray  # [N, 3, 3] float64 noisy intrinsics, original pixels
+    depth: np.ndarray  # [N, H, W] float32 noisy z-depth
+    depth_error: np.ndarray  # [N, H, W] float32 relative error: depth = true depth * (1 + depth_error)
+
+
+def _depth_field(rng: np.random.Generator, num_terms: int = 6) -> tuple[np.ndarray, np.ndarray]:
+    """Random smooth field on normalised image coordinates: ``(freqs [K, 2] cycles/image, phases [K])``."""
+    angles = rng.uniform(0, 2 * np.pi, num_terms)
+    cycles = rng.uniform(0.3, 1.5, num_terms)
+    freqs = np.stack([np.cos(angles), np.sin(angles)], axis=1) * cycles[:, None]
+    return freqs, rng.uniform(0, 2 * np.pi, num_terms)
+
+
+def _eval_field(field: tuple[np.ndarray, np.ndarray], xy_norm: np.ndarray) -> np.ndarray:
+    """Unit-variance smooth field at ``[..., 2]`` normalised coordinates (x / W, y / H)."""
+    freqs, phases = field
+    arg = 2 * np.pi * xy_norm @ freqs.T + phases
+    return np.cos(arg).sum(-1) * np.sqrt(2.0 / len(phases))
+
+
+def _inject_pose_error(scene: SyntheticScene, options: SimulationOptions, rng: np.random.Generator) -> np.ndarray:
+    """``[N, 3, 4]`` noisy cam_from_world in the ground-truth world frame."""
+    n = len(scene)
+    scene_distance = float(np.mean([np.median(d) for d in scene.depth]))
+    angles = np.radians(options.rotation_noise_deg) * rng.uniform(0.5, 1.5, n)
+    center_err = rng.normal(size=(n, 3)) * options.translation_noise * scene_distance / np.sqrt(3)
+    for i in options.bad_frames:
+        angles[i] = np.radians(options.bad_rotation_deg)
+        center_err[i] *= 5.0
+    axes = rng.normal(size=(n, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    rot = axis_angle_to_matrix(axes * angles[:, None]) @ scene.cam_from_world[:, :, :3]
+    centers = camera_centers(scene.cam_from_world) + center_err
+    return np.concatenate([rot, -np.einsum("nij,nj->ni", rot, centers)[..., None]], axis=2)
+
+
+def _check_geometry(scene: SyntheticScene, geometry: render.Geometry) -> None:
+    """The stored depth must be the synthetic room's (the network-resolution depth is re-cast from it)."""
+    h, w = scene.depth.shape[1:]
+    rows, cols = np.meshgrid(np.linspace(0, h - 1, 7).astype(int), np.linspace(0, w - 1, 7).astype(int), indexing="ij")
+    uv = np.stack([cols.ravel() + 0.5, rows.ravel() + 0.5], 1)  # pixel centres, COLMAP rule
+    for i in (0, len(scene) - 1):
+        cast = render.cast_depth(geometry, scene.cam_from_world[i], scene.camera.K, uv)
+        stored = scene.depth[i][rows.ravel(), cols.ravel()]
+        if np.median(np.abs(cast - stored) / stored) > 1e-4:
+            raise ValueError("scene depth does not match ffrecon's synthetic room; build the scene with make_scene")
+
+
+def simulate(scene: SyntheticScene, options: SimulationOptions = SimulationOptions()) -> tuple[SimulatedTruth, dict]:
+    """Draw the injected errors and the network-resolution outputs (without writing a model).
+
+    Returns ``(truth, arrays)``; ``arrays`` holds what the graph stores, per scene frame, at network
+    resolution: ``batch``, ``signatures``, ``rot``, ``centers``, ``quat_xyzw``, ``fov_hw``, ``inv_focal``,
+    ``depth``, ``conf``, ``size_hw``.
+    """
+    bad = [i for i in options.bad_frames if not 0 <= i < len(scene)]
+    if bad:
+        raise ValueError(f"bad_frames {bad} outside 0..{len(scene) - 1}")
+    rng = np.random.default_rng(options.seed)
+    geometry = scene_geometry()
+    _check_geometry(scene, geometry)
+    n, (h, w) = len(scene), scene.depth.shape[1:]
+    cam_from_world = _inject_pose_error(scene, options, rng)
+    focal_scale = 1 + options.focal_error * (rng.choice([-1.0, 1.0]) + 0.2 * rng.normal(size=n))
+    K = np.repeat(scene.camera.K[None], n, axis=0)
+    K[:, 0, 0] *= focal_scale
+    K[:, 1, 1] *= focal_scale
+    fields = [_depth_field(rng) for _ in range(n)]
+
+    batch, transforms = preprocess_vggt(list(scene.images), mode=PreprocessMode.CROP, target_size=options.target_size)
+    t = transforms[0]
+    hn, wn = batch.shape[2:]
+    orig_uv = pixel_centers(h, w)
+    net_uv = (pixel_centers(hn, wn) - [t.offset_x, t.offset_y]) / [t.scale_x, t.scale_y]  # in original pixels
+    depth_err = np.empty((n, h, w), np.float32)
+    net_depth = np.empty((n, hn, wn), np.float32)
+    net_conf = np.empty((n, hn, wn), np.float32)
+    for i in range(n):
+        depth_err[i] = options.depth_error * _eval_field(fields[i], orig_uv / [w, h])
+        err_net = options.depth_error * _eval_field(fields[i], net_uv / [w, h])
+        true_net = render.cast_depth(geometry, scene.cam_from_world[i], scene.camera.K, net_uv.reshape(-1, 2)).reshape(hn, wn)
+        net_depth[i] = true_net * (1 + err_net)
+        net_conf[i] = 1 + (_CONF_MAX - 1) * np.exp(-np.abs(err_net) / max(options.depth_error, 1e-6))
+    truth = SimulatedTruth(cam_from_world=cam_from_world, K=K, depth=(scene.depth * (1 + depth_err)).astype(np.float32), depth_error=depth_err)
+
+    K_net = K.copy()
+    K_net[:, 0] *= t.scale_x
+    K_net[:, 1] *= t.scale_y
+    pose_enc = encode_pose_enc(cam_from_world, K_net, (hn, wn))
+    g = SIGNATURE_GRID
+    kh, kw = hn // g, wn // g
+    signatures = batch[:, :, : g * kh, : g * kw].reshape(n, 3, g, kh, g, kw).mean(axis=(3, 5)).reshape(n, -1)
+    arrays = {
+        "batch": batch,
+        "signatures": signatures,
+        "rot": cam_from_world[:, :, :3],
+        "centers": camera_centers(cam_from_world),
+        "quat_xyzw": matrix_to_quat_xyzw(cam_from_world[:, :, :3]),
+        "fov_hw": pose_enc[:, 7:9],
+        "inv_focal": np.stack([1 / K_net[:, 0, 0], 1 / K_net[:, 1, 1]], axis=1),
+        "depth": net_depth,
+        "conf": net_conf,
+        "size_hw": (hn, wn),
+    }
+    return truth, arrays
+
+
+def injected_cam_from_first(truth: SimulatedTruth, frames: list[int]) -> np.ndarray:
+    """``[S, 3, 4]`` the injected poses of ``frames`` as cam_from_first (the first listed frame's camera is
+    the world), before the model's per-call scale normalisation: what the model's poses equal up to scale."""
+    return compose_poses(truth.cam_from_world[frames], invert_pose(truth.cam_from_world[frames[0]]))
+
+
+def build_simulated_vggt(scene: SyntheticScene, out_path: Path, options: SimulationOptions = SimulationOptions()) -> SimulatedTruth:
+    """Write the simulated model to ``out_path`` (an ``.onnx`` file) and return the injected errors.
+
+    The model's input is ``input_images [S, 3, Hn, Wn]`` float32 in [0, 1], the scene's frames
+    preprocessed by ``preprocess_vggt(images, PreprocessMode.CROP, options.target_size)``, any subset
+    in any order; its outputs follow CONTRACTS.md section 1. A 24-frame 320x240 scene gives ~40 MB.
+    Input frames are matched to the nearest stored signature, so frames that are not the scene's
+    (or preprocessed differently) silently get some scene frame's outputs; a different input size
+    is refused by onnxruntime (the size is fixed).
+    """
+    truth, arrays = simulate(scene, options)
+    model = _build_graph(arrays)
+    model.doc_string = (
+        "SIMULATED VGGT-contract model built by ffrecon.synthetic.simulated_model: it outputs the ground truth of "
+        "one synthetic scene plus injected error, and recognises only that scene's frames. Not a trained network."
+    )
+    meta = {
+        METADATA_KEY: "true",
+        "ffrecon.scene": json.dumps({**scene.options.to_dict(), "names": list(scene.names)}),
+        "ffrecon.simulation": json.dumps({**asdict(options), "bad_frames": list(options.bad_frames)}),
+        "ffrecon.preprocess": json.dumps({"mode": PreprocessMode.CROP.value, "target_size": options.target_size}),
+    }
+    for key, value in meta.items():
+        entry = model.metadata_props.add()
+        entry.key, entry.value = key, value
+    out_path = Path(out_path)
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    onnx.save_model(model, str(out_path))
+    logger.info("wrote simulated VGGT model for %d frames (%dx%d network input) to %s", len(scene), arrays["size_hw"][1], arrays["size_hw"][0], out_path)
+    return truth
+
+
+def _build_graph(arrays: dict) -> onnx.ModelProto:
+    """The ONNX graph described in the module docstring."""
+    hn, wn = arrays["size_hw"]
+    n, p = len(arrays["depth"]), hn * wn
+    g = GraphBuilder("ffrecon_simulated_vggt")
+    x = g.input("input_images", ["S", 3, hn, wn])
+    grid = SIGNATURE_GRID
+    pooled = g.op("AveragePool", [x], kernel_shape=[hn // grid, wn // grid], strides=[hn // grid, wn // grid])
+    sig = g.op("Flatten", [pooled], axis=1)  # [S, 3 * 8 * 8]
+    stored = arrays["signatures"].astype(np.float32)
+    # Squared distance up to the per-row constant |sig|^2: |stored|^2 - 2 sig . stored.
+    dist = g.op("Add", [g.op("MatMul", [sig, g.const(-2.0 * stored.T)]), g.const((stored**2).sum(1))])
+    idx = g.op("ArgMin", [dist], axis=1, keepdims=0)  # [S] index of the scene frame
+
+    def gather(name: str, values: np.ndarray) -> str:
+        return g.op("Gather", [g.const(values.astype(np.float32), name), idx], axis=0)
+
+    rot, centers, quat = gather("rot", arrays["rot"]), gather("centers", arrays["centers"]), gather("quat_xyzw", arrays["quat_xyzw"])
+    fov, inv_f = gather("fov_hw", arrays["fov_hw"]), gather("inv_focal", arrays["inv_focal"])
+    depth = gather("depth", arrays["depth"].reshape(n, p))
+    conf = gather("conf", arrays["conf"].reshape(n, p))
+    zero = g.const(np.array(0, np.int64))
+    rot0, center0, quat0 = (g.op("Gather", [v, zero], axis=0) for v in (rot, centers, quat))
+
+    # Quaternions: q_rel = q_i (x) conj(q_0) = q_i @ M(conj(q_0)), M linear in its argument.
+    quat0_conj = g.op("Mul", [quat0, g.const(np.array([-1, -1, -1, 1], np.float32))])
+    basis = quat_product_basis().reshape(4, 16).astype(np.float32)
+    mat = g.op("Reshape", [g.op("MatMul", [g.op("Unsqueeze", [quat0_conj, g.const(np.array([0], np.int64))]), g.const(basis)]), g.const(np.array([4, 4], np.int64))])
+    quat_rel = g.op("MatMul", [quat, mat])
+    # Translations: t_rel_i = R_i (c_0 - c_i).
+    diff = g.op("Sub", [center0, centers])  # [S, 3]
+    last = g.const(np.array([-1], np.int64))
+    t_rel = g.op("Squeeze", [g.op("MatMul", [rot, g.op("Unsqueeze", [diff, last])]), last])
+    # Points: p_rel = p_cam @ (R_i R_0^T) - (c_0 - c_i) @ R_0^T, rows are points.
+    rot0_t = g.op("Transpose", [rot0], perm=[1, 0])
+    to_first = g.op("MatMul", [rot, rot0_t])  # [S, 3, 3]
+    offset = g.op("Neg", [g.op("MatMul", [diff, rot0_t])])  # [S, 3]
+    u = (np.arange(wn) + 0.5 - wn / 2).astype(np.float32)
+    v = (np.arange(hn) + 0.5 - hn / 2).astype(np.float32)
+    u_grid = g.const(np.tile(u, hn)[None], "u_minus_cx")  # [1, P]
+    v_grid = g.const(np.repeat(v, wn)[None], "v_minus_cy")
+    split = g.op("Split", [inv_f], axis=1, n_out=2)
+    ray_x, ray_y = g.op("Mul", [u_grid, split[0]]), g.op("Mul", [v_grid, split[1]])
+    comps = [g.op("Unsqueeze", [g.op("Mul", [r, depth]), last]) for r in (ray_x, ray_y)]
+    p_cam = g.op("Concat", comps + [g.op("Unsqueeze", [depth, last])], axis=-1)  # [S, P, 3]
+    one = g.const(np.array([1], np.int64))
+    p_rel = g.op("Add", [g.op("MatMul", [p_cam, to_first]), g.op("Unsqueeze", [offset, one])])
+    # Scale: mean distance of all the call's points from the first camera, as VGGT normalises; so
+    # any two calls differ by a similarity, and a chunked run must recover it from shared frames.
+    radius = g.op("Sqrt", [g.op("ReduceSum", [g.op("Mul", [p_rel, p_rel]), last], keepdims=0)])  # [S, P]
+    inv_scale = g.op("Reciprocal", [g.op("ReduceMean", [radius], axes=[0, 1], keepdims=0)])
+
+    batch0 = g.const(np.array([0], np.int64))
+    pose_enc = g.op("Concat", [g.op("Mul", [t_rel, inv_scale]), quat_rel, fov], axis=1)
+    g.output(g.op("Unsqueeze", [pose_enc, batch0]), "pose_enc", [1, "S", 9])
+    shape5 = g.const(np.array([1, -1, hn, wn, 1], np.int64))
+    g.output(g.op("Reshape", [g.op("Mul", [depth, inv_scale]), shape5]), "depth", [1, "S", hn, wn, 1])
+    shape4 = g.const(np.array([1, -1, hn, wn], np.int64))
+    g.output(g.op("Reshape", [conf, shape4]), "depth_conf", [1, "S", hn, wn])
+    shape_pts = g.const(np.array([1, -1, hn, wn, 3], np.int64))
+    g.output(g.op("Reshape", [g.op("Mul", [p_rel, inv_scale]), shape_pts]), "world_points", [1, "S", hn, wn, 3])
+    point_conf = g.op("Add", [g.op("Mul", [conf, g.const(np.float32(0.8))]), g.const(np.float32(0.2))])  # a little less sure
+    g.output(g.op("Reshape", [point_conf, shape4]), "world_points_conf", [1, "S", hn, wn])
+    g.output(g.op("Unsqueeze", [x, batch0]), "images", [1, "S", 3, hn, wn])
+    return g.model(opset=17)
+
