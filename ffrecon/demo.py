@@ -23,7 +23,9 @@ class DemoOptions:
     width: int = 320
     height: int = 240
     seed: int = 0
-    simulation: dict = field(default_factory=dict)  # overrides of SimulationOptions fields
+    # Overrides of SimulationOptions fields; by default one frame is badly wrong, as real models
+    # occasionally are, so the report shows how a disagreeing frame is caught.
+    simulation: dict = field(default_factory=lambda: {"bad_frames": [7]})
 
 
 @dataclass(frozen=True)
@@ -50,6 +52,7 @@ def prepare_demo(options: DemoOptions = DemoOptions()) -> DemoInputs:
         scene = make_scene(SceneOptions(num_frames=options.num_frames, width=options.width, height=options.height, seed=options.seed))
         write_scene(scene, folder)
         tmp = model.with_suffix(".tmp")
-        build_simulated_vggt(scene, tmp, SimulationOptions(seed=options.seed, **options.simulation))
+        sim = {k: tuple(v) if isinstance(v, list) else v for k, v in options.simulation.items()}
+        build_simulated_vggt(scene, tmp, SimulationOptions(seed=options.seed, **sim))
         tmp.rename(model)
     return DemoInputs(folder, folder / "images", model)

@@ -20,7 +20,7 @@ log = logging.getLogger("ffrecon.export")
 class FuseOptions:
     conf_quantile: float = 0.3  # drop the least confident 30% of each frame's valid pixels
     min_conf: float = 1.0
-    voxel_fraction: float = 1 / 400  # voxel size as a fraction of the cloud's robust extent
+    voxel_fraction: float = 1 / 250  # voxel size as a fraction of the cloud's robust extent
     max_points_per_frame: int = 200_000
     remove_outliers: bool = True
 
@@ -62,10 +62,10 @@ def downsample(xyz: np.ndarray, rgb: np.ndarray, options: FuseOptions = FuseOpti
 
 
 def write_point_cloud(path: Path, xyz: np.ndarray, rgb: np.ndarray) -> Path:
-    """Binary PLY with float xyz and uchar colours (open3d writes it; trimesh and COLMAP read it)."""
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(xyz, np.float64)))
-    cloud.colors = o3d.utility.Vector3dVector(np.clip(np.asarray(rgb, np.float64), 0, 1))
-    if not o3d.io.write_point_cloud(str(path), cloud, write_ascii=False):
+    """Binary PLY with float32 xyz and uchar colours (open3d writes it; trimesh and COLMAP read it)."""
+    cloud = o3d.t.geometry.PointCloud(o3d.core.Tensor(np.asarray(xyz, np.float32)))
+    cloud.point.colors = o3d.core.Tensor(np.clip(np.round(np.asarray(rgb) * 255), 0, 255).astype(np.uint8))
+    if not o3d.t.io.write_point_cloud(str(path), cloud, write_ascii=False):
         raise OSError(f"open3d could not write {path}")
     return path
 

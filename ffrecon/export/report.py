@@ -87,15 +87,17 @@ table{border-collapse:collapse;margin:.6em 0} td,th{border:1px solid #ddd;paddin
 th{background:#f5f5f5} .pass{color:#137333;font-weight:600} .fail{color:#c5221f;font-weight:600} .skipped{color:#80868b;font-weight:600}
 .banner{padding:.7em 1em;border-radius:6px;margin:.8em 0} .ok{background:#e6f4ea} .bad{background:#fce8e6} .warn{background:#fef7e0}
 .gallery{display:flex;flex-wrap:wrap;gap:.5em} .gallery figure{margin:0;font-size:.8em;text-align:center} img{max-width:100%}
-.muted{color:#666;font-size:.9em}
+.muted{color:#666;font-size:.9em} .scroll{overflow-x:auto}
 """
 
 
 def _fmt(v) -> str:
     if isinstance(v, float):
         return f"{v:.4g}"
-    if v is None:
+    if v is None or v == [] or v == "":
         return "—"
+    if isinstance(v, list):
+        return html.escape(", ".join(str(x) for x in v))
     return html.escape(str(v))
 
 
@@ -105,7 +107,7 @@ def _table(rows: list[dict]) -> str:
     keys = list(dict.fromkeys(k for r in rows for k in r))
     head = "".join(f"<th>{html.escape(k)}</th>" for k in keys)
     body = "".join("<tr>" + "".join(f"<td>{_cell(k, r.get(k))}</td>" for k in keys) + "</tr>" for r in rows)
-    return f"<table><tr>{head}</tr>{body}</table>"
+    return f"<div class='scroll'><table><tr>{head}</tr>{body}</table></div>"
 
 
 def _cell(key: str, value) -> str:

@@ -12,7 +12,7 @@ import numpy as np
 
 from ffrecon.capture import Capture
 from ffrecon.errors import ModelError
-from ffrecon.export.pointcloud import FuseOptions, fuse_prediction, write_depth_maps, write_point_cloud
+from ffrecon.export.pointcloud import FuseOptions, fuse_prediction, write_depth_maps
 from ffrecon.models.multiview import MultiviewOptions, predict_multiview
 from ffrecon.models.runner import MULTIVIEW_INPUT, OnnxModel
 from ffrecon.sfm.colmap_io import reconstruction_from_cameras, write_reconstruction
@@ -92,6 +92,5 @@ def run_feedforward(capture: Capture, model_path: Path, options: FeedForwardOpti
     ff_dir = Path(out_dir) / "feedforward"
     rec = reconstruction_from_cameras(prediction.names, prediction.cam_from_world, prediction.cameras, xyz, rgb)
     sparse_dir = write_reconstruction(rec, ff_dir / "sparse")
-    write_point_cloud(ff_dir / "points.ply", xyz, rgb)
     write_depth_maps(ff_dir / "depth", prediction)
     return FeedForwardResult(prediction, xyz, rgb, sparse_dir, time.perf_counter() - start, model.providers)
