@@ -6,6 +6,7 @@ when the run ends with a report, so failures never destroy earlier results.
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as dt
 import logging
 import time
@@ -126,7 +127,10 @@ def run(source: Path, out_dir: Path, model: Path, options: RunOptions | None = N
         if multi and exit_code == 0 and options.refine is not None:
             from ffrecon.sfm.refine import run_refine
 
-            refined = _timed(report, "refine", run_refine, capture.image_dir, ff.prediction, options.refine, work)
+            refine_options = options.refine
+            if colmap is not None and refine_options.reuse_features_from is None:  # SIFT once, used twice
+                refine_options = dataclasses.replace(refine_options, reuse_features_from=colmap.database_path)
+            refined = _timed(report, "refine", run_refine, capture.image_dir, ff.prediction, refine_options, work)
             sections.add_refine(report, refined)
             keep = refined.registered
             if keep.sum() >= 2:

@@ -1,0 +1,292 @@
+"""Triangulation and bundle adjustment of a model whose poses start at the feed-forward cameras.
+
+Built on pycolmap's incremental-mapper pieces (the database cache's correspondence graph, its
+triangulator and observation manager), with the bundle adjuster configured here so that the gauge,
+intrinsics and pose priors are under ffrecon's control and the solver summary is kept.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Collection, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from ffrecon.geometry.alignment import Sim3, umeyama
+from ffrecon.geometry.poses import camera_centers
+from ffrecon.geometry.rotations import matrix_to_quat_xyzw
+from ffrecon.sfm.colmap_io import cam_from_world_by_name
+
+logger = logging.getLogger("ffrecon.sfm")
+
+
+@dataclass(frozen=True, kw_only=True)
+class BundleOptions:
+    coarse_error_deg: float = 5.0  # feed-forward pose error to tolerate in the first (coarse) pass
+    max_reproj_error_px: float = 4.0  # COLMAP's filter threshold, used in the fine pass
+    min_tri_angle_deg: float = 1.5
+    refine_focal_length: bool = True
+    refine_principal_point: bool = False
+    use_pose_priors: bool = False  # keep camera centres near the feed-forward ones (position priors)
+    prior_position_std: float = 0.02  # prior std as a fraction of the extent of feed-forward centres
+    coarse_refinements: int = 1  # rounds of (bundle adjustment, track completion, filtering), coarse pass
+    coarse_function_tolerance: float = 1e-5  # relative cost change that ends a coarse adjustment
+    coarse_max_iterations: int = 10  # Ceres iterations per coarse adjustment: close enough to re-triangulate
+    max_refinements: int = 5  # rounds in the fine pass
+    max_refinement_change: float = 0.001  # stop when fewer observations than this fraction change
+    max_num_iterations: int = 100  # Ceres iterations per bundle adjustment
+    num_threads: int = -1
+
+
+@dataclass(frozen=True)
+class BundleSummary:
+    """The last bundle adjustment of the fine pass."""
+
+    termination: str
+    usable: bool
+    num_residuals: int
+    num_iterations: int
+    initial_cost: float
+    final_cost: float
+    num_adjustments: int  # bundle adjustments over both passes
+
+    def to_report(self) -> dict:
+        return {
+            "termination": self.termination, "usable": self.usable, "num_residuals": self.num_residuals,
+            "num_iterations": self.num_iterations, "initial_cost": self.initial_cost, "final_cost": self.final_cost,
+            "num_adjustments": self.num_adjustments,
+        }
+
+
+def _summary(solver_summary: pycolmap.BundleAdjustmentSummary, count: int) -> BundleSummary:
+    ceres = getattr(solver_summary, "ceres_summary", None)
+    iterations = len(getattr(ceres, "iterations", [])) if ceres is not None else 0
+    return BundleSummary(
+        termination=str(solver_summary.termination_type.name),
+        usable=bool(solver_summary.is_solution_usable()),
+        num_residuals=int(solver_summary.num_residuals),
+        num_iterations=int(getattr(ceres, "num_successful_steps", 0) + getattr(ceres, "num_unsuccessful_steps", 0)) or iterations,
+        initial_cost=float(getattr(ceres, "initial_cost", np.nan)),
+        final_cost=float(getattr(ceres, "final_cost", np.nan)),
+        num_adjustments=count,
+    )
+
+
+def _pose_priors(rec: pycolmap.Reconstruction, prior_centers: dict[int, np.ndarray], std: float) -> list[pycolmap.PosePrior]:
+    priors = []
+    for image_id, center in prior_centers.items():
+        if not rec.exists_image(image_id) or not rec.image(image_id).has_pose:
+            continue
+        prior = pycolmap.PosePrior()
+        prior.pose_prior_id = image_id
+        prior.corr_data_id = rec.image(image_id).data_id
+        prior.position = np.asarray(center, np.float64)
+        prior.position_covariance = np.eye(3) * std**2
+        prior.coordinate_system = pycolmap.PosePriorCoordinateSystem.CARTESIAN
+        priors.append(prior)
+    return priors
+
+
+class _Adjuster:
+    """One bundle-adjustment configuration, applied repeatedly to a changing model."""
+
+    def __init__(self, options: BundleOptions, prior_centers: dict[int, np.ndarray] | None, prior_std: float) -> None:
+        self.options = options
+        self.prior_centers = prior_centers
+        self.prior_std = prior_std
+        self.count = 0
+        self.last: pycolmap.BundleAdjustmentSummary | None = None
+
+    def __call__(
+        self, rec: pycolmap.Reconstruction, loss: pycolmap.LossFunctionType, *, function_tolerance: float = 0.0, max_iterations: int | None = None
+    ) -> bool:
+        ba = pycolmap.BundleAdjustmentOptions()
+        ba.refine_focal_length = self.options.refine_focal_length
+        ba.refine_principal_point = self.options.refine_principal_point
+        ba.refine_extra_params = False
+        ba.print_summary = False
+        ba.ceres.loss_function_type = loss
+        ba.ceres.loss_function_scale = 1.0  # pixels
+        ba.ceres.solver_options.num_threads = self.options.num_threads
+        ba.ceres.solver_options.max_num_iterations = max_iterations or self.options.max_num_iterations
+        ba.ceres.solver_options.function_tolerance = function_tolerance
+        config = pycolmap.BundleAdjustmentConfig()
+        for image_id in rec.reg_image_ids():
+            config.add_image(image_id)
+        if config.num_residuals(rec) == 0:
+            return False
+        if self.prior_centers is not None:
+            priors = _pose_priors(rec, self.prior_centers, self.prior_std)
+            prior_options = pycolmap.PosePriorBundleAdjustmentOptions()
+            prior_options.alignment_ransac.random_seed = 0
+            adjuster = pycolmap.create_pose_prior_bundle_adjuster(ba, prior_options, config, priors, rec)
+        else:
+            config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
+            adjuster = pycolmap.create_default_bundle_adjuster(ba, config, rec)
+        self.last = adjuster.solve()
+        self.count += 1
+        return bool(self.last.is_solution_usable())
+
+
+def _tri_options(angle_deg: float, reproj_px: float) -> pycolmap.IncrementalTriangulatorOptions:
+    tri = pycolmap.IncrementalTriangulatorOptions()
+    tri.create_max_angle_error = max(angle_deg, tri.create_max_angle_error)
+    tri.continue_max_angle_error = max(angle_deg, tri.continue_max_angle_error)
+    tri.re_max_angle_error = max(angle_deg, tri.re_max_angle_error)
+    tri.merge_max_reproj_error = max(reproj_px, tri.merge_max_reproj_error)
+    tri.complete_max_reproj_error = max(reproj_px, tri.complete_max_reproj_error)
+    tri.random_seed = 0
+    return tri
+
+
+def _mapper_options(filter_px: float, options: BundleOptions) -> pycolmap.IncrementalMapperOptions:
+    mapper = pycolmap.IncrementalMapperOptions()
+    mapper.filter_max_reproj_error = filter_px
+    mapper.filter_min_tri_angle = options.min_tri_angle_deg
+    mapper.num_threads = options.num_threads
+    mapper.random_seed = 0
+    mapper.abs_pose_refine_focal_length = False  # re-registered frames share the refined camera
+    mapper.abs_pose_refine_extra_params = False
+    return mapper
+
+
+def _rounds(
+    mapper: pycolmap.IncrementalMapper, rec: pycolmap.Reconstruction, adjust: _Adjuster, options: BundleOptions,
+    tri: pycolmap.IncrementalTriangulatorOptions, mapper_options: pycolmap.IncrementalMapperOptions,
+    loss: pycolmap.LossFunctionType, max_refinements: int, function_tolerance: float, max_iterations: int | None = None,
+    end_adjusted: bool = True,
+) -> None:
+    """Rounds of (bundle adjustment, track completion and merging, filtering), ending adjusted if asked."""
+    mapper.complete_and_merge_tracks(tri)
+    mapper.retriangulate(tri)
+    changed = 1
+    for _ in range(max_refinements):
+        num_obs = max(rec.compute_num_observations(), 1)
+        mapper.observation_manager.filter_observations_with_negative_depth()
+        if not adjust(rec, loss, function_tolerance=function_tolerance, max_iterations=max_iterations):
+            return
+        changed = mapper.complete_and_merge_tracks(tri) + mapper.filter_points(mapper_options)
+        if changed / num_obs < options.max_refinement_change:
+            break
+    if changed and end_adjusted:  # the model changed since the last adjustment: adjust once more
+        adjust(rec, loss, function_tolerance=function_tolerance, max_iterations=max_iterations)
+
+
+def _pass(
+    cache: pycolmap.DatabaseCache, rec: pycolmap.Reconstruction, adjust: _Adjuster, options: BundleOptions,
+    *, angle_deg: float, reproj_px: float, loss: pycolmap.LossFunctionType, max_refinements: int, function_tolerance: float,
+    max_iterations: int | None = None, register: Collection[int] = (), end_adjusted: bool = True,
+) -> tuple[pycolmap.IncrementalMapper, list[int]]:
+    """Triangulate every registered image from scratch, refine; then try to register ``register``.
+
+    Images in ``register`` (unregistered) are registered by absolute pose against the refined points,
+    as COLMAP registers its next images; returns the mapper and the ids that registered.
+    """
+    rec.delete_all_points2D_and_points3D()
+    mapper = pycolmap.IncrementalMapper(cache)
+    mapper.begin_reconstruction(rec)
+    tri = _tri_options(angle_deg, reproj_px)
+    mapper_options = _mapper_options(reproj_px, options)
+    for image_id in sorted(rec.reg_image_ids()):
+        mapper.triangulate_image(tri, image_id)
+    _rounds(mapper, rec, adjust, options, tri, mapper_options, loss, max_refinements, function_tolerance, max_iterations, end_adjusted)
+    added = []
+    for image_id in sorted(register):
+        if rec.num_reg_images() >= 2 and mapper.register_next_image(mapper_options, image_id):
+            mapper.triangulate_image(tri, image_id)
+            added.append(image_id)
+    if added:
+        _rounds(mapper, rec, adjust, options, tri, mapper_options, loss, max_refinements, function_tolerance)
+    return mapper, added
+
+
+def refine_tracks(
+    rec: pycolmap.Reconstruction,
+    db_path: Path,
+    usable: Collection[str],
+    options: BundleOptions,
+    *,
+    min_observations: int,
+) -> tuple[pycolmap.Reconstruction, BundleSummary | None, list[tuple[str, int]]]:
+    """Triangulate and bundle-adjust ``rec`` (image ids equal to the database's) in place.
+
+    Frames not in ``usable`` are deregistered first. Frames that the coarse pass leaves with fewer
+    than ``min_observations`` points (a feed-forward pose too wrong for its tolerances) are taken
+    out and registered again by absolute pose after the fine pass; frames still below
+    ``min_observations`` at the end are deregistered and flagged.
+    Returns ``(rec, summary, [(name, observations) of the weak frames])``; the summary is None if
+    no adjustment ran.
+    """
+    cache_options = pycolmap.DatabaseCacheOptions()
+    cache_options.min_num_matches = 1
+    db = pycolmap.Database.open(str(db_path))
+    try:
+        cache = pycolmap.DatabaseCache.create(db, cache_options)
+    finally:
+        db.close()
+    for image in list(rec.images.values()):
+        if image.name not in usable and image.has_pose:
+            rec.deregister_frame(image.frame_id)
+    centers = {i: rec.image(i).projection_center() for i in rec.reg_image_ids()}
+    prior_centers = None
+    prior_std = 0.0
+    if options.use_pose_priors and len(centers) >= 3:
+        pts = np.array(list(centers.values()))
+        prior_std = options.prior_position_std * float(np.linalg.norm(pts.max(0) - pts.min(0)))
+        prior_centers = centers
+    adjust = _Adjuster(options, prior_centers, prior_std)
+    focal = float(np.mean([rec.camera(rec.image(i).camera_id).mean_focal_length() for i in centers]))
+    coarse_px = focal * np.tan(np.radians(options.coarse_error_deg))
+    # Coarse: tolerances wide enough for the feed-forward errors, a robust loss, loose convergence.
+    mapper, _ = _pass(cache, rec, adjust, options, angle_deg=options.coarse_error_deg, reproj_px=coarse_px,
+                      loss=pycolmap.LossFunctionType.CAUCHY, max_refinements=options.coarse_refinements,
+                      function_tolerance=options.coarse_function_tolerance, max_iterations=options.coarse_max_iterations,
+                      end_adjusted=False)  # the fine pass triangulates afresh anyway
+    retry = [i for i in rec.reg_image_ids() if rec.image(i).num_points3D < min_observations]
+    for image_id in retry:
+        mapper.observation_manager.deregister_frame(rec.image(image_id).frame_id)
+    mapper.end_reconstruction(False)
+    logger.debug("coarse pass: %d points, %d observations, %d frames to register again", rec.num_points3D(),
+                 rec.compute_num_observations(), len(retry))
+    # Fine: fresh tracks from the coarse cameras, COLMAP's tolerances, converged to the end.
+    mapper, added = _pass(cache, rec, adjust, options, angle_deg=0.0, reproj_px=options.max_reproj_error_px,
+                          loss=pycolmap.LossFunctionType.TRIVIAL, max_refinements=options.max_refinements,
+                          function_tolerance=0.0, register=retry)
+    if added:
+        logger.info("registered %d frames again whose feed-forward pose was far off", len(added))
+    weak = [(rec.image(i).name, 0) for i in retry if i not in added]
+    for image_id in sorted(rec.reg_image_ids()):
+        image = rec.image(image_id)
+        if image.num_points3D < min_observations:
+            weak.append((image.name, int(image.num_points3D)))
+            mapper.observation_manager.deregister_frame(image.frame_id)
+    if len(weak) > len(retry) - len(added) and rec.num_reg_images() >= 2:
+        adjust(rec, pycolmap.LossFunctionType.TRIVIAL)
+    mapper.end_reconstruction(False)
+    summary = _summary(adjust.last, adjust.count) if adjust.last is not None else None
+    return rec, summary, weak
+
+
+def sim3_to_ff_frame(rec: pycolmap.Reconstruction, names: Sequence[str], ff_cam_from_world: np.ndarray) -> Sim3:
+    """Move ``rec`` (in place) into the feed-forward world frame; returns ``ff_from_refined``.
+
+    Umeyama fit of refined to feed-forward camera centres over the refined frames, refitted once
+    without the frames whose residual exceeds three times the median (a badly predicted frame must
+    not tilt the whole model).
+    """
+    cam_from_world, registered = cam_from_world_by_name(rec, names)
+    src = camera_centers(cam_from_world[registered])
+    dst = camera_centers(ff_cam_from_world[registered])
+    if len(src) < 3:
+        return Sim3.identity()
+    sim = umeyama(src, dst)
+    residual = np.linalg.norm(sim.apply(src) - dst, axis=1)
+    keep = residual <= 3 * np.median(residual) + 1e-12
+    if 3 <= keep.sum() < len(keep):
+        sim = umeyama(src[keep], dst[keep])
+    quat = matrix_to_quat_xyzw(sim.rotation)
+    rec.transform(pycolmap.Sim3d(sim.scale, pycolmap.Rotation3d(quat), sim.translation))
+    return sim

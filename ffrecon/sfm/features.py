@@ -1,0 +1,273 @@
+"""SIFT features and matches in a COLMAP database, through pycolmap 4.x (CPU).
+
+Both the COLMAP cross-check and the feed-forward-seeded refinement keep their features and
+matches in a COLMAP database, so that COLMAP itself can read them. Keypoints that COLMAP's SIFT
+writes already follow COLMAP's pixel-centre rule (top-left pixel centre at (0.5, 0.5)), the rule
+ffrecon uses everywhere, so nothing is shifted here.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import enum
+import logging
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from ffrecon.errors import InputError
+
+logger = logging.getLogger("ffrecon.sfm")
+
+
+class CameraModel(enum.Enum):
+    """COLMAP camera models offered to users (values are COLMAP's names)."""
+
+    SIMPLE_PINHOLE = "SIMPLE_PINHOLE"
+    PINHOLE = "PINHOLE"
+    SIMPLE_RADIAL = "SIMPLE_RADIAL"
+    RADIAL = "RADIAL"
+    OPENCV = "OPENCV"
+
+
+@dataclass(frozen=True, kw_only=True)
+class SiftOptions:
+    """SIFT extraction and matching settings shared by the cross-check and the refinement."""
+
+    max_num_features: int = 8192
+    max_image_size: int = 3200  # longest side SIFT sees, in pixels (COLMAP's default)
+    first_octave: int = -1  # -1: SIFT also looks at the image upsampled 2x (COLMAP's default); 0 is ~3x faster
+    max_ratio: float = 0.8  # Lowe ratio test
+    min_num_inliers: int = 15  # two-view geometry: fewer verified matches = no edge
+    num_threads: int = -1  # -1: all cores
+
+
+@dataclass(frozen=True)
+class FeatureStats:
+    """What the database holds per image, in the order of ``names``."""
+
+    names: tuple[str, ...]
+    num_keypoints: np.ndarray  # [N] int
+    num_verified_pairs: np.ndarray  # [N] int, image pairs with a verified two-view geometry
+    num_inlier_matches: np.ndarray  # [N] int, verified matches summed over those pairs
+    num_pairs_matched: int  # image pairs that went through matching
+    num_pairs_verified: int
+
+    def to_report(self) -> dict:
+        return {
+            "num_pairs_matched": self.num_pairs_matched,
+            "num_pairs_verified": self.num_pairs_verified,
+            "per_image": {
+                name: {"keypoints": int(k), "verified_pairs": int(p), "inlier_matches": int(m)}
+                for name, k, p, m in zip(self.names, self.num_keypoints, self.num_verified_pairs, self.num_inlier_matches)
+            },
+        }
+
+
+@contextlib.contextmanager
+def colmap_log_level(level: int | None = None) -> Iterator[None]:
+    """Silence COLMAP's own (glog) messages below ``level`` for the duration of the block.
+
+    By default COLMAP keeps its warnings, and its progress messages too when ffrecon logs at DEBUG.
+    """
+    if level is None:
+        level = logging.INFO if logging.getLogger("ffrecon").isEnabledFor(logging.DEBUG) else logging.WARNING
+    glog = {logging.DEBUG: 0, logging.INFO: 0, logging.WARNING: 1, logging.ERROR: 2}.get(level, 1)
+    old = pycolmap.logging.minloglevel
+    pycolmap.logging.minloglevel = glog
+    try:
+        yield
+    finally:
+        pycolmap.logging.minloglevel = old
+
+
+def _check_names(names: Sequence[str]) -> None:
+    bad = [n for n in names if any(c.isspace() for c in n)]
+    if bad:
+        raise InputError(
+            f"{len(bad)} image names contain white space (e.g. {bad[0]!r}); COLMAP's pair lists cannot hold them",
+            "rename the images without spaces",
+        )
+    if len(set(names)) != len(names):
+        raise InputError("image names are not unique", "give every image its own file name")
+
+
+def create_database(
+    db_path: Path,
+    image_dir: Path,
+    names: Sequence[str],
+    *,
+    camera_model: CameraModel,
+    single_camera: bool,
+    focal_prior_px: Sequence[float | None] | None = None,
+) -> dict[str, int]:
+    """Create ``db_path`` (replacing any old one) holding ``names`` and their cameras.
+
+    Args:
+        focal_prior_px: per image, focal length in pixels of that image, or None. Known priors are
+            written as COLMAP *prior* focal lengths (so two-view geometry is calibrated); with a
+            single camera their median is used.
+    Returns:
+        image id in the database for each name (COLMAP numbers images in sorted-name order).
+    """
+    _check_names(names)
+    db_path = Path(db_path)
+    db_path.parent.mkdir(parents=True, exist_ok=True)
+    for suffix in ("", "-shm", "-wal"):
+        Path(str(db_path) + suffix).unlink(missing_ok=True)
+    pycolmap.Database.open(str(db_path)).close()
+    mode = pycolmap.CameraMode.SINGLE if single_camera else pycolmap.CameraMode.PER_IMAGE
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = camera_model.value
+    with colmap_log_level():
+        pycolmap.import_images(str(db_path), str(image_dir), mode, image_names=list(names), options=reader)
+    priors = [None] * len(names) if focal_prior_px is None else list(focal_prior_px)
+    if len(priors) != len(names):
+        raise ValueError(f"focal_prior_px: expected {len(names)} values, got {len(priors)}")
+    db = pycolmap.Database.open(str(db_path))
+    try:
+        ids = {image.name: image.image_id for image in db.read_all_images()}
+        missing = [n for n in names if n not in ids]
+        if missing:
+            raise InputError(f"COLMAP could not read {len(missing)} images, e.g. {missing[0]}", f"check the files in {image_dir}")
+        camera_of = {image.name: image.camera_id for image in db.read_all_images()}
+        by_camera: dict[int, list[float]] = {}
+        for name, prior in zip(names, priors):
+            if prior is not None and prior > 0:
+                by_camera.setdefault(camera_of[name], []).append(float(prior))
+        for camera_id, values in by_camera.items():
+            camera = db.read_camera(camera_id)
+            params = np.array(camera.params, dtype=np.float64)
+            params[list(camera.focal_length_idxs())] = float(np.median(values))
+            camera.params = params
+            camera.has_prior_focal_length = True
+            db.update_camera(camera)
+    finally:
+        db.close()
+    return {name: ids[name] for name in names}
+
+
+def set_database_cameras(db_path: Path, cameras: Sequence[pycolmap.Camera]) -> None:
+    """Overwrite database cameras (matched by ``camera_id``) with known intrinsics, marked as priors."""
+    db = pycolmap.Database.open(str(db_path))
+    try:
+        for camera in cameras:
+            camera.has_prior_focal_length = True
+            db.update_camera(camera)
+    finally:
+        db.close()
+
+
+def extract_sift(db_path: Path, image_dir: Path, names: Sequence[str], options: SiftOptions) -> None:
+    """SIFT on the CPU for the images of the database that have no keypoints yet."""
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.num_threads = options.num_threads
+    extraction.max_image_size = options.max_image_size
+    extraction.sift.max_num_features = options.max_num_features
+    extraction.sift.first_octave = options.first_octave
+    extraction.use_gpu = False
+    with colmap_log_level():
+        pycolmap.extract_features(
+            str(db_path), str(image_dir), image_names=list(names), extraction_options=extraction, device=pycolmap.Device.cpu
+        )
+
+
+def copy_features(src_db: Path, dst_db: Path, names: Sequence[str]) -> list[str]:
+    """Copy keypoints and descriptors by image name; returns the names that were copied.
+
+    Images of ``dst_db`` missing from ``src_db`` (or with no features there) are left for
+    :func:`extract_sift`. The image sizes must agree (same files), which is checked.
+    """
+    src = pycolmap.Database.open(str(src_db))
+    dst = pycolmap.Database.open(str(dst_db))
+    copied = []
+    try:
+        src_images = {image.name: image for image in src.read_all_images()}
+        for image in dst.read_all_images():
+            if image.name not in names or image.name not in src_images:
+                continue
+            src_image = src_images[image.name]
+            src_cam, dst_cam = src.read_camera(src_image.camera_id), dst.read_camera(image.camera_id)
+            if (src_cam.width, src_cam.height) != (dst_cam.width, dst_cam.height):
+                continue
+            if not src.exists_keypoints(src_image.image_id) or dst.exists_keypoints(image.image_id):
+                continue
+            dst.write_keypoints(image.image_id, src.read_keypoints(src_image.image_id))
+            dst.write_descriptors(image.image_id, src.read_descriptors(src_image.image_id))
+            copied.append(image.name)
+    finally:
+        src.close()
+        dst.close()
+    return copied
+
+
+def matching_options(options: SiftOptions) -> tuple[pycolmap.FeatureMatchingOptions, pycolmap.TwoViewGeometryOptions]:
+    """pycolmap matching and verification options for ``options`` (CPU, seeded RANSAC)."""
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = options.num_threads
+    matching.use_gpu = False
+    matching.sift.max_ratio = options.max_ratio
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.min_num_inliers = options.min_num_inliers
+    verification.ransac.random_seed = 0
+    return matching, verification
+
+
+def write_pairs(pairs_path: Path, pairs: Sequence[tuple[str, str]]) -> Path:
+    """COLMAP's pair list: one ``name_a name_b`` per line."""
+    pairs_path = Path(pairs_path)
+    pairs_path.parent.mkdir(parents=True, exist_ok=True)
+    pairs_path.write_text("".join(f"{a} {b}\n" for a, b in pairs))
+    return pairs_path
+
+
+def match_pairs(db_path: Path, pairs: Sequence[tuple[str, str]], options: SiftOptions, pairs_path: Path, *, verify: bool = True) -> None:
+    """Match exactly the given image pairs (listed in ``pairs_path``), verified unless ``verify=False``."""
+    write_pairs(pairs_path, pairs)
+    matching, verification = matching_options(options)
+    matching.skip_geometric_verification = not verify
+    pairing = pycolmap.ImportedPairingOptions()
+    pairing.match_list_path = str(pairs_path)
+    with colmap_log_level():
+        pycolmap.match_image_pairs(
+            str(db_path), matching_options=matching, pairing_options=pairing, verification_options=verification, device=pycolmap.Device.cpu
+        )
+
+
+def verify_pairs(db_path: Path, pairs_path: Path, options: SiftOptions) -> None:
+    """Geometric verification (two-view geometry) of the raw matches of the pairs in ``pairs_path``."""
+    _, verification = matching_options(options)
+    with colmap_log_level():
+        pycolmap.verify_matches(str(db_path), str(pairs_path), verification)
+
+
+def feature_stats(db_path: Path, names: Sequence[str]) -> FeatureStats:
+    """Keypoints, verified pairs and inlier matches per image, read back from the database."""
+    db = pycolmap.Database.open(str(db_path))
+    try:
+        images = {image.image_id: image.name for image in db.read_all_images()}
+        index = {name: k for k, name in enumerate(names)}
+        keypoints = np.zeros(len(names), int)
+        for image_id, name in images.items():
+            if name in index:
+                keypoints[index[name]] = db.num_keypoints_for_image(image_id)
+        pair_ids, inliers = db.read_two_view_geometry_num_inliers()
+        verified = np.zeros(len(names), int)
+        matches = np.zeros(len(names), int)
+        num_verified = 0
+        for pair_id, count in zip(pair_ids, inliers):
+            if count <= 0:
+                continue
+            num_verified += 1
+            for image_id in pycolmap.pair_id_to_image_pair(pair_id):
+                k = index.get(images.get(image_id, ""))
+                if k is not None:
+                    verified[k] += 1
+                    matches[k] += count
+        num_matched = db.num_matched_image_pairs()
+    finally:
+        db.close()
+    return FeatureStats(tuple(names), keypoints, verified, matches, int(num_matched), num_verified)

@@ -1,0 +1,245 @@
+"""Verification gates: cheap checks that stop a run before the expensive stages.
+
+Each gate returns a :class:`GateVerdict` with its value, threshold, reason and fix. A failed
+registration gate names the likely cause (blur, lack of texture, too little overlap), measured on
+the images themselves, so the user knows what to change.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pycolmap
+
+from ffrecon.errors import GateFailed
+from ffrecon.sfm.crosscheck import ColmapResult
+from ffrecon.types import Prediction
+
+logger = logging.getLogger("ffrecon.sfm")
+
+
+class GateStatus(enum.Enum):
+    PASS = "pass"
+    FAIL = "fail"
+    SKIPPED = "skipped"  # nothing to check (e.g. no COLMAP model, no prediction)
+
+
+class FailureCause(enum.Enum):
+    BLUR = "blur"
+    TEXTURE = "texture"
+    OVERLAP = "overlap"
+
+
+@dataclass(frozen=True)
+class GateVerdict:
+    name: str
+    status: GateStatus
+    value: float | None
+    threshold: float | None
+    reason: str
+    fix: str = ""
+    causes: tuple[FailureCause, ...] = ()  # likely causes, most likely first (registration gate)
+
+    @property
+    def failed(self) -> bool:
+        return self.status is GateStatus.FAIL
+
+    def to_report(self) -> dict:
+        return {
+            "name": self.name, "status": self.status.value, "value": self.value, "threshold": self.threshold,
+            "reason": self.reason, "fix": self.fix, "causes": [c.value for c in self.causes],
+        }
+
+
+@dataclass(frozen=True, kw_only=True)
+class GateOptions:
+    min_registration_ratio: float = 0.85
+    min_points: int = 100
+    min_in_front_ratio: float = 0.99  # observations with the point in front of the camera
+    min_cloud_spread: float = 0.01  # p90 point distance from the median point / camera extent
+    max_cloud_tail: float = 1000.0  # p99 / p50 of point distances from the median point
+    min_depth_conf: float = 1.5
+    min_depth_coverage: float = 0.5  # mean share of pixels with confident feed-forward depth
+    blur_ratio: float = 0.12  # mean |Laplacian| / mean |gradient| below this: blurred
+    min_gradient: float = 0.05  # mean Sobel gradient magnitude (grey in [0, 1]) below this: textureless
+    min_keypoints: int = 300  # without the images to measure: fewer median SIFT features = blur or texture
+    cause_share: float = 0.3  # a cause is named when this share of the images shows it
+    quality_max_side: int = 640  # images are measured at this longest side (downscaled only)
+
+
+@dataclass(frozen=True)
+class ImageQuality:
+    """Per-image sharpness and texture, measured at a common resolution."""
+
+    names: tuple[str, ...]
+    blur_ratio: np.ndarray  # [N] mean |Laplacian| / mean |Sobel gradient|; low = blurred
+    gradient: np.ndarray  # [N] mean Sobel gradient magnitude of grey in [0, 1]; low = textureless
+
+
+def measure_image_quality(image_dir: Path, names: Sequence[str], *, max_side: int = 640) -> ImageQuality:
+    """Blur and texture measures of each image (read from ``image_dir``)."""
+    ratio, grad = [], []
+    for name in names:
+        grey = cv2.imread(str(Path(image_dir) / name), cv2.IMREAD_GRAYSCALE)
+        if grey is None:
+            ratio.append(np.nan)
+            grad.append(np.nan)
+            continue
+        scale = max_side / max(grey.shape)
+        if scale < 1:
+            grey = cv2.resize(grey, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+        g = grey.astype(np.float32) / 255.0
+        magnitude = np.hypot(cv2.Sobel(g, cv2.CV_32F, 1, 0), cv2.Sobel(g, cv2.CV_32F, 0, 1)).mean()
+        lap = np.abs(cv2.Laplacian(g, cv2.CV_32F)).mean()
+        grad.append(float(magnitude))
+        ratio.append(float(lap / max(magnitude, 1e-6)))
+    return ImageQuality(tuple(names), np.array(ratio), np.array(grad))
+
+
+_FIXES = {
+    FailureCause.BLUR: "the images look blurred: hold the camera steady, use more light or a faster shutter, "
+    "and drop blurred frames (for video, keep the sharpest frame of each second)",
+    FailureCause.TEXTURE: "the surfaces show too little texture for feature matching: add texture (objects, "
+    "posters), light the scene evenly, or accept the feed-forward cameras with --force",
+    FailureCause.OVERLAP: "the images overlap too little or change viewpoint too much: take more photos, each "
+    "sharing about two thirds of its view with the previous one, and move less between shots",
+}
+
+
+def diagnose_registration(quality: ImageQuality | None, median_keypoints: int, options: GateOptions) -> tuple[FailureCause, ...]:
+    """Likely causes of poor registration, most likely first; OVERLAP when the images look fine.
+
+    Blur lowers the Laplacian relative to the gradient (edges get wide); a textureless image has
+    sharp but faint detail (low gradient, normal ratio). Blur is named first because heavy blur
+    also lowers the gradient.
+    """
+    causes = []
+    if quality is None and median_keypoints < options.min_keypoints:
+        return (FailureCause.BLUR, FailureCause.TEXTURE)  # few features, images not measured
+    if quality is not None and len(quality.names):
+        if np.nanmean(quality.blur_ratio < options.blur_ratio) >= options.cause_share:
+            causes.append(FailureCause.BLUR)
+        if np.nanmean(quality.gradient < options.min_gradient) >= options.cause_share:
+            causes.append(FailureCause.TEXTURE)
+    return tuple(causes) or (FailureCause.OVERLAP,)
+
+
+def registration_gate(colmap: ColmapResult, options: GateOptions, *, image_dir: Path | None = None) -> GateVerdict:
+    ratio = colmap.registration_ratio
+    if ratio >= options.min_registration_ratio:
+        return GateVerdict("registration", GateStatus.PASS, ratio, options.min_registration_ratio,
+                           f"COLMAP registered {colmap.num_registered} of {len(colmap.names)} images")
+    quality = None
+    if image_dir is not None:
+        quality = measure_image_quality(image_dir, colmap.names, max_side=options.quality_max_side)
+    kps = int(np.median(colmap.features.num_keypoints)) if len(colmap.names) else 0
+    causes = diagnose_registration(quality, kps, options)
+    likely = " or ".join({FailureCause.BLUR: "blur", FailureCause.TEXTURE: "lack of texture", FailureCause.OVERLAP: "too little overlap"}[c] for c in causes)
+    reason = (
+        f"COLMAP registered only {colmap.num_registered} of {len(colmap.names)} images ({ratio:.0%} < "
+        f"{options.min_registration_ratio:.0%}); median {kps} SIFT features per image, "
+        f"{colmap.features.num_pairs_verified} verified image pairs; likely cause: {likely}"
+    )
+    return GateVerdict("registration", GateStatus.FAIL, ratio, options.min_registration_ratio, reason,
+                       "; ".join(_FIXES[c] for c in causes), causes)
+
+
+def _cloud_checks(rec: pycolmap.Reconstruction, options: GateOptions) -> tuple[float, list[str]]:
+    """Share of observations in front of their camera, and the list of problems found."""
+    problems = []
+    xyz = np.array([p.xyz for p in rec.points3D.values()]).reshape(-1, 3)
+    if len(xyz) < options.min_points:
+        problems.append(f"only {len(xyz)} points (< {options.min_points})")
+    centers = np.array([rec.image(i).projection_center() for i in rec.reg_image_ids()]).reshape(-1, 3)
+    if len(xyz) >= 3:
+        dist = np.linalg.norm(xyz - np.median(xyz, axis=0), axis=1)
+        cam_extent = float(np.linalg.norm(np.ptp(centers, axis=0))) if len(centers) >= 2 else 0.0
+        if cam_extent > 0 and np.percentile(dist, 90) / cam_extent < options.min_cloud_spread:
+            problems.append(f"the cloud is degenerate: 90% of points lie within {np.percentile(dist, 90) / cam_extent:.2%} of the camera extent")
+        p50 = np.percentile(dist, 50)
+        if p50 > 0 and np.percentile(dist, 99) / p50 > options.max_cloud_tail:
+            problems.append(f"the cloud explodes: the farthest 1% of points are {np.percentile(dist, 99) / p50:.0f}x the median distance away")
+    in_front = total = 0
+    for image_id in rec.reg_image_ids():
+        image = rec.image(image_id)
+        pose = np.asarray(image.cam_from_world().matrix())
+        ids = [p.point3D_id for p in image.points2D if p.has_point3D()]
+        if not ids:
+            continue
+        pts = np.array([rec.points3D[i].xyz for i in ids])
+        z = pts @ pose[2, :3] + pose[2, 3]
+        in_front += int((z > 0).sum())
+        total += len(z)
+    ratio = in_front / total if total else 0.0
+    if total and ratio < options.min_in_front_ratio:
+        problems.append(f"{1 - ratio:.1%} of observations see their point behind the camera")
+    return ratio, problems
+
+
+def sparse_cloud_gate(rec: pycolmap.Reconstruction | None, options: GateOptions, *, label: str = "COLMAP") -> GateVerdict:
+    if rec is None or rec.num_reg_images() == 0:
+        return GateVerdict("sparse_cloud", GateStatus.SKIPPED, None, options.min_in_front_ratio, f"no {label} model to check")
+    ratio, problems = _cloud_checks(rec, options)
+    if problems:
+        return GateVerdict("sparse_cloud", GateStatus.FAIL, ratio, options.min_in_front_ratio,
+                           f"the {label} sparse cloud looks wrong: " + "; ".join(problems),
+                           "the reconstruction is unreliable: check the images for moving objects, reflections "
+                           "or repeated patterns, or run with --force to continue anyway")
+    return GateVerdict("sparse_cloud", GateStatus.PASS, ratio, options.min_in_front_ratio,
+                       f"{rec.num_points3D()} points, {ratio:.1%} of observations in front of their camera, extent plausible")
+
+
+def depth_coverage_gate(prediction: Prediction | None, options: GateOptions) -> GateVerdict:
+    if prediction is None or len(prediction) == 0:
+        return GateVerdict("depth_coverage", GateStatus.SKIPPED, None, options.min_depth_coverage, "no feed-forward prediction")
+    shares = np.array([prediction.valid_mask(i, options.min_depth_conf).mean() for i in range(len(prediction))])
+    coverage = float(shares.mean())
+    worst = prediction.names[int(np.argmin(shares))]
+    reason = (f"{coverage:.0%} of pixels have feed-forward depth with confidence >= {options.min_depth_conf:g} "
+              f"(lowest: {worst}, {shares.min():.0%})")
+    if coverage >= options.min_depth_coverage:
+        return GateVerdict("depth_coverage", GateStatus.PASS, coverage, options.min_depth_coverage, reason)
+    return GateVerdict("depth_coverage", GateStatus.FAIL, coverage, options.min_depth_coverage, reason,
+                       "the model is unsure of most of the scene: check that the images show one static scene, "
+                       "try another model, or run with --force")
+
+
+def evaluate_gates(
+    *,
+    colmap: ColmapResult | None,
+    prediction: Prediction | None,
+    image_dir: Path | None = None,
+    options: GateOptions = GateOptions(),
+) -> list[GateVerdict]:
+    """Registration, sparse-cloud sanity (COLMAP model) and feed-forward depth coverage, in that order.
+
+    ``image_dir`` lets a failed registration gate measure blur and texture to name the cause.
+    """
+    verdicts = []
+    if colmap is None:
+        verdicts.append(GateVerdict("registration", GateStatus.SKIPPED, None, options.min_registration_ratio, "COLMAP cross-check not run"))
+    else:
+        verdicts.append(registration_gate(colmap, options, image_dir=image_dir))
+    verdicts.append(sparse_cloud_gate(None if colmap is None else colmap.reconstruction, options))
+    verdicts.append(depth_coverage_gate(prediction, options))
+    for v in verdicts:
+        (logger.warning if v.failed else logger.info)("gate %s: %s - %s", v.name, v.status.value, v.reason)
+    return verdicts
+
+
+def check_gates(verdicts: Sequence[GateVerdict], *, force: bool = False) -> None:
+    """Raise :class:`GateFailed` (exit code 5) if any gate failed, unless ``force``."""
+    failed = [v for v in verdicts if v.failed]
+    if not failed:
+        return
+    if force:
+        logger.warning("continuing despite %d failed gates (forced): %s", len(failed), ", ".join(v.name for v in failed))
+        return
+    raise GateFailed("; ".join(f"gate '{v.name}' failed: {v.reason}" for v in failed),
+                     "; ".join(v.fix for v in failed if v.fix) + " (or pass --force to continue anyway)")

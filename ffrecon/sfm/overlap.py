@@ -1,0 +1,123 @@
+"""Which image pairs overlap, according to the feed-forward geometry.
+
+Confident depth points of frame i are projected into frame j with the predicted cameras; the share
+that lands inside j, in front of it and agrees with j's own predicted depth (so occluded points do
+not count) is the overlap of i in j. Only overlapping pairs are matched, which is what makes the
+refinement cheaper than exhaustive matching.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from ffrecon.geometry.projection import pixel_centers, project_points
+from ffrecon.types import Prediction
+
+logger = logging.getLogger("ffrecon.sfm")
+
+
+@dataclass(frozen=True, kw_only=True)
+class OverlapOptions:
+    min_overlap: float = 0.25  # pairs whose overlap (the smaller of both directions) reaches this are matched
+    max_pairs_per_image: int = 12  # ... but at most this many per image, the most overlapping first
+    min_pairs_per_image: int = 4  # the best pairs of each image are matched whatever their overlap ...
+    min_any_overlap: float = 0.02  # ... if they overlap at all
+    fallback_neighbours: int = 2  # a frame with no pair reaching min_overlap also gets this many neighbours by index
+    min_depth_conf: float = 1.0  # depth pixels below this confidence are not used
+    max_depth_ratio: float = 0.15  # |z_projected / z_j - 1| above this: occluded in j
+    samples_per_image: int = 1500
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class OverlapGraph:
+    """Overlap fractions and the pairs chosen for matching."""
+
+    overlap: np.ndarray  # [N, N] float, overlap[i, j]: share of i's confident points seen by j
+    pairs: np.ndarray  # [P, 2] int, i < j
+
+    def score(self) -> np.ndarray:
+        """``[N, N]`` symmetric score: the smaller overlap of the two directions."""
+        return np.minimum(self.overlap, self.overlap.T)
+
+
+def _sample_points(prediction: Prediction, i: int, options: OverlapOptions, rng: np.random.Generator) -> np.ndarray:
+    """``[M, 3]`` world points from confident depth of frame i (random subset of the valid pixels)."""
+    valid = np.flatnonzero(prediction.valid_mask(i, options.min_depth_conf).ravel())
+    if len(valid) == 0:
+        return np.zeros((0, 3))
+    pick = valid if len(valid) <= options.samples_per_image else rng.choice(valid, options.samples_per_image, replace=False)
+    cam = prediction.depth_camera(i)
+    depth = prediction.depth[i].ravel()[pick].astype(np.float64)
+    uv = pixel_centers(*prediction.depth[i].shape).reshape(-1, 2)[pick]
+    rays = np.stack([(uv[:, 0] - cam.cx) / cam.fx, (uv[:, 1] - cam.cy) / cam.fy, np.ones(len(pick))], axis=1)
+    pose = prediction.cam_from_world[i]
+    return (rays * depth[:, None] - pose[:, 3]) @ pose[:, :3]
+
+
+def overlap_matrix(prediction: Prediction, options: OverlapOptions = OverlapOptions()) -> np.ndarray:
+    """``[N, N]`` overlap[i, j] in [0, 1]: share of frame i's confident depth points visible in frame j.
+
+    The diagonal is 1 (0 for a frame with no confident depth).
+    """
+    n = len(prediction)
+    rng = np.random.default_rng(options.seed)
+    out = np.zeros((n, n))
+    points = [_sample_points(prediction, i, options, rng) for i in range(n)]
+    for j in range(n):
+        cam = prediction.depth_camera(j)
+        h, w = prediction.depth[j].shape
+        depth_j = prediction.depth[j]
+        for i in range(n):
+            if len(points[i]) == 0:
+                continue
+            if i == j:
+                out[i, j] = 1.0
+                continue
+            uv, z = project_points(points[i], cam.K, prediction.cam_from_world[j])
+            inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+            col = np.clip(uv[inside, 0].astype(int), 0, w - 1)
+            row = np.clip(uv[inside, 1].astype(int), 0, h - 1)
+            z_j = depth_j[row, col].astype(np.float64)
+            seen = np.where(z_j > 0, np.abs(z[inside] / np.maximum(z_j, 1e-12) - 1.0) <= options.max_depth_ratio, True)
+            out[i, j] = seen.sum() / len(points[i])
+    return out
+
+
+def select_pairs(overlap: np.ndarray, options: OverlapOptions = OverlapOptions()) -> np.ndarray:
+    """``[P, 2]`` pairs i < j to match, from an overlap matrix (see :class:`OverlapOptions`).
+
+    >>> ov = np.array([[1.0, 0.6, 0.0], [0.5, 1.0, 0.3], [0.0, 0.4, 1.0]])
+    >>> select_pairs(ov, OverlapOptions(min_pairs_per_image=1)).tolist()
+    [[0, 1], [1, 2]]
+    """
+    n = len(overlap)
+    score = np.minimum(overlap, overlap.T)
+    np.fill_diagonal(score, -1.0)
+    chosen = np.zeros((n, n), bool)
+    for i in range(n):
+        order = np.argsort(-score[i], kind="stable")
+        good = [j for j in order if score[i, j] >= options.min_overlap][: options.max_pairs_per_image]
+        best = [j for j in order[: options.min_pairs_per_image] if score[i, j] >= options.min_any_overlap]
+        chosen[i, good + best] = True
+    chosen |= chosen.T
+    # A frame the prediction places apart from the others (no pair reaches min_overlap: maybe a badly
+    # predicted pose) also gets its neighbours in input order, the likeliest overlaps of ordered captures.
+    for i in np.flatnonzero(score.max(1) < options.min_overlap):
+        for j in range(i - options.fallback_neighbours, i + options.fallback_neighbours + 1):
+            if 0 <= j < n and j != i:
+                chosen[i, j] = chosen[j, i] = True
+    i, j = np.nonzero(np.triu(chosen, k=1))
+    return np.stack([i, j], axis=1)
+
+
+def overlap_graph(prediction: Prediction, options: OverlapOptions = OverlapOptions()) -> OverlapGraph:
+    """Overlap matrix and chosen pairs; logs how many pairs exhaustive matching would have needed."""
+    overlap = overlap_matrix(prediction, options)
+    pairs = select_pairs(overlap, options)
+    n = len(prediction)
+    logger.info("feed-forward overlap: %d of %d image pairs to match", len(pairs), n * (n - 1) // 2)
+    return OverlapGraph(overlap, pairs)

@@ -1,0 +1,309 @@
+"""Bundle adjustment seeded by the feed-forward cameras.
+
+Only the pairs that the feed-forward geometry says overlap are matched (SIFT, COLMAP's verification);
+tracks are triangulated with the feed-forward cameras, then refined by bundle adjustment in two
+passes: a coarse pass with tolerances wide enough for feed-forward pose errors and a robust loss, then
+a fresh triangulation with the coarse result and COLMAP's usual tolerances. Frames that end up
+with too few features, matches or observations are flagged and kept out; the rest are refined.
+The result is expressed in the prediction's world frame (Sim(3)-aligned to its camera centres).
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+import shutil
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from ffrecon.errors import InputError
+from ffrecon.geometry.alignment import Sim3
+from ffrecon.sfm.bundle import BundleOptions, BundleSummary, refine_tracks, sim3_to_ff_frame
+from ffrecon.sfm.colmap_io import (
+    cam_from_world_by_name,
+    cameras_by_name,
+    pinhole_to_colmap,
+    reconstruction_from_cameras,
+    write_reconstruction,
+)
+from ffrecon.sfm.features import (
+    CameraModel,
+    FeatureStats,
+    SiftOptions,
+    colmap_log_level,
+    copy_features,
+    create_database,
+    extract_sift,
+    feature_stats,
+    match_pairs,
+    set_database_cameras,
+    verify_pairs,
+    write_pairs,
+)
+from ffrecon.sfm.guided import GuidanceOptions, GuidanceStats, MatchGuidance, filter_matches, guided_matches
+from ffrecon.sfm.overlap import OverlapOptions, overlap_graph
+from ffrecon.sfm.timing import StageTimer, Timings
+from ffrecon.types import PinholeCamera, Prediction
+
+logger = logging.getLogger("ffrecon.sfm")
+
+
+class RefineStatus(enum.Enum):
+    SUCCESS = "success"  # every frame refined
+    PARTIAL = "partial"  # some frames flagged and kept out, the others refined
+    FAILED = "failed"  # fewer than two frames could be refined: the feed-forward cameras are returned
+
+
+class WeakReason(enum.Enum):
+    FEW_FEATURES = "few_features"  # too few SIFT keypoints (textureless, blurred, dark)
+    FEW_MATCHES = "few_matches"  # features, but too few verified matches with overlapping frames
+    FEW_OBSERVATIONS = "few_observations"  # too few triangulated observations survive refinement
+
+
+@dataclass(frozen=True)
+class WeakFrame:
+    name: str
+    reason: WeakReason
+    value: int  # keypoints, verified matches or observations
+    threshold: int
+
+    def describe(self) -> str:
+        what = {WeakReason.FEW_FEATURES: "SIFT keypoints", WeakReason.FEW_MATCHES: "verified matches",
+                WeakReason.FEW_OBSERVATIONS: "triangulated observations"}[self.reason]
+        return f"{self.name}: {self.value} {what} (< {self.threshold}); kept out of the refinement"
+
+
+@dataclass(frozen=True, kw_only=True)
+class RefineOptions:
+    overlap: OverlapOptions = OverlapOptions()
+    sift: SiftOptions = SiftOptions()
+    bundle: BundleOptions = BundleOptions()
+    guidance: GuidanceOptions = GuidanceOptions()
+    reuse_features_from: Path | None = None  # a COLMAP database with SIFT of the same images (the cross-check's)
+    single_camera: bool = True  # one shared camera (median feed-forward intrinsics) if all images share a size
+    square_pixels: bool = True  # one focal length per camera (fx = fy)
+    min_features: int = 100
+    min_matches: int = 50  # verified matches summed over the frame's pairs
+    min_observations: int = 40
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class RefineResult:
+    """Refined cameras in the prediction's world frame (same scale and origin, up to the fit)."""
+
+    status: RefineStatus
+    names: tuple[str, ...]
+    cam_from_world: np.ndarray  # [N, 3, 4] float64; flagged frames keep their feed-forward pose
+    registered: np.ndarray  # [N] bool, True where refined
+    cameras: tuple[PinholeCamera, ...]  # refined intrinsics (feed-forward ones where not refined)
+    flagged: tuple[WeakFrame, ...]
+    points_xyz: np.ndarray  # [M, 3] float64, prediction's world frame
+    points_rgb: np.ndarray  # [M, 3] uint8
+    num_pairs: int  # image pairs matched
+    features: FeatureStats
+    guidance: GuidanceStats | None  # None without feed-forward guidance of the matching
+    bundle: BundleSummary | None
+    mean_reprojection_error_px: float
+    ff_from_refined: Sim3 = field(repr=False)
+    timings: Timings
+    model_path: Path | None  # out_dir/sparse/0
+    reconstruction: pycolmap.Reconstruction | None = field(default=None, repr=False, compare=False)
+
+    def to_report(self) -> dict:
+        err = self.mean_reprojection_error_px
+        return {
+            "status": self.status.value,
+            "num_images": len(self.names),
+            "num_refined": int(self.registered.sum()),
+            "flagged": [{"name": w.name, "reason": w.reason.value, "value": w.value, "threshold": w.threshold, "message": w.describe()} for w in self.flagged],
+            "num_points": int(len(self.points_xyz)),
+            "num_pairs_matched": self.num_pairs,
+            "mean_reprojection_error_px": float(err) if np.isfinite(err) else None,
+            "match_guidance": None if self.guidance is None else self.guidance.to_report(),
+            "bundle_adjustment": None if self.bundle is None else self.bundle.to_report(),
+            "sim3_ff_from_refined_scale": self.ff_from_refined.scale,
+            "model_path": None if self.model_path is None else str(self.model_path),
+            "timings_s": self.timings.to_report(),
+            "features": self.features.to_report(),
+        }
+
+
+def _check_inputs(image_dir: Path, prediction: Prediction) -> None:
+    missing = [n for n in prediction.names if not (Path(image_dir) / n).is_file()]
+    if missing:
+        raise InputError(f"{len(missing)} images of the prediction are not in {image_dir}, e.g. {missing[0]}", "pass the folder the model read")
+    if len(prediction) < 2:
+        raise InputError(f"refinement needs at least two images, got {len(prediction)}", "add images")
+
+
+def _shared_camera(prediction: Prediction) -> PinholeCamera | None:
+    """Median intrinsics if every frame has the same image size, else None."""
+    sizes = {(c.width, c.height) for c in prediction.cameras}
+    if len(sizes) != 1:
+        return None
+    w, h = sizes.pop()
+    k = np.median([[c.fx, c.fy, c.cx, c.cy] for c in prediction.cameras], axis=0)
+    return PinholeCamera(w, h, float(k[0]), float(k[1]), float(k[2]), float(k[3]))
+
+
+def _weak_by_features(stats: FeatureStats, options: RefineOptions) -> list[WeakFrame]:
+    out = []
+    for name, kps, matches in zip(stats.names, stats.num_keypoints, stats.num_inlier_matches):
+        if kps < options.min_features:
+            out.append(WeakFrame(name, WeakReason.FEW_FEATURES, int(kps), options.min_features))
+        elif matches < options.min_matches:
+            out.append(WeakFrame(name, WeakReason.FEW_MATCHES, int(matches), options.min_matches))
+    return out
+
+
+def _colmap_camera(camera: PinholeCamera, camera_id: int, square_pixels: bool) -> pycolmap.Camera:
+    """PINHOLE, or SIMPLE_PINHOLE (one focal length) when pixels are square.
+
+    With fx and fy both free, an orbit of cameras looking at a common point leaves the focal lengths
+    and a common tilt of all cameras nearly undetermined; one focal length removes that freedom.
+    """
+    if not square_pixels:
+        return pinhole_to_colmap(camera, camera_id)
+    focal = float(np.sqrt(camera.fx * camera.fy))
+    return pycolmap.Camera(model="SIMPLE_PINHOLE", width=camera.width, height=camera.height,
+                           params=[focal, camera.cx, camera.cy], camera_id=camera_id)
+
+
+def _prepare_database(
+    image_dir: Path, prediction: Prediction, options: RefineOptions, db_path: Path, timer: StageTimer
+) -> tuple[dict[str, int], list[PinholeCamera], dict[str, pycolmap.Camera]]:
+    """Database with the feed-forward cameras and SIFT of every image.
+
+    Returns the database image id of each name, the feed-forward camera used for each frame, and the
+    COLMAP camera of each name (as written to the database).
+    """
+    names = prediction.names
+    shared = _shared_camera(prediction) if options.single_camera else None
+    cameras = [shared] * len(names) if shared is not None else list(prediction.cameras)
+    image_ids = create_database(
+        db_path, image_dir, names, camera_model=CameraModel.PINHOLE, single_camera=shared is not None,
+        focal_prior_px=[c.fx for c in cameras],
+    )
+    db = pycolmap.Database.open(str(db_path))
+    camera_of = {image.name: image.camera_id for image in db.read_all_images()}
+    db.close()
+    colmap_cameras = {camera_of[n]: _colmap_camera(c, camera_of[n], options.square_pixels) for n, c in zip(names, cameras)}
+    set_database_cameras(db_path, list(colmap_cameras.values()))
+    with timer.stage("feature_extraction"):
+        copied = copy_features(options.reuse_features_from, db_path, names) if options.reuse_features_from else []
+        if len(copied) < len(names):
+            extract_sift(db_path, image_dir, [n for n in names if n not in copied], options.sift)
+    if copied:
+        logger.info("reused SIFT features of %d images from %s", len(copied), options.reuse_features_from)
+    return image_ids, cameras, {n: colmap_cameras[camera_of[n]] for n in names}
+
+
+def _initial_model(
+    prediction: Prediction, image_ids: dict[str, int], cameras: list[PinholeCamera], colmap_cameras: dict[str, pycolmap.Camera], shared: bool
+) -> pycolmap.Reconstruction:
+    """The feed-forward cameras as a model whose image and camera ids equal the database's."""
+    names = prediction.names
+    order = sorted(range(len(names)), key=lambda k: image_ids[names[k]])
+    rec = reconstruction_from_cameras(
+        [names[k] for k in order], prediction.cam_from_world[order], [cameras[k] for k in order], share_identical_cameras=shared
+    )
+    for image in rec.images.values():
+        camera = colmap_cameras[image.name]
+        if image_ids[image.name] != image.image_id or camera.camera_id != image.camera_id:
+            raise RuntimeError(f"model and database disagree on the ids of {image.name}")
+        rec.cameras[image.camera_id] = camera
+    return rec
+
+
+def _match(db_path: Path, prediction: Prediction, pairs: list[tuple[str, str]], options: RefineOptions, pairs_path: Path) -> GuidanceStats | None:
+    """Match and verify ``pairs``, guided by the prediction as ``options.guidance.mode`` says."""
+    mode = options.guidance.mode
+    if mode is not MatchGuidance.GUIDED:
+        match_pairs(db_path, pairs, options.sift, pairs_path)
+        if mode is MatchGuidance.NONE:
+            return None
+        stats = filter_matches(db_path, prediction, pairs, options.guidance, min_inliers=options.sift.min_num_inliers)
+        if mode is MatchGuidance.FILTER or stats.rejected_share <= options.guidance.auto_max_rejected:
+            return stats
+        logger.warning(
+            "the feed-forward geometry rejects %.0f%% of the verified SIFT matches: look-alike surfaces (repeated "
+            "texture?); matching again, guided by the feed-forward geometry", 100 * stats.rejected_share,
+        )
+    stats = guided_matches(db_path, prediction, pairs, options.guidance)
+    verify_pairs(db_path, write_pairs(pairs_path, pairs), options.sift)
+    return stats
+
+
+def run_refine(image_dir: Path, prediction: Prediction, options: RefineOptions, out_dir: Path) -> RefineResult:
+    """Refine the feed-forward cameras; writes ``out_dir/sparse/0`` (work files in ``out_dir/refine``).
+
+    Args:
+        image_dir: folder holding the images named in ``prediction.names``.
+        prediction: feed-forward cameras (cam_from_world, OpenCV) and depth, original-photo pixels.
+    Returns:
+        :class:`RefineResult` with poses in the prediction's world frame. Weak frames are flagged, not
+        fatal; with fewer than two usable frames the status is FAILED and the feed-forward cameras
+        are returned unrefined (nothing is written).
+    """
+    image_dir, out_dir = Path(image_dir), Path(out_dir)
+    _check_inputs(image_dir, prediction)
+    names = tuple(prediction.names)
+    timer = StageTimer()
+    work = out_dir / "refine"
+    db_path = work / "database.db"
+    pycolmap.set_random_seed(options.seed)
+    with timer.stage("pair_selection"):
+        graph = overlap_graph(prediction, options.overlap)
+    image_ids, cameras, colmap_cameras = _prepare_database(image_dir, prediction, options, db_path, timer)
+    pairs = [(names[i], names[j]) for i, j in graph.pairs]
+    with timer.stage("matching"):
+        guidance = _match(db_path, prediction, pairs, options, work / "pairs.txt")
+    stats = feature_stats(db_path, names)
+    flagged = _weak_by_features(stats, options)
+
+    rec = _initial_model(prediction, image_ids, cameras, colmap_cameras, len({c.camera_id for c in colmap_cameras.values()}) == 1)
+    usable = {n for n in names} - {w.name for w in flagged}
+    summary = None
+    with timer.stage("triangulation_and_bundle_adjustment"), colmap_log_level():
+        if len(usable) >= 2:
+            rec, summary, weak_obs = refine_tracks(rec, db_path, usable, options.bundle, min_observations=options.min_observations)
+            flagged += [WeakFrame(n, WeakReason.FEW_OBSERVATIONS, k, options.min_observations) for n, k in weak_obs]
+    refined_names = {img.name for img in rec.images.values() if img.has_pose} if summary is not None else set()
+    if len(refined_names) < 2:
+        logger.warning("refinement failed: %d usable frames; keeping the feed-forward cameras", len(refined_names))
+        n = len(names)
+        return RefineResult(
+            RefineStatus.FAILED, names, prediction.cam_from_world.copy(), np.zeros(n, bool), tuple(prediction.cameras),
+            tuple(flagged), np.zeros((0, 3)), np.zeros((0, 3), np.uint8), len(graph.pairs), stats, guidance, summary,
+            float("nan"), Sim3.identity(), timer.freeze(), None, None,
+        )
+    with timer.stage("export"):
+        ff_from_refined = sim3_to_ff_frame(rec, names, prediction.cam_from_world)
+        with colmap_log_level():
+            rec.extract_colors_for_all_images(str(image_dir))
+        model_dir = out_dir / "sparse" / "0"
+        shutil.rmtree(model_dir, ignore_errors=True)
+        write_reconstruction(rec, model_dir)
+    cam_from_world, registered = cam_from_world_by_name(rec, names)
+    cam_from_world[~registered] = prediction.cam_from_world[~registered]
+    refined_cams = tuple(c if r else p for c, r, p in zip(cameras_by_name(rec, names), registered, prediction.cameras))
+    points = rec.points3D
+    xyz = np.array([p.xyz for p in points.values()], dtype=np.float64).reshape(-1, 3)
+    rgb = np.array([p.color for p in points.values()], dtype=np.uint8).reshape(-1, 3)
+    rec.update_point_3d_errors()
+    status = RefineStatus.SUCCESS if registered.all() else RefineStatus.PARTIAL
+    for weak in flagged:
+        logger.warning("weak frame %s", weak.describe())
+    result = RefineResult(
+        status, names, cam_from_world, registered, refined_cams, tuple(flagged), xyz, rgb, len(graph.pairs), stats, guidance, summary,
+        float(rec.compute_mean_reprojection_error()), ff_from_refined, timer.freeze(), model_dir, rec,
+    )
+    logger.info(
+        "refined %d/%d frames, %d points, %.2f px reprojection error (%.1f s)",
+        int(registered.sum()), len(names), len(xyz), result.mean_reprojection_error_px, result.timings.total_s,
+    )
+    return result

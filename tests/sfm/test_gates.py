@@ -1,0 +1,84 @@
+"""Verification gates: verdicts, causes named for bad captures, and the stop before expensive stages."""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import numpy as np
+import pycolmap
+import pytest
+
+from ffrecon.errors import GateFailed
+from ffrecon.sfm.crosscheck import ColmapOptions, run_colmap
+from ffrecon.sfm.gates import FailureCause, GateOptions, GateStatus, check_gates, evaluate_gates, sparse_cloud_gate
+from ffrecon.synthetic import SceneOptions, Texture, make_scene, write_scene
+
+
+def test_good_capture_passes_every_gate(orbit24, colmap24):
+    verdicts = evaluate_gates(colmap=colmap24[0], prediction=orbit24.prediction, image_dir=orbit24.image_dir)
+    assert [v.name for v in verdicts] == ["registration", "sparse_cloud", "depth_coverage"]
+    assert all(v.status is GateStatus.PASS for v in verdicts), [v.reason for v in verdicts]
+    assert verdicts[0].value == 1.0 and verdicts[0].threshold == 0.85
+    check_gates(verdicts)  # no exception
+    assert verdicts[1].to_report()["status"] == "pass"
+
+
+@pytest.mark.parametrize(
+    ("scene_options", "cause", "word"),
+    [
+        (SceneOptions(num_frames=12, blur_sigma_px=3.0), FailureCause.BLUR, "blur"),
+        (SceneOptions(num_frames=12, texture=Texture.TEXTURELESS), FailureCause.TEXTURE, "texture"),
+    ],
+    ids=["blurred", "textureless"],
+)
+def test_bad_capture_fails_registration_fast_and_names_the_cause(scene_options, cause, word, tmp_path):
+    scene = make_scene(scene_options)
+    image_dir = write_scene(scene, tmp_path / "scene")
+    start = time.perf_counter()
+    colmap = run_colmap(image_dir, scene.names, ColmapOptions(), tmp_path / "colmap", focal_prior_px=scene.camera.fx)
+    verdicts = evaluate_gates(colmap=colmap, prediction=None, image_dir=image_dir)
+    elapsed = time.perf_counter() - start
+    registration = verdicts[0]
+    assert registration.status is GateStatus.FAIL
+    assert registration.causes[0] is cause
+    assert word in registration.reason and word in registration.fix
+    assert elapsed < 120  # "within minutes", measured on 2 shared cores: a few seconds
+    with pytest.raises(GateFailed) as info:
+        check_gates(verdicts)
+    assert info.value.exit_code == 5 and "registration" in str(info.value)
+    check_gates(verdicts, force=True)  # forced: logged, not raised
+
+
+def _copy(rec: pycolmap.Reconstruction) -> pycolmap.Reconstruction:
+    return pycolmap.Reconstruction(rec)
+
+
+def test_sparse_cloud_gate_catches_points_behind_cameras_and_explosions(colmap24):
+    rec = colmap24[0].reconstruction
+    assert sparse_cloud_gate(rec, GateOptions()).status is GateStatus.PASS
+    # Mirror every point through its first camera: observations now see them from behind.
+    behind = _copy(rec)
+    for point_id in list(behind.point3D_ids())[::2]:
+        point = behind.points3D[point_id]
+        image = behind.image(point.track.elements[0].image_id)
+        center = image.projection_center()
+        point.xyz = 2 * center - point.xyz
+    verdict = sparse_cloud_gate(behind, GateOptions())
+    assert verdict.status is GateStatus.FAIL and "behind the camera" in verdict.reason
+    # Throw 5% of the points a million units away.
+    exploded = _copy(rec)
+    for point_id in list(exploded.point3D_ids())[::20]:
+        exploded.points3D[point_id].xyz = exploded.points3D[point_id].xyz * 1e6
+    verdict = sparse_cloud_gate(exploded, GateOptions())
+    assert verdict.status is GateStatus.FAIL and "explodes" in verdict.reason
+    assert sparse_cloud_gate(None, GateOptions()).status is GateStatus.SKIPPED
+
+
+def test_depth_coverage_gate(orbit24):
+    prediction = orbit24.prediction
+    assert evaluate_gates(colmap=None, prediction=prediction)[2].status is GateStatus.PASS
+    unsure = dataclasses.replace(prediction, depth_conf=tuple(np.where(c > 0, 1.0, 0.0).astype(np.float32) for c in prediction.depth_conf))
+    verdicts = evaluate_gates(colmap=None, prediction=unsure)
+    assert verdicts[0].status is GateStatus.SKIPPED and verdicts[1].status is GateStatus.SKIPPED
+    assert verdicts[2].status is GateStatus.FAIL and verdicts[2].value == 0.0
