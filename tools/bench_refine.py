@@ -32,7 +32,7 @@ from ffrecon.geometry.metrics import pose_errors
 from ffrecon.sfm.crosscheck import ColmapOptions, run_colmap
 from ffrecon.sfm.refine import RefineOptions, run_refine
 from ffrecon.synthetic import SceneOptions, Texture, load_scene, make_scene, write_scene
-from ffrecon.synthetic.simulated_model import SimulationOptions, simulate
+from ffrecon.synthetic.simulated_model import SimulationOptions, prediction_from_truth, simulate
 from ffrecon.types import ModelFamily, ModelInfo, PinholeCamera, Prediction
 
 
@@ -50,8 +50,8 @@ def prepare(scene_dir: Path, frames: int, texture: Texture, seed: int) -> None:
     write_scene(scene, scene_dir)
     sim = SimulationOptions(seed=seed)
     truth, _ = simulate(scene, sim)
-    conf = 1.0 + 9.0 * np.exp(-np.abs(truth.depth_error) / sim.depth_error)
-    np.savez(scene_dir / "prediction.npz", cam_from_world=truth.cam_from_world, K=truth.K, depth=truth.depth, conf=conf.astype(np.float32))
+    pred = prediction_from_truth(scene, truth, sim)
+    np.savez(scene_dir / "prediction.npz", cam_from_world=truth.cam_from_world, K=truth.K, depth=truth.depth, conf=np.stack(pred.depth_conf))
 
 
 def child(method: str, scene_dir: Path, out_dir: Path) -> dict:

@@ -114,6 +114,7 @@ def merge_chunks(parts: Sequence[Prediction], chunks: Sequence[Sequence[int]], m
     conf: list = [None] * n
     names: list = [None] * n
     merged_so_far: Prediction | None = None
+    merged_index: dict[int, int] = {}  # frame index -> its position in merged_so_far
     for part, chunk in zip(parts, chunks):
         sim = Sim3.identity()
         if merged_so_far is not None:

@@ -31,6 +31,7 @@ from ffrecon.models.vggt import PreprocessMode, encode_pose_enc, preprocess_vggt
 from ffrecon.synthetic import render
 from ffrecon.synthetic.onnx_graph import GraphBuilder, quat_product_basis
 from ffrecon.synthetic.scene import SyntheticScene, scene_geometry
+from ffrecon.types import ModelFamily, ModelInfo, PinholeCamera, Prediction
 
 logger = logging.getLogger("ffrecon.synthetic")
 
@@ -267,3 +268,15 @@ def _build_graph(arrays: dict) -> onnx.ModelProto:
     g.output(g.op("Unsqueeze", [x, batch0]), "images", [1, "S", 3, hn, wn])
     return g.model(opset=17)
 
+
+
+def prediction_from_truth(scene: SyntheticScene, truth: SimulatedTruth, options: SimulationOptions = SimulationOptions()) -> Prediction:
+    """What the simulated model says, at original resolution in the ground-truth world frame.
+
+    For tests and benchmarks of later stages that should not depend on the ONNX path; the
+    confidence follows the same rule as the model's (lower where the injected depth error is large).
+    """
+    conf = 1 + (_CONF_MAX - 1) * np.exp(-np.abs(truth.depth_error) / max(options.depth_error, 1e-6))
+    cameras = tuple(PinholeCamera.from_K(K, scene.camera.width, scene.camera.height) for K in truth.K)
+    model = ModelInfo("simulated", ModelFamily.MULTIVIEW, simulated=True, description="simulated model outputs, no ONNX")
+    return Prediction(scene.names, truth.cam_from_world, cameras, tuple(truth.depth), tuple(conf.astype(np.float32)), model)

@@ -9,14 +9,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from ffrecon.sfm.crosscheck import ColmapOptions, ColmapResult, run_colmap
 from ffrecon.sfm.refine import RefineOptions, RefineResult, run_refine
 from ffrecon.synthetic import SceneOptions, SyntheticScene, Texture, make_scene, write_scene
-from ffrecon.synthetic.simulated_model import SimulatedTruth, SimulationOptions, simulate
-from ffrecon.types import ModelFamily, ModelInfo, PinholeCamera, Prediction
+from ffrecon.synthetic.simulated_model import prediction_from_truth, SimulationOptions, simulate
+from ffrecon.types import Prediction
 
 
 @dataclass(frozen=True)
@@ -24,16 +23,6 @@ class Capture:
     scene: SyntheticScene
     image_dir: Path
     prediction: Prediction
-
-
-def prediction_from_truth(scene: SyntheticScene, truth: SimulatedTruth, sim: SimulationOptions) -> Prediction:
-    """The simulated model's output at original resolution, in the ground-truth world frame."""
-    conf = 1.0 + 9.0 * np.exp(-np.abs(truth.depth_error) / max(sim.depth_error, 1e-6))
-    cameras = tuple(PinholeCamera.from_K(K, scene.camera.width, scene.camera.height) for K in truth.K)
-    return Prediction(
-        names=scene.names, cam_from_world=truth.cam_from_world, cameras=cameras, depth=tuple(truth.depth),
-        depth_conf=tuple(conf.astype(np.float32)), model=ModelInfo("simulated", ModelFamily.MULTIVIEW, simulated=True),
-    )
 
 
 def _capture(tmp_path_factory, options: SceneOptions, truth_of: Capture | None = None) -> Capture:
