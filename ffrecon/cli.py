@@ -84,7 +84,7 @@ def _run_options(args: argparse.Namespace, ground_truth: Path | None = None):
     if args.no_splat:
         extra["splat"] = None
     else:
-        from ffrecon.splat import SplatOptions
+        from ffrecon.splat.stage import SplatOptions
 
         splat_kwargs = {"mesh": args.mesh}
         if args.splat_seconds is not None:

@@ -41,7 +41,7 @@ def _default_refine():
 
 
 def _default_splat():
-    from ffrecon.splat import SplatOptions
+    from ffrecon.splat.stage import SplatOptions
 
     return SplatOptions()
 
@@ -87,6 +87,24 @@ def _focal_prior(capture: Capture, ff: FeedForwardResult) -> list[float]:
     return [f.focal_prior_px or float(np.sqrt(c.fx * c.fy)) for f, c in zip(capture.frames, ff.prediction.cameras)]
 
 
+def _splat_seed(capture: Capture, ff: FeedForwardResult, cam_from_world: np.ndarray, cameras, splat_options):
+    """Seed points from the feed-forward depth of the training views, placed with the final cameras.
+
+    Refined cameras sit in the feed-forward world at its scale, so each depth map is unprojected with
+    its frame's refined pose: points from different frames then agree where the feed-forward poses
+    did not. Held-out views are left out so that their PSNR measures new-view rendering.
+    """
+    import cv2
+
+    from ffrecon.splat.seed import seed_from_prediction
+    from ffrecon.splat.stage import split_views
+
+    pred = dataclasses.replace(ff.prediction, cam_from_world=cam_from_world, cameras=tuple(cameras))
+    images = [f.image if f.image.shape[:2] == d.shape else cv2.resize(f.image, d.shape[::-1], interpolation=cv2.INTER_AREA) for f, d in zip(capture.frames, pred.depth)]
+    train, _ = split_views(len(pred), splat_options.holdout_every)
+    return seed_from_prediction(pred, images, max_points=splat_options.max_seed_points, frames=train, seed=splat_options.seed)
+
+
 def run(source: Path, out_dir: Path, model: Path, options: RunOptions | None = None) -> RunResult:
     """Reconstruct ``source`` (folder of photos or a video) with ``model`` into ``out_dir``."""
     options = options or RunOptions()
@@ -102,7 +120,6 @@ def run(source: Path, out_dir: Path, model: Path, options: RunOptions | None = N
         truth = sections.load_references(options.ground_truth, options.reference, capture.names)
 
         final_cam_from_world, final_cameras = ff.prediction.cam_from_world, ff.prediction.cameras
-        seed_xyz, seed_rgb = ff.points_xyz, ff.points_rgb
         multi = len(capture.frames) >= 2
         if not multi:
             for stage in ("colmap cross-check", "pose comparison", "refinement"):
@@ -140,8 +157,9 @@ def run(source: Path, out_dir: Path, model: Path, options: RunOptions | None = N
         sections.add_pose_comparisons(report, capture, ff, colmap, refined, truth)
 
         if exit_code == 0 and options.splat is not None:
-            from ffrecon.splat import run_splat
+            from ffrecon.splat.stage import run_splat
 
+            seed_xyz, seed_rgb = _splat_seed(capture, ff, final_cam_from_world, final_cameras, options.splat)
             splat = _timed(report, "splat", run_splat, [f.image for f in capture.frames], capture.names, final_cam_from_world, final_cameras, seed_xyz, seed_rgb, options.splat, work)
             sections.add_splat(report, splat)
         elif exit_code == 0:

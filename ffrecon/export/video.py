@@ -1,0 +1,104 @@
+"""A fly-through video of a splat along a smooth path through the cameras (OpenCV ``mp4v``)."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from ffrecon.geometry.poses import camera_centers
+from ffrecon.geometry.rotations import matrix_to_quat_xyzw, quat_xyzw_to_matrix
+from ffrecon.splat.gaussians import Gaussians
+from ffrecon.splat.render import RasterOptions, render
+from ffrecon.types import PinholeCamera
+
+logger = logging.getLogger("ffrecon.export")
+
+
+def _smooth_keys(values: np.ndarray, sigma: float) -> np.ndarray:
+    """Gaussian smoothing of ``[N, D]`` keyframe values along N (edges renormalised)."""
+    if sigma <= 0 or len(values) < 3:
+        return values
+    idx = np.arange(len(values))
+    w = np.exp(-0.5 * ((idx[:, None] - idx[None, :]) / sigma) ** 2)
+    return (w @ values) / w.sum(1, keepdims=True)
+
+
+def _slerp(q0: np.ndarray, q1: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Row-wise spherical interpolation of unit quaternions ``[F, 4]`` by ``t [F]``."""
+    dot = np.sum(q0 * q1, axis=1, keepdims=True)
+    q1 = np.where(dot < 0, -q1, q1)
+    dot = np.abs(dot).clip(max=1.0)
+    theta = np.arccos(dot)
+    small = theta < 1e-6
+    s = np.sin(np.where(small, 1.0, theta))
+    a = np.where(small, 1 - t[:, None], np.sin((1 - t[:, None]) * theta) / s)
+    b = np.where(small, t[:, None], np.sin(t[:, None] * theta) / s)
+    q = a * q0 + b * q1
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+def smooth_camera_path(cam_from_world: np.ndarray, num_frames: int, *, smoothing: float = 1.0) -> np.ndarray:
+    """``[F, 3, 4]`` cam_from_world poses along a smooth path through ``[N, 3, 4]`` cameras (in order).
+
+    Keyframe centres and rotations are first smoothed (Gaussian, ``smoothing`` keyframes wide), then
+    centres follow a Catmull-Rom spline and rotations a slerp between consecutive keyframes.
+
+    >>> from ffrecon.geometry.poses import look_at_cam_from_world
+    >>> keys = np.stack([look_at_cam_from_world(np.array([np.cos(a), np.sin(a), 0.3]), np.zeros(3)) for a in np.linspace(0, 2, 6)])
+    >>> smooth_camera_path(keys, 40).shape
+    (40, 3, 4)
+    """
+    poses = np.asarray(cam_from_world, np.float64)
+    if len(poses) == 1:
+        return np.repeat(poses, num_frames, axis=0)
+    centers = _smooth_keys(camera_centers(poses), smoothing)
+    quats = matrix_to_quat_xyzw(poses[:, :, :3])
+    for i in range(1, len(quats)):  # one hemisphere, so averaging and slerp take the short way
+        if np.dot(quats[i], quats[i - 1]) < 0:
+            quats[i] = -quats[i]
+    quats = _smooth_keys(quats, smoothing)
+    quats /= np.linalg.norm(quats, axis=1, keepdims=True)
+    s = np.linspace(0.0, len(poses) - 1, num_frames)
+    i0 = np.minimum(np.floor(s).astype(int), len(poses) - 2)
+    t = s - i0
+    p = np.concatenate([centers[:1] * 2 - centers[1:2], centers, centers[-1:] * 2 - centers[-2:-1]])  # end tangents
+    p0, p1, p2, p3 = p[i0], p[i0 + 1], p[i0 + 2], p[i0 + 3]
+    tt = t[:, None]
+    pos = 0.5 * (2 * p1 + (p2 - p0) * tt + (2 * p0 - 5 * p1 + 4 * p2 - p3) * tt**2 + (3 * p1 - p0 - 3 * p2 + p3) * tt**3)
+    rot = quat_xyzw_to_matrix(_slerp(quats[i0], quats[i0 + 1], t))
+    trans = -np.einsum("fij,fj->fi", rot, pos)
+    return np.concatenate([rot, trans[..., None]], axis=2)
+
+
+def write_flythrough(path: Path, gaussians: Gaussians, cam_from_world: np.ndarray, camera: PinholeCamera, *, num_frames: int = 90, fps: float = 30.0, background: tuple[float, float, float] = (0.0, 0.0, 0.0), raster: RasterOptions | None = None) -> Path | None:
+    """Render ``gaussians`` along :func:`smooth_camera_path` and write an ``mp4v`` video.
+
+    Frames use ``camera``'s intrinsics (cropped to even sizes for the codec). Returns the path, or
+    None (with a warning) when OpenCV cannot open an MP4 writer on this system.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    width, height = camera.width - camera.width % 2, camera.height - camera.height % 2
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (width, height))
+    if not writer.isOpened():
+        logger.warning("OpenCV cannot write %s (no mp4v encoder): skipping the fly-through", path)
+        return None
+    K = torch.tensor(camera.K, dtype=torch.float32)
+    bg = torch.tensor(background, dtype=torch.float32)
+    raster = raster or RasterOptions()
+    g = gaussians.detached()
+    try:
+        with torch.no_grad():
+            for pose in smooth_camera_path(cam_from_world, num_frames):
+                out = render(g.means, g.quats_wxyz, g.log_scales, g.opacity_logits, g.sh, torch.tensor(pose, dtype=torch.float32), K, width, height,
+                             background=bg, sh_degree=g.sh_degree, options=raster)
+                frame = (out.rgb.clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
+                writer.write(cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
+    finally:
+        writer.release()
+    logger.info("wrote %s (%d frames)", path, num_frames)
+    return path
