@@ -122,7 +122,7 @@ def run(source: Path, out_dir: Path, model: Path, options: RunOptions | None = N
         final_cam_from_world, final_cameras = ff.prediction.cam_from_world, ff.prediction.cameras
         multi = len(capture.frames) >= 2
         if not multi:
-            for stage in ("colmap cross-check", "pose comparison", "refinement"):
+            for stage in ("colmap cross-check", "pose comparison", "refinement", "splat"):
                 _skip(report, stage, "needs two or more views; this run has one photo (its depth, camera and point cloud are still produced)")
         colmap = None
         if multi and options.colmap is not None:
@@ -156,13 +156,13 @@ def run(source: Path, out_dir: Path, model: Path, options: RunOptions | None = N
             _skip(report, "refinement", "turned off (--no-refine)")
         sections.add_pose_comparisons(report, capture, ff, colmap, refined, truth)
 
-        if exit_code == 0 and options.splat is not None:
+        if multi and exit_code == 0 and options.splat is not None:
             from ffrecon.splat.stage import run_splat
 
             seed_xyz, seed_rgb = _splat_seed(capture, ff, final_cam_from_world, final_cameras, options.splat)
             splat = _timed(report, "splat", run_splat, [f.image for f in capture.frames], capture.names, final_cam_from_world, final_cameras, seed_xyz, seed_rgb, options.splat, work)
             sections.add_splat(report, splat)
-        elif exit_code == 0:
+        elif multi and exit_code == 0:
             _skip(report, "splat", "turned off (--no-splat)")
 
         write_point_cloud(work / "points.ply", ff.points_xyz, ff.points_rgb)

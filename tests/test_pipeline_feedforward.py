@@ -110,7 +110,7 @@ def test_single_photo_gives_depth_camera_and_cloud(small_demo, tmp_path):
     assert rec.num_images() == 1 and rec.num_points3D() > 100
     report = json.loads((out / "report.json").read_text())
     skipped = {s["stage"] for s in report["skipped_stages"]}
-    assert {"colmap cross-check", "refinement"} <= skipped
+    assert {"colmap cross-check", "refinement", "splat"} <= skipped
     assert all("one photo" in s["reason"] for s in report["skipped_stages"])
     assert len(list((out / "feedforward" / "depth").glob("*.npz"))) == 1
 

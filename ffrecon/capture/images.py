@@ -99,8 +99,8 @@ def focal_prior_px(width: int, height: int, focal_35mm: float | None, focal_px_e
 
     A 35 mm-equivalent focal length refers to a 36 mm wide frame, matched to the long image side.
 
-    >>> focal_prior_px(4000, 3000, 26.0, None)
-    2888.888888888889
+    >>> round(focal_prior_px(4000, 3000, 26.0, None), 3)
+    2888.889
     """
     if focal_px_exif:
         return focal_px_exif
