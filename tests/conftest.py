@@ -3,6 +3,7 @@
 from pathlib import Path
 
 import pytest
+import torch
 
 REPO = Path(__file__).resolve().parents[1]
 MODELS = REPO / "models"
@@ -23,3 +24,13 @@ def small_demo(demo_cache):
 
     os.environ["FFRECON_CACHE"] = str(demo_cache)
     return prepare_demo(DemoOptions(num_frames=8, width=224, height=168, seed=1))
+
+
+@pytest.fixture
+def one_torch_thread():
+    """torch on one thread: on a shared 2-core machine two OpenMP threads can run ten times slower
+    than one whenever the other core is busy (measured by the splat and alignment tests)."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)

@@ -36,8 +36,8 @@ def render_gsplat(means: torch.Tensor, quats_wxyz: torch.Tensor, log_scales: tor
     options = options or RasterOptions()
     device = means.device
     dtype = means.dtype
-    viewmat = torch.eye(4, device=device, dtype=dtype)
-    viewmat = torch.cat([cam_from_world[:3].to(dtype), viewmat[3:]], dim=0)  # gsplat: world-to-camera [4, 4]
+    cam_from_world_4x4 = torch.eye(4, device=device, dtype=dtype)  # what gsplat calls a "viewmat"
+    cam_from_world_4x4[:3] = cam_from_world[:3].to(dtype)
     bg = torch.zeros(3, device=device, dtype=dtype) if background is None else background.to(device=device, dtype=dtype)  # gsplat appends depth's 0
     colors_gs = colors[:, : (sh_degree + 1) ** 2] if sh_degree is not None else colors
     out, alphas, meta = gsplat.rasterization(
@@ -46,7 +46,7 @@ def render_gsplat(means: torch.Tensor, quats_wxyz: torch.Tensor, log_scales: tor
         scales=torch.exp(log_scales),
         opacities=torch.sigmoid(opacity_logits),
         colors=colors_gs,
-        viewmats=viewmat[None],
+        viewmats=cam_from_world_4x4[None],
         Ks=K.to(dtype)[None],
         width=width,
         height=height,

@@ -7,7 +7,6 @@ are what a perfect DUSt3R would output (each pair in its own random scale).
 
 import numpy as np
 import pytest
-import torch
 
 from ffrecon.errors import FFReconError
 from ffrecon.geometry.metrics import pose_errors
@@ -19,13 +18,7 @@ from ffrecon.models.global_alignment import AlignmentOptions, PairPrediction, es
 SIZE_HW = (32, 48)
 
 
-@pytest.fixture(autouse=True)
-def one_torch_thread():
-    """Other jobs share the CI cores; torch's thread pool slows down badly when oversubscribed."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def room_depth(cam_from_world, K, size_hw):

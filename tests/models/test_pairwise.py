@@ -6,7 +6,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-import torch
 
 from ffrecon.errors import FFReconError, InputError, ModelError
 from ffrecon.geometry.metrics import pose_errors
@@ -20,13 +19,7 @@ MODEL = ModelInfo("oracle", ModelFamily.PAIRWISE)
 TINY_DUST3R = Path(__file__).resolve().parents[2] / "models" / "tiny_dust3r.onnx"
 
 
-@pytest.fixture(autouse=True)
-def one_torch_thread():
-    """Other jobs share the CI cores; torch's thread pool slows down badly when oversubscribed."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 # ---- pair graphs ---------------------------------------------------------------------------------

@@ -1,13 +1,8 @@
-"""Splat tests run torch on one thread: on a shared 2-core machine two OpenMP threads can be ten
-times slower than one whenever the other core is busy (measured; see tools/bench_splat.py)."""
+"""Splat tests run torch on one thread (see ``one_torch_thread`` in tests/conftest.py)."""
 
 import pytest
-import torch
 
 
 @pytest.fixture(autouse=True)
-def _one_torch_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
+def _one_thread(one_torch_thread):
     yield
-    torch.set_num_threads(before)
