@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from ffrecon.capture import Capture
-from ffrecon.export.report import Figure, ReportBuilder, depth_preview
+from ffrecon.export.report import Figure, ReportBuilder, depth_preview, timings_png
 from ffrecon.models.stage import FeedForwardResult
 
 log = logging.getLogger("ffrecon")
@@ -185,3 +185,5 @@ def finish_report(report: ReportBuilder, *, ok_message: str) -> None:
             rows.append({"item": "splat held-out PSNR", "value": f"{m['psnr_seed']:.2f} dB (seed) -> {m['psnr_cleaned']:.2f} dB ({data['splat']['iterations']} iterations, {data['splat']['gaussians']['cleaned']} Gaussians)"})
     data["summary_rows"] = rows
     data["timing_rows"] = [{"stage": k, "seconds": v} for k, v in data.get("timings", {}).items()]
+    if data.get("timings"):
+        report.add_figure("timings", Figure("Time per stage", timings_png(data["timings"]), "Wall-clock seconds per stage on this machine."))

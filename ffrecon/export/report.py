@@ -87,7 +87,7 @@ table{border-collapse:collapse;margin:.6em 0} td,th{border:1px solid #ddd;paddin
 th{background:#f5f5f5} .pass{color:#137333;font-weight:600} .fail{color:#c5221f;font-weight:600} .skipped{color:#80868b;font-weight:600}
 .banner{padding:.7em 1em;border-radius:6px;margin:.8em 0} .ok{background:#e6f4ea} .bad{background:#fce8e6} .warn{background:#fef7e0}
 .gallery{display:flex;flex-wrap:wrap;gap:.5em} .gallery figure{margin:0;font-size:.8em;text-align:center} img{max-width:100%}
-.muted{color:#666;font-size:.9em} .scroll{overflow-x:auto}
+.muted{color:#666;font-size:.9em} .scroll{overflow-x:auto} .g3 figure{width:32%} .g3 img{width:100%}
 """
 
 
@@ -153,7 +153,30 @@ def render_html(data: dict, figures: dict[str, list[Figure]], galleries: dict[st
         for fig in figs:
             parts.append(f"<figure>{_img(fig.png, fig.title)}<figcaption class='muted'>{html.escape(fig.caption or fig.title)}</figcaption></figure>")
         if gallery:
-            parts.append("<div class='gallery'>" + "".join(f"<figure>{_img(png, cap)}<figcaption>{html.escape(cap)}</figcaption></figure>" for cap, png in gallery) + "</div>")
+            parts.append(f"<div class='gallery{' g3' if key == 'splat' else ''}'>" + "".join(f"<figure>{_img(png, cap)}<figcaption>{html.escape(cap)}</figcaption></figure>" for cap, png in gallery) + "</div>")
     parts.append("<h2>Files</h2>" + _table([{"file": k, "path": v} for k, v in data.get("outputs", {}).items()]))
     parts.append("<p class='muted'>Full machine-readable record: report.json</p></body></html>")
     return "".join(parts)
+
+
+def timings_png(timings: dict[str, float]) -> bytes:
+    """Horizontal bars of seconds per stage (matplotlib Agg, no global pyplot state)."""
+    import io
+
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure as MplFigure
+
+    names = list(timings)
+    fig = MplFigure(figsize=(6.0, 0.45 * len(names) + 0.9))
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    ax.barh(names[::-1], [timings[n] for n in names][::-1], color="#1f77b4")
+    for y, n in enumerate(names[::-1]):
+        ax.annotate(f"{timings[n]:.1f} s", (timings[n], y), xytext=(4, 0), textcoords="offset points", va="center", fontsize=8)
+    ax.set_xlabel("seconds")
+    ax.set_title("Time per stage", fontsize=10)
+    ax.margins(x=0.15)
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=100)
+    return buf.getvalue()
