@@ -19,7 +19,7 @@ from ffrecon import __version__
 from ffrecon.capture import Capture, CaptureOptions, run_capture
 from ffrecon.errors import GateFailed
 from ffrecon.export.nerfstudio import write_transforms
-from ffrecon.export.pointcloud import write_point_cloud
+from ffrecon.export.pointcloud import fuse_prediction, write_point_cloud
 from ffrecon.export.report import ReportBuilder
 from ffrecon.models.stage import FeedForwardOptions, FeedForwardResult, run_feedforward
 from ffrecon import report_sections as sections
@@ -165,7 +165,12 @@ def run(source: Path, out_dir: Path, model: Path, options: RunOptions | None = N
         elif multi and exit_code == 0:
             _skip(report, "splat", "turned off (--no-splat)")
 
-        write_point_cloud(work / "points.ply", ff.points_xyz, ff.points_rgb)
+        points_xyz, points_rgb = ff.points_xyz, ff.points_rgb
+        if refined is not None and final_cam_from_world is refined.cam_from_world:
+            # Re-fuse the depth maps with the refined cameras so points.ply agrees with sparse/0.
+            final_pred = dataclasses.replace(ff.prediction, cam_from_world=final_cam_from_world, cameras=tuple(final_cameras))
+            points_xyz, points_rgb = fuse_prediction(final_pred, [f.image for f in capture.frames], options.feedforward.fuse)
+        write_point_cloud(work / "points.ply", points_xyz, points_rgb)
         write_transforms(work / "transforms.json", [f"images/{n}" for n in capture.names], final_cam_from_world, final_cameras, ply_file_path="points.ply")
         sections.add_outputs(report, work)
         sections.finish_report(report, ok_message=f"{len(capture.frames)} frame(s) reconstructed")

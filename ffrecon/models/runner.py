@@ -23,7 +23,7 @@ PAIRWISE_OUTPUTS = ("pts3d", "conf", "pts3d_in_other_view", "conf_in_other_view"
 # Families that share the idea but not the contract: named so the error can say what was found.
 KNOWN_UNSUPPORTED = {
     "camera_poses": "a Pi3/MapAnything-style model (camera_poses are world_from_cam)",
-    "extrinsics": "a Depth-Anything-3-style model (extrinsics are cam_from_world, 504 px)",
+    "extrinsics": "a Depth-Anything-3-style model (extrinsics are cam_from_world, 504 px)",  # onnx name
 }
 
 
