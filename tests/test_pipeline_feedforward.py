@@ -11,6 +11,7 @@ import pycolmap
 import pytest
 import trimesh
 
+from ffrecon.capture import CaptureOptions
 from ffrecon.cli import main
 from ffrecon.geometry.metrics import pose_errors
 from ffrecon.geometry.poses import camera_centers
@@ -165,3 +166,22 @@ def test_tiny_nets_run_through_the_pipeline(net, num_images, tmp_path):
     report = json.loads((out / "report.json").read_text())
     assert report["feedforward"]["model"]["family"] == ("multiview" if "vggt" in net else "pairwise")
     assert report["feedforward"]["num_frames"] == num_images and result.exit_code in (0, 5)
+
+
+def test_video_input_keeps_the_sharpest_frames(small_demo, tmp_path):
+    """A video of the scene, each frame shown three times with two blurred copies: the sharp ones are kept."""
+    frames = [cv2.imread(str(p)) for p in sorted(small_demo.images.iterdir())]
+    h, w = frames[0].shape[:2]
+    clip = tmp_path / "clip.avi"
+    writer = cv2.VideoWriter(str(clip), cv2.VideoWriter_fourcc(*"MJPG"), 10, (w, h))
+    for image in frames:
+        for k in range(3):
+            writer.write(image if k == 1 else cv2.GaussianBlur(image, (0, 0), 2))
+    writer.release()
+    out = tmp_path / "out"
+    run(clip, out, small_demo.model, RunOptions(capture=CaptureOptions(video_frames=len(frames)), **FF_ONLY))
+    report = json.loads((out / "report.json").read_text())
+    assert report["inputs"]["kind"] == "video"
+    assert report["inputs"]["names"] == [f"clip_{3 * k + 1:06d}.png" for k in range(len(frames))]
+    rec = pycolmap.Reconstruction(str(out / "feedforward" / "sparse"))
+    assert rec.num_images() == len(frames) and rec.num_points3D() > 100
