@@ -22,16 +22,18 @@ from ffrecon.types import ModelInfo, Prediction
 
 log = logging.getLogger("ffrecon.models")
 
-# VGGT-1B in fp32 on the CPU needs ~5 GB for weights plus roughly 0.3 GB per 518x392 frame of
-# activations; 16 frames fit in the 24 GB this project is developed on with room to spare.
-DEFAULT_CHUNK_SIZE = 16
+# Memory of one call: a VGGT-1B export with plain attention holds a [16, N, N] float32 score matrix
+# in its global-attention layers, N = 1041 tokens per 518x392 frame: ~69 MB x S^2 (measured with
+# tools/attention_memory.py: 4.7 GB peak at S = 8), plus ~5 GB of fp32 weights. So 8 frames need
+# ~10 GB and fit this project's 24 GB machines with room; 16 frames would need ~23 GB and do not.
+DEFAULT_CHUNK_SIZE = 8
 
 
 @dataclass(frozen=True, kw_only=True)
 class MultiviewOptions:
     mode: PreprocessMode = PreprocessMode.CROP
     chunk_size: int = DEFAULT_CHUNK_SIZE
-    chunk_overlap: int = 4
+    chunk_overlap: int = 2
     max_depth_side: int | None = 1024  # cap on stored depth grids (None: original resolution)
     align_points_per_frame: int = 4000  # depth points per shared frame used for the chunk Sim(3)
 
