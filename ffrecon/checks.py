@@ -6,7 +6,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from ffrecon.errors import FFReconError, ModelError
+from ffrecon.errors import ModelError
 
 
 def check_shape(name: str, array: np.ndarray, expected: Sequence[int | None]) -> None:
@@ -35,9 +35,3 @@ def check_finite(name: str, array: np.ndarray, *, model: str = "") -> None:
             "the ONNX export is probably broken (fp16 overflow is a common cause): re-export in fp32, "
             "or check the model on one image with `ffrecon inspect-model`",
         )
-
-
-def check_positive(name: str, value: float) -> None:
-    """Raise :class:`FFReconError` unless ``value > 0``."""
-    if not value > 0:
-        raise FFReconError(f"{name} must be positive, got {value}", f"pass a positive {name}")

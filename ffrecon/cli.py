@@ -144,9 +144,10 @@ def main(argv: list[str] | None = None) -> int:
             return 0
         if args.command == "demo":
             from ffrecon.demo import DemoOptions, prepare_demo
+            from ffrecon.synthetic import SceneOptions
             from ffrecon.pipeline import run
 
-            demo = prepare_demo(DemoOptions(num_frames=args.frames, width=args.width, height=args.height, seed=args.seed))
+            demo = prepare_demo(DemoOptions(scene=SceneOptions(num_frames=args.frames, width=args.width, height=args.height, seed=args.seed)))
             result = run(demo.images, args.out, demo.model, _run_options(args, ground_truth=demo.scene_dir))
         else:
             from ffrecon.pipeline import run

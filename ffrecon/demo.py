@@ -11,18 +11,17 @@ import hashlib
 import json
 import logging
 import os
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
+
+from ffrecon.synthetic.scene import SceneOptions
 
 log = logging.getLogger("ffrecon.demo")
 
 
 @dataclass(frozen=True, kw_only=True)
 class DemoOptions:
-    num_frames: int = 24
-    width: int = 320
-    height: int = 240
-    seed: int = 0
+    scene: SceneOptions = field(default_factory=SceneOptions)  # 24 frames at 320x240 by default
     # Overrides of SimulationOptions fields; by default one frame is badly wrong, as real models
     # occasionally are, so the report shows how a disagreeing frame is caught.
     simulation: dict = field(default_factory=lambda: {"bad_frames": [7]})
@@ -41,18 +40,19 @@ def cache_dir() -> Path:
 
 def prepare_demo(options: DemoOptions = DemoOptions()) -> DemoInputs:
     """Render the scene and build the simulated model once; later calls reuse them."""
-    from ffrecon.synthetic import SceneOptions, make_scene, write_scene
+    from ffrecon.synthetic import make_scene, write_scene
     from ffrecon.synthetic.simulated_model import SimulationOptions, build_simulated_vggt
 
-    key = hashlib.sha1(json.dumps(asdict(options), sort_keys=True).encode()).hexdigest()[:10]
+    recipe = {"scene": options.scene.to_dict(), "simulation": options.simulation}
+    key = hashlib.sha1(json.dumps(recipe, sort_keys=True).encode()).hexdigest()[:10]
     folder = cache_dir() / f"demo-{key}"
     model = folder / "simulated_vggt.onnx"
     if not (model.is_file() and (folder / "ground_truth.json").is_file()):
         log.info("preparing the demo scene and simulated model in %s", folder)
-        scene = make_scene(SceneOptions(num_frames=options.num_frames, width=options.width, height=options.height, seed=options.seed))
+        scene = make_scene(options.scene)
         write_scene(scene, folder)
         tmp = model.with_suffix(".tmp")
         sim = {k: tuple(v) if isinstance(v, list) else v for k, v in options.simulation.items()}
-        build_simulated_vggt(scene, tmp, SimulationOptions(seed=options.seed, **sim))
+        build_simulated_vggt(scene, tmp, SimulationOptions(seed=options.scene.seed, **sim))
         tmp.rename(model)
     return DemoInputs(folder, folder / "images", model)

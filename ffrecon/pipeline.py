@@ -116,7 +116,7 @@ def run(source: Path, out_dir: Path, model: Path, options: RunOptions | None = N
         sections.add_capture(report, capture)
         ff = run_feedforward(capture, Path(model), options.feedforward, work)
         report.data["timings"]["feedforward"] = ff.seconds
-        sections.add_feedforward(report, ff, capture)
+        sections.add_feedforward(report, ff)
         truth = sections.load_references(options.ground_truth, options.reference, capture.names)
 
         final_cam_from_world, final_cameras = ff.prediction.cam_from_world, ff.prediction.cameras
@@ -129,13 +129,13 @@ def run(source: Path, out_dir: Path, model: Path, options: RunOptions | None = N
             from ffrecon.sfm.crosscheck import run_colmap
 
             colmap = _timed(report, "colmap", run_colmap, capture.image_dir, capture.names, options.colmap, work / "colmap", focal_prior_px=_focal_prior(capture, ff))
-            sections.add_colmap(report, colmap, ff)
+            sections.add_colmap(report, colmap)
         elif multi:
             _skip(report, "colmap cross-check", "turned off (--no-colmap)")
 
         if multi:
             verdicts = sections.add_gates(report, capture, ff, colmap, options.gates)
-            failed = [v for v in verdicts if v.status.value == "fail"]
+            failed = [v for v in verdicts if v.failed]
             if failed and not options.force:
                 for stage in ("refinement", "splat"):
                     _skip(report, stage, f"gate '{failed[0].name}' failed: {failed[0].reason}")

@@ -23,7 +23,7 @@ def add_capture(report: ReportBuilder, capture: Capture) -> None:
         report.add_image("capture", frame.name, frame.image, 160)
 
 
-def add_feedforward(report: ReportBuilder, ff: FeedForwardResult, capture: Capture) -> None:
+def add_feedforward(report: ReportBuilder, ff: FeedForwardResult) -> None:
     report.data["feedforward"] = ff.to_report()
     pred = ff.prediction
     step = max(1, len(pred) // MAX_THUMBNAILS)
@@ -51,7 +51,7 @@ def load_references(ground_truth: Path | None, reference: Path | None, names) ->
     return refs
 
 
-def add_colmap(report: ReportBuilder, colmap, ff: FeedForwardResult) -> None:
+def add_colmap(report: ReportBuilder, colmap) -> None:
     report.data["colmap"] = colmap.to_report()
 
 

@@ -21,9 +21,10 @@ def small_demo(demo_cache):
     import os
 
     from ffrecon.demo import DemoOptions, prepare_demo
+    from ffrecon.synthetic import SceneOptions
 
     os.environ["FFRECON_CACHE"] = str(demo_cache)
-    return prepare_demo(DemoOptions(num_frames=8, width=224, height=168, seed=1))
+    return prepare_demo(DemoOptions(scene=SceneOptions(num_frames=8, width=224, height=168, seed=1)))
 
 
 @pytest.fixture

@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from onnx_export_common import export_onnx, verify_onnx
+from onnx_export_common import add_export_options, check_input_size, export_onnx, verify_onnx
 
 log = logging.getLogger("export_dust3r_onnx")
 
@@ -78,13 +78,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--height", type=int, default=384, help="input height, multiple of 16 (default: %(default)s, 4:3 landscape at long side 512)")
     parser.add_argument("--width", type=int, default=512, help="input width, multiple of 16 (default: %(default)s; 224x224 for *_224_* checkpoints)")
     parser.add_argument("--batch", type=int, default=2, help="pairs in the traced example (B stays dynamic; default: %(default)s)")
-    parser.add_argument("--opset", type=int, default=17)
-    parser.add_argument("--exporter", choices=("torchscript", "dynamo"), default="torchscript", help="torch.onnx exporter (dynamo needs onnxscript; default: %(default)s)")
-    parser.add_argument("--fp16", action="store_true", help="store weights and compute in fp16 (half the size; may overflow, see the docs)")
-    parser.add_argument("--skip-verify", action="store_true", help="do not compare onnxruntime with PyTorch")
+    add_export_options(parser)
     args = parser.parse_args(argv)
-    if args.height % PATCH_SIZE or args.width % PATCH_SIZE:
-        parser.error(f"--height and --width must be multiples of {PATCH_SIZE}")
+    check_input_size(parser, args, PATCH_SIZE)
     args.checkpoint = args.checkpoint or DEFAULT_CHECKPOINTS[args.family]
     if args.out is None:
         args.out = Path("models") / f"{args.family}_{args.width}x{args.height}{'_fp16' if args.fp16 else ''}.onnx"

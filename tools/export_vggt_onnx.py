@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from onnx_export_common import export_onnx, verify_onnx
+from onnx_export_common import add_export_options, check_input_size, export_onnx, verify_onnx
 
 log = logging.getLogger("export_vggt_onnx")
 
@@ -75,13 +75,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--height", type=int, default=392, help="input height, multiple of 14 (default: %(default)s, 4:3 photos in VGGT's crop mode)")
     parser.add_argument("--width", type=int, default=518, help="input width, multiple of 14 (default: %(default)s)")
     parser.add_argument("--frames", type=int, default=2, help="frames in the traced example (S stays dynamic; default: %(default)s)")
-    parser.add_argument("--opset", type=int, default=17)
-    parser.add_argument("--exporter", choices=("torchscript", "dynamo"), default="torchscript", help="torch.onnx exporter (dynamo needs onnxscript; default: %(default)s)")
-    parser.add_argument("--fp16", action="store_true", help="store weights and compute in fp16 (half the size; may overflow, see the docs)")
-    parser.add_argument("--skip-verify", action="store_true", help="do not compare onnxruntime with PyTorch")
+    add_export_options(parser)
     args = parser.parse_args(argv)
-    if args.height % PATCH_SIZE or args.width % PATCH_SIZE:
-        parser.error(f"--height and --width must be multiples of {PATCH_SIZE}")
+    check_input_size(parser, args, PATCH_SIZE)
     if args.out is None:
         args.out = Path("models") / f"vggt_{args.width}x{args.height}{'_fp16' if args.fp16 else ''}.onnx"
     return args

@@ -6,6 +6,7 @@ beside them without any path manipulation.
 
 from __future__ import annotations
 
+import argparse
 import logging
 import tempfile
 from pathlib import Path
@@ -68,3 +69,17 @@ def verify_onnx(path: Path, feeds: dict[str, np.ndarray], reference: dict[str, n
     if worst > rtol:
         raise SystemExit(f"error: onnxruntime and PyTorch differ by up to {worst:.2e} (tolerance {rtol:.0e}); the export is not usable at these sizes")
     return worst
+
+
+def add_export_options(parser: argparse.ArgumentParser) -> None:
+    """The options both export scripts share (exporter, opset, precision, verification)."""
+    parser.add_argument("--opset", type=int, default=17)
+    parser.add_argument("--exporter", choices=("torchscript", "dynamo"), default="torchscript", help="torch.onnx exporter (dynamo needs onnxscript; default: %(default)s)")
+    parser.add_argument("--fp16", action="store_true", help="store weights and compute in fp16 (half the size; may overflow, see the docs)")
+    parser.add_argument("--skip-verify", action="store_true", help="do not compare onnxruntime with PyTorch")
+
+
+def check_input_size(parser: argparse.ArgumentParser, args: argparse.Namespace, patch_size: int) -> None:
+    """Exports fix H and W; both must be multiples of the model's patch size."""
+    if args.height % patch_size or args.width % patch_size:
+        parser.error(f"--height and --width must be multiples of {patch_size}")

@@ -15,6 +15,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from ffrecon.export.plots import thumbnail_png
+
 
 @dataclass
 class Figure:
@@ -35,7 +37,7 @@ class ReportBuilder:
         self.figures.setdefault(section, []).append(figure)
 
     def add_image(self, section: str, caption: str, rgb: np.ndarray, max_side: int = 240) -> None:
-        self.galleries.setdefault(section, []).append((caption, png_thumbnail(rgb, max_side)))
+        self.galleries.setdefault(section, []).append((caption, thumbnail_png(rgb, max_side=max_side)))
 
     def write(self, out_dir: Path) -> tuple[Path, Path]:
         json_path = out_dir / "report.json"
@@ -43,13 +45,6 @@ class ReportBuilder:
         html_path = out_dir / "report.html"
         html_path.write_text(render_html(self.data, self.figures, self.galleries))
         return json_path, html_path
-
-
-def png_thumbnail(rgb: np.ndarray, max_side: int = 240) -> bytes:
-    scale = min(1.0, max_side / max(rgb.shape[:2]))
-    small = cv2.resize(rgb, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA) if scale < 1 else rgb
-    ok, buf = cv2.imencode(".png", cv2.cvtColor(small, cv2.COLOR_RGB2BGR) if small.ndim == 3 else small)
-    return buf.tobytes() if ok else b""
 
 
 def depth_preview(depth: np.ndarray) -> np.ndarray:

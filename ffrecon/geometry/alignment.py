@@ -1,8 +1,7 @@
-"""Similarity transforms (Sim(3)) and their estimation.
+"""Similarity transforms (Sim(3)) and their least-squares estimation.
 
-Unweighted and robust estimation are pycolmap's (``estimate_sim3d``, ``estimate_sim3d_robust``);
-the confidence-weighted Umeyama fit is written here because pycolmap has no weighted variant
-and chunk merging weights points by the model's confidence.
+The confidence-weighted Umeyama fit is written here because pycolmap's ``estimate_sim3d`` has no
+weighted variant, and chunk merging weights points by the model's confidence.
 """
 
 from __future__ import annotations
@@ -10,7 +9,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import pycolmap
 
 from ffrecon.checks import check_shape
 
@@ -75,23 +73,3 @@ def umeyama(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None)
     var_s = float(w @ (s0**2).sum(1))
     scale = float(np.trace(np.diag(sing) @ fix) / max(var_s, 1e-300))
     return Sim3(scale, rot, mu_d - scale * rot @ mu_s)
-
-
-def from_pycolmap(sim: pycolmap.Sim3d) -> Sim3:
-    mat = np.asarray(sim.matrix())
-    return Sim3(float(sim.scale), mat[:3, :3] / float(sim.scale), mat[:3, 3].copy())
-
-
-def estimate_sim3(src: np.ndarray, dst: np.ndarray, *, robust: bool = False, max_error: float | None = None) -> Sim3 | None:
-    """``dst_from_src`` with pycolmap (LO-RANSAC when ``robust``); None if degenerate."""
-    src = np.ascontiguousarray(src, dtype=np.float64)
-    dst = np.ascontiguousarray(dst, dtype=np.float64)
-    if robust:
-        options = pycolmap.RANSACOptions()
-        if max_error is not None:
-            options.max_error = max_error
-        result = pycolmap.estimate_sim3d_robust(src, dst, options)
-        sim = None if result is None else result["tgt_from_src"] if isinstance(result, dict) else result
-    else:
-        sim = pycolmap.estimate_sim3d(src, dst)
-    return None if sim is None else from_pycolmap(sim)
