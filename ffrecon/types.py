@@ -59,8 +59,18 @@ class Frame:
 
 
 class ModelFamily(enum.Enum):
+    """Model contracts ffrecon decodes (docs/models.md). The value is the ``ffrecon.contract`` metadata."""
+
     MULTIVIEW = "multiview"  # VGGT contract (CONTRACTS.md section 1)
-    PAIRWISE = "pairwise"  # DUSt3R contract (CONTRACTS.md section 2)
+    DA3 = "da3"  # Depth Anything 3: depth, depth_conf, extrinsics (cam_from_world), intrinsics
+    PI3 = "pi3"  # Pi3: local_points, conf (logit), camera_poses (world_from_cam); no reference frame
+    MAPANYTHING = "mapanything"  # MapAnything: per-view rays, depth along ray, cam_trans/cam_quats
+    MONODEPTH = "monodepth"  # one image in, relative inverse depth or metric depth out
+    PAIRWISE = "pairwise"  # DUSt3R / MASt3R contract (CONTRACTS.md section 2)
+
+    @property
+    def is_pairwise(self) -> bool:
+        return self is ModelFamily.PAIRWISE
 
 
 @dataclass(frozen=True)

@@ -17,7 +17,7 @@ from tqdm.auto import tqdm
 
 from ffrecon.errors import FFReconError, ModelError
 from ffrecon.geometry.alignment import Sim3, umeyama
-from ffrecon.models.vggt import PreprocessMode, decode_vggt_outputs, preprocess_vggt
+from ffrecon.models.adapters import MultiviewAdapter, PreprocessMode
 from ffrecon.types import ModelInfo, Prediction
 
 log = logging.getLogger("ffrecon.models")
@@ -61,19 +61,24 @@ def plan_chunks(num_frames: int, chunk_size: int, overlap: int) -> list[list[int
         start = end - overlap
 
 
-def predict_multiview(images: Sequence[np.ndarray], names: Sequence[str], infer: Callable[[np.ndarray], dict[str, np.ndarray]], model: ModelInfo, options: MultiviewOptions = MultiviewOptions()) -> Prediction:
-    """Run a VGGT-contract model on all frames (chunked) and return one :class:`Prediction`.
+def predict_multiview(images: Sequence[np.ndarray], names: Sequence[str], infer: Callable[[np.ndarray], dict[str, np.ndarray]], model: ModelInfo, options: MultiviewOptions = MultiviewOptions(), adapter: MultiviewAdapter | None = None) -> Prediction:
+    """Run a multi-view model on all frames (chunked) and return one :class:`Prediction`.
 
     Args:
         images: N images ``[H, W, 3]`` uint8 RGB; names: N frame names.
-        infer: maps ``input_images [S, 3, H, W]`` float32 to the model's outputs.
+        infer: maps the adapter's input batch ``[S, 3, H, W]`` float32 to the model's outputs.
+        adapter: the family's preprocessing and decoding (default: the VGGT contract).
     """
+    if adapter is None:
+        from ffrecon.models.vggt import ADAPTER as adapter
+    if options.mode not in adapter.modes:
+        raise ModelError(f"{adapter.family.value} models have no '{options.mode.value}' preprocessing", f"use --preprocess {adapter.modes[0].value}")
     chunks = plan_chunks(len(images), options.chunk_size, options.chunk_overlap)
     parts = []
     for chunk in tqdm(chunks, desc="feed-forward", unit="chunk", disable=None):
-        batch, transforms = preprocess_vggt([images[k] for k in chunk], options.mode)
+        batch, transforms = adapter.preprocess([images[k] for k in chunk], options.mode)
         outputs = infer(batch)
-        parts.append(decode_vggt_outputs(outputs, transforms, [names[k] for k in chunk], model, max_depth_side=options.max_depth_side))
+        parts.append(adapter.decode(outputs, transforms, [names[k] for k in chunk], model, options.max_depth_side))
     return merge_chunks(parts, chunks, options.align_points_per_frame)
 
 

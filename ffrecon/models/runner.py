@@ -15,15 +15,27 @@ from ffrecon.types import ModelFamily, ModelInfo
 
 log = logging.getLogger("ffrecon.models")
 
-# Declared names that identify each family (CONTRACTS.md sections 1 and 2).
+# Declared names that identify each family (docs/models.md): (inputs, outputs) each family's files
+# must declare. Exports from ``ffrecon export-model`` also carry ``ffrecon.contract`` metadata.
 MULTIVIEW_INPUT = "input_images"
 MULTIVIEW_OUTPUTS = ("pose_enc", "depth", "depth_conf")
 PAIRWISE_INPUTS = ("view1", "view2")
 PAIRWISE_OUTPUTS = ("pts3d", "conf", "pts3d_in_other_view", "conf_in_other_view")
-# Families that share the idea but not the contract: named so the error can say what was found.
-KNOWN_UNSUPPORTED = {
-    "camera_poses": "a Pi3/MapAnything-style model (camera_poses are world_from_cam)",
-    "extrinsics": "a Depth-Anything-3-style model (extrinsics are cam_from_world, 504 px)",  # onnx name
+SIGNATURES: dict[ModelFamily, tuple[tuple[str, ...], tuple[str, ...]]] = {
+    ModelFamily.MULTIVIEW: ((MULTIVIEW_INPUT,), MULTIVIEW_OUTPUTS),
+    ModelFamily.DA3: (("images",), ("depth", "depth_conf", "extrinsics", "intrinsics")),
+    ModelFamily.PI3: (("images",), ("local_points", "conf", "camera_poses")),
+    ModelFamily.MAPANYTHING: (("images",), ("ray_directions", "depth_along_ray", "cam_trans", "cam_quats", "conf")),
+    ModelFamily.MONODEPTH: (("pixel_values",), ("predicted_depth",)),
+    ModelFamily.PAIRWISE: (PAIRWISE_INPUTS, PAIRWISE_OUTPUTS),
+}
+FAMILY_NAMES = {
+    ModelFamily.MULTIVIEW: "VGGT",
+    ModelFamily.DA3: "Depth Anything 3",
+    ModelFamily.PI3: "Pi3",
+    ModelFamily.MAPANYTHING: "MapAnything",
+    ModelFamily.MONODEPTH: "monocular depth (Depth Anything V2 / DPT)",
+    ModelFamily.PAIRWISE: "DUSt3R / MASt3R (pairwise)",
 }
 
 
@@ -62,7 +74,7 @@ class OnnxModel:
         self.inputs = tuple(TensorSpec(i.name, tuple(i.shape), i.type) for i in self.session.get_inputs())
         self.outputs = tuple(TensorSpec(o.name, tuple(o.shape), o.type) for o in self.session.get_outputs())
         self.metadata = dict(self.session.get_modelmeta().custom_metadata_map)
-        self.family = detect_family(self.inputs, self.outputs, self.path)
+        self.family = detect_family(self.inputs, self.outputs, self.path, self.metadata)
         log.debug("loaded %s (%s) on %s", self.path.name, self.family.value, self.providers)
 
     @property
@@ -92,20 +104,36 @@ class OnnxModel:
         return dict(zip(names, values))
 
 
-def detect_family(inputs: tuple[TensorSpec, ...], outputs: tuple[TensorSpec, ...], path: Path | str = "model") -> ModelFamily:
-    """Model family from declared names; a readable :class:`ModelError` when nothing matches."""
+def _matches(family: ModelFamily, in_names: set[str], out_names: set[str]) -> bool:
+    inputs, outputs = SIGNATURES[family]
+    return set(inputs) <= in_names and set(outputs) <= out_names
+
+
+def detect_family(inputs: tuple[TensorSpec, ...], outputs: tuple[TensorSpec, ...], path: Path | str = "model", metadata: dict[str, str] | None = None) -> ModelFamily:
+    """Model family from the ``ffrecon.contract`` metadata and the declared names.
+
+    The metadata picks the family when present; the declared names must still match it (a file
+    whose metadata and names disagree is rejected). Without metadata the names decide.
+    Raises:
+        ModelError: nothing matches; the message lists what was found and what each family expects.
+    """
     in_names = {i.name for i in inputs}
     out_names = {o.name for o in outputs}
-    if MULTIVIEW_INPUT in in_names and set(MULTIVIEW_OUTPUTS) <= out_names:
-        return ModelFamily.MULTIVIEW
-    if set(PAIRWISE_INPUTS) <= in_names and set(PAIRWISE_OUTPUTS) <= out_names:
-        return ModelFamily.PAIRWISE
     found = ", ".join(str(s) for s in inputs) + " -> " + ", ".join(str(s) for s in outputs)
-    hint = next((v for k, v in KNOWN_UNSUPPORTED.items() if k in out_names), None)
+    claimed = (metadata or {}).get("ffrecon.contract")
+    if claimed:
+        family = next((f for f in ModelFamily if f.value == claimed), None)
+        if family is None:
+            raise ModelError(f"{Path(path).name} says it follows the '{claimed}' contract, which this ffrecon does not know. Found: {found}.", f"supported contracts: {', '.join(f.value for f in ModelFamily)}; update ffrecon or re-export the model")
+        if _matches(family, in_names, out_names):
+            return family
+        want_in, want_out = SIGNATURES[family]
+        raise ModelError(f"{Path(path).name} says it follows the {FAMILY_NAMES[family]} contract but declares other names. Found: {found}.", f"{FAMILY_NAMES[family]} needs inputs {', '.join(want_in)} and outputs {', '.join(want_out)}; re-export with `ffrecon export-model`")
+    for family in SIGNATURES:
+        if _matches(family, in_names, out_names):
+            return family
+    expected = "; ".join(f"{FAMILY_NAMES[f]}: inputs {', '.join(i)} -> outputs {', '.join(o)}" for f, (i, o) in SIGNATURES.items())
     raise ModelError(
-        f"{Path(path).name} matches no supported model contract. Found: {found}."
-        + (f" It looks like {hint}, which ffrecon does not support yet." if hint else ""),
-        f"expected either a VGGT-style model (input '{MULTIVIEW_INPUT}' [S,3,H,W]; outputs {', '.join(MULTIVIEW_OUTPUTS)}) "
-        f"or a DUSt3R-style pairwise model (inputs {', '.join(PAIRWISE_INPUTS)}; outputs {', '.join(PAIRWISE_OUTPUTS)}); "
-        "export with tools/export_vggt_onnx.py or tools/export_dust3r_onnx.py (docs/exporting_models.md)",
+        f"{Path(path).name} matches no supported model contract. Found: {found}.",
+        f"supported families and the names they declare: {expected}. Export models with `ffrecon export-model FAMILY` (docs/models.md)",
     )

@@ -5,7 +5,6 @@ All functions work on plain numpy arrays; :mod:`ffrecon.models.multiview` runs t
 
 from __future__ import annotations
 
-import enum
 from collections.abc import Mapping, Sequence
 
 import numpy as np
@@ -14,21 +13,29 @@ from PIL import Image
 from ffrecon.checks import check_finite
 from ffrecon.errors import ModelError
 from ffrecon.geometry.rotations import matrix_to_quat_xyzw, quat_xyzw_to_matrix
+from ffrecon.models.adapters import MultiviewAdapter, PreprocessMode
 from ffrecon.models.resize import ResizeTransform
-from ffrecon.types import ModelInfo, Prediction
+from ffrecon.types import ModelFamily, ModelInfo, Prediction
 
 PATCH_SIZE = 14
 TARGET_SIZE = 518
+INPUT_NAME = "input_images"
 OUTPUT_NAMES = ("pose_enc", "depth", "depth_conf")  # required; world_points etc. are optional
-
-
-class PreprocessMode(enum.Enum):
-    CROP = "crop"  # width -> 518, height to a multiple of 14, centre-crop height to 518 (reference default)
-    PAD = "pad"  # longest side -> 518, pad to 518 x 518 with white
 
 
 def _round14(x: float) -> int:
     return int(round(x / PATCH_SIZE)) * PATCH_SIZE
+
+
+def network_size_hw(height: int, width: int, mode: PreprocessMode = PreprocessMode.CROP, target_size: int = TARGET_SIZE) -> tuple[int, int]:
+    """Network input ``(H, W)`` that :func:`preprocess_vggt` gives a ``height`` x ``width`` photo.
+
+    >>> network_size_hw(480, 640), network_size_hw(640, 480), network_size_hw(480, 640, PreprocessMode.PAD)
+    ((392, 518), (518, 518), (518, 518))
+    """
+    if mode is PreprocessMode.PAD:
+        return (target_size, target_size)
+    return (min(_round14(height * target_size / width), target_size), target_size)
 
 
 def preprocess_vggt(images: Sequence[np.ndarray], mode: PreprocessMode = PreprocessMode.CROP, target_size: int = TARGET_SIZE) -> tuple[np.ndarray, tuple[ResizeTransform, ...]]:
@@ -147,3 +154,15 @@ def decode_vggt_outputs(outputs: Mapping[str, np.ndarray], transforms: Sequence[
         depths.append(t.map_to_original(depth[k], max_side=max_depth_side))
         confs.append(t.map_to_original(conf[k], max_side=max_depth_side))
     return Prediction(tuple(names), cam_from_world, tuple(cameras), tuple(depths), tuple(confs), model)
+
+
+ADAPTER = MultiviewAdapter(
+    family=ModelFamily.MULTIVIEW,
+    input_name=INPUT_NAME,
+    output_names=OUTPUT_NAMES,
+    preprocess=lambda images, mode: preprocess_vggt(images, mode),
+    decode=lambda outputs, transforms, names, model, max_side: decode_vggt_outputs(outputs, transforms, names, model, max_depth_side=max_side),
+    modes=(PreprocessMode.CROP, PreprocessMode.PAD),
+    world_frame="the first frame's camera (VGGT's convention)",
+    description="VGGT contract: pose_enc (t, quat_xyzw, fov_h, fov_w), depth, depth_conf",
+)

@@ -1,0 +1,139 @@
+"""Rewrites that let the TorchScript ONNX exporter take upstream code as shipped.
+
+Each rewrite computes the same numbers as the code it stands in for, and applies only inside
+:func:`export_rewrites` (the upstream files are never edited; PyTorch runs outside the context are
+untouched, so the verification compares the export against the original code):
+
+- ``torch.cartesian_prod`` (VGGT's, Pi3's and Depth Anything 3's rotary position grids) has no ONNX
+  symbolic: replaced by the identical ``meshgrid`` + ``stack`` form.
+- ``aten::expm1`` (VGGT's and DA3's depth/point activations, DUSt3R's ``exp`` head) has no symbolic
+  at opset 17: exported as ``Exp(x) - 1``. For the |x| < 1e-3 where the two differ in the last
+  bits, the absolute difference is below 1e-7, far under the outputs' scale.
+- ``int(positions.max())`` in the rotary embeddings is data-dependent; under tracing it is read once
+  and frozen, which is right because positions depend only on the fixed input size (H, W).
+  Exports therefore fix H and W and keep the frame (or pair) count dynamic.
+
+Family-specific rewrites (float64 tables, fused attention) live with their family's exporter.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator
+
+import torch
+
+_OPSET_FOR_SYMBOLICS = 15  # CastLike needs 15; registered for this opset and every later one
+_registered = False
+
+
+def _cartesian_prod(*tensors: torch.Tensor) -> torch.Tensor:
+    """``torch.cartesian_prod`` for 1-D tensors, built from ONNX-exportable ops (same values, same order)."""
+    if len(tensors) == 1:
+        return tensors[0]
+    grids = torch.meshgrid(*tensors, indexing="ij")
+    return torch.stack([g.reshape(-1) for g in grids], dim=-1)
+
+
+def _expm1_symbolic(g, x):  # noqa: ANN001 - torch.onnx symbolic signature
+    one = g.op("Constant", value_t=torch.tensor(1.0))
+    one = g.op("CastLike", one, x)
+    return g.op("Sub", g.op("Exp", x), one)
+
+
+def register_symbolics() -> None:
+    """Register the ONNX symbolics ffrecon adds (idempotent)."""
+    global _registered
+    if not _registered:
+        torch.onnx.register_custom_op_symbolic("aten::expm1", _expm1_symbolic, _OPSET_FOR_SYMBOLICS)
+        _registered = True
+
+
+@contextlib.contextmanager
+def export_rewrites() -> Iterator[None]:
+    """Apply the rewrites above for the duration of one export."""
+    register_symbolics()
+    original = torch.cartesian_prod
+    torch.cartesian_prod = _cartesian_prod
+    try:
+        yield
+    finally:
+        torch.cartesian_prod = original
+
+
+@contextlib.contextmanager
+def frozen_position_embeddings(model: torch.nn.Module) -> Iterator[int]:
+    """Serve every DINOv2-style ``interpolate_pos_encoding`` from a cache filled by the original code.
+
+    DINOv2 (VGGT's, Pi3's and DA3's encoders) resizes its learnt position table with antialiased
+    bicubic interpolation, which ONNX cannot express. The table depends only on the input size,
+    which every export fixes: run the model once at that size outside the trace (the original code
+    fills the cache, so the values are exactly upstream's) and the trace then records the table as a
+    constant. Yields the number of modules wrapped; the originals are restored on exit.
+    """
+    wrapped = []
+    for sub in model.modules():
+        original = getattr(sub, "interpolate_pos_encoding", None)
+        if original is None or not callable(original):
+            continue
+        cache: dict[tuple, torch.Tensor] = {}
+
+        def cached(x: torch.Tensor, w, h, _original=original, _cache=cache) -> torch.Tensor:
+            key = (int(x.shape[1]), int(w), int(h), x.dtype)
+            if key not in _cache:
+                if torch.jit.is_tracing():
+                    raise RuntimeError(f"position table for {key} was not precomputed before tracing")
+                _cache[key] = _original(x, w, h).detach()
+            return _cache[key]
+
+        sub.interpolate_pos_encoding = cached
+        wrapped.append(sub)
+    try:
+        yield len(wrapped)
+    finally:
+        for sub in wrapped:
+            del sub.interpolate_pos_encoding  # the instance attribute; the class method shows again
+
+
+def _cache_key(args: tuple, kwargs: dict) -> tuple:
+    """Arguments reduced to what size-only tables depend on: tensors by shape and dtype, the rest by value."""
+    def reduce(a):
+        if isinstance(a, torch.Tensor) and a.ndim == 0 and not a.is_floating_point():
+            return int(a)  # a size read under tracing
+        if isinstance(a, torch.Tensor):
+            return ("tensor", tuple(int(s) for s in a.shape), a.dtype)
+        return a
+
+    return tuple(reduce(a) for a in args) + tuple((k, reduce(v)) for k, v in sorted(kwargs.items()))
+
+
+@contextlib.contextmanager
+def frozen_functions(*targets: tuple[object, str]) -> Iterator[None]:
+    """Serve module-level functions that build size-only tables from a cache filled outside the trace.
+
+    For tables computed in float64 (VGGT's DPT position embedding: ONNX Einsum cannot mix float32
+    positions with float64 frequencies) or with other non-exportable ops whose inputs depend only on
+    the input size. ``targets`` are ``(module, function_name)``; the same input shapes must always mean
+    the same values, which holds within one export (fixed H and W).
+    """
+    saved = []
+    for owner, name in targets:
+        original = getattr(owner, name)
+        cache: dict[tuple, object] = {}
+
+        def cached(*args, _original=original, _cache=cache, _name=name, **kwargs):
+            key = _cache_key(args, kwargs)
+            if key not in _cache:
+                if torch.jit.is_tracing():
+                    raise RuntimeError(f"{_name}{key} was not precomputed before tracing")
+                value = _original(*args, **kwargs)
+                _cache[key] = value.detach() if isinstance(value, torch.Tensor) else value
+            return _cache[key]
+
+        setattr(owner, name, cached)
+        saved.append((owner, name, original))
+    try:
+        yield
+    finally:
+        for owner, name, original in saved:
+            setattr(owner, name, original)
