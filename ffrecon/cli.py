@@ -60,7 +60,57 @@ def build_parser() -> argparse.ArgumentParser:
     _add_run_options(demo)
     inspect = sub.add_parser("inspect-model", help="show a model's family, inputs, outputs and preprocessing")
     inspect.add_argument("model", type=Path)
+    _add_export_parser(sub)
     return parser
+
+
+def _add_export_parser(sub) -> None:
+    from ffrecon.models.exporting import FAMILIES
+
+    families = "\n".join(f"  {name:<10} {entry.summary}" for name, entry in FAMILIES.items())
+    export = sub.add_parser(
+        "export-model",
+        help="turn an upstream checkpoint into an ONNX model file ffrecon runs",
+        description=f"Export a public model to ONNX with ffrecon's contract names, then check onnxruntime against PyTorch.\n\nfamilies:\n{families}\n\nSee docs/models.md for where checkpoints are published and their licenses.",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    export.add_argument("family", choices=list(FAMILIES), help="model family")
+    export.add_argument("-o", "--out", type=Path, required=True, help="output .onnx file (weights over 2 GB go to OUT.onnx.data beside it)")
+    weights = export.add_mutually_exclusive_group(required=True)
+    weights.add_argument("--checkpoint", help="the checkpoint file or folder you downloaded")
+    weights.add_argument("--random-init", action="store_true", help="the real full-size architecture with random weights (checks the export path without weights)")
+    weights.add_argument("--tiny", action="store_true", help="the same upstream classes at a small configuration, random weights (tests)")
+    export.add_argument("--upstream", type=Path, default=None, help="root of the upstream code clone, when it is not an installed package")
+    export.add_argument("--height", type=int, default=None, help="network input height (default: from --photos, else the family's default)")
+    export.add_argument("--width", type=int, default=None, help="network input width")
+    export.add_argument("--photos", type=Path, default=None, help="a photo or folder the model will be used on: sets --height/--width by the family's preprocessing")
+    export.add_argument("--fp16", action="store_true", help="fp16 weights and compute, float32 inputs/outputs (GPU; half the size)")
+    export.add_argument("--frames", type=int, default=2, help="frames (pairs for pairwise models) in the traced example; the check runs one more (default %(default)s)")
+    export.add_argument("--opset", type=int, default=17)
+    export.add_argument("--skip-verify", action="store_true", help="do not compare onnxruntime with PyTorch")
+    export.add_argument("--keep-untrained-heads", action="store_true", help="with random weights, leave heads that decode to invalid cameras as initialised (tests ffrecon's checks)")
+    export.add_argument("--seed", type=int, default=0)
+    export.add_argument("-v", "--verbose", action="count", default=0)
+    export.add_argument("-q", "--quiet", action="store_true")
+
+
+def _export(args: argparse.Namespace) -> None:
+    import warnings
+
+    from ffrecon.models.exporting import ExportOptions, export_model
+
+    if (args.height is None) != (args.width is None):
+        raise FFReconError("--height and --width go together", "pass both, or neither (then --photos or the family's default decides)")
+    options = ExportOptions(
+        family=args.family, out=args.out, checkpoint=args.checkpoint, upstream=args.upstream,
+        size_hw=(args.height, args.width) if args.height else None, photos=args.photos, fp16=args.fp16,
+        random_init=args.random_init, tiny=args.tiny, keep_untrained_heads=args.keep_untrained_heads,
+        opset=args.opset, count=args.frames, verify=not args.skip_verify, seed=args.seed,
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the tracer's warnings are about the Python-side size logic the export fixes on purpose
+        report = export_model(options)
+    print(report.summary())
 
 
 def _run_options(args: argparse.Namespace, ground_truth: Path | None = None):
@@ -141,6 +191,9 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.command == "inspect-model":
             _inspect(args.model)
+            return 0
+        if args.command == "export-model":
+            _export(args)
             return 0
         if args.command == "demo":
             from ffrecon.demo import DemoOptions, prepare_demo

@@ -81,6 +81,7 @@ class ModelInfo:
     family: ModelFamily
     simulated: bool = False  # True for ffrecon's simulated model: reports must say so
     description: str = ""
+    metadata: dict[str, str] = field(default_factory=dict, repr=False, compare=False)  # the file's ffrecon.* metadata
 
 
 @dataclass(frozen=True)

@@ -40,6 +40,7 @@ class MultiviewAdapter:
     decode: Decode
     modes: tuple[PreprocessMode, ...] = (PreprocessMode.CROP,)
     world_frame: str = "the first frame's camera"  # what the decoded world frame is, for the report
+    camera_outputs: str = "cameras"  # the output(s) cameras are decoded from, named in validation errors
     description: str = ""
 
 

@@ -18,6 +18,7 @@ from tqdm.auto import tqdm
 from ffrecon.errors import FFReconError, ModelError
 from ffrecon.geometry.alignment import Sim3, umeyama
 from ffrecon.models.adapters import MultiviewAdapter, PreprocessMode
+from ffrecon.models.validate import validate_prediction
 from ffrecon.types import ModelInfo, Prediction
 
 log = logging.getLogger("ffrecon.models")
@@ -78,7 +79,9 @@ def predict_multiview(images: Sequence[np.ndarray], names: Sequence[str], infer:
     for chunk in tqdm(chunks, desc="feed-forward", unit="chunk", disable=None):
         batch, transforms = adapter.preprocess([images[k] for k in chunk], options.mode)
         outputs = infer(batch)
-        parts.append(adapter.decode(outputs, transforms, [names[k] for k in chunk], model, options.max_depth_side))
+        part = adapter.decode(outputs, transforms, [names[k] for k in chunk], model, options.max_depth_side)
+        validate_prediction(part, camera_outputs=adapter.camera_outputs)  # before merging: bad cameras poison the chunk Sim(3)
+        parts.append(part)
     return merge_chunks(parts, chunks, options.align_points_per_frame)
 
 

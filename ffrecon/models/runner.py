@@ -91,7 +91,7 @@ class OnnxModel:
 
     def info(self) -> ModelInfo:
         desc = self.metadata.get("ffrecon.description", "")
-        return ModelInfo(str(self.path), self.family, self.simulated, desc)
+        return ModelInfo(str(self.path), self.family, self.simulated, desc, metadata=dict(self.metadata))
 
     def run(self, feeds: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         """Run the model; returns all declared outputs by name."""

@@ -11,10 +11,12 @@ from pathlib import Path
 import numpy as np
 
 from ffrecon.capture import Capture
-from ffrecon.errors import ModelError
+from ffrecon.errors import InputError, ModelError
 from ffrecon.export.pointcloud import FuseOptions, fuse_prediction, write_depth_maps
+from ffrecon.models.adapters import adapter_for
 from ffrecon.models.multiview import MultiviewOptions, predict_multiview
-from ffrecon.models.runner import MULTIVIEW_INPUT, OnnxModel
+from ffrecon.models.validate import validate_prediction
+from ffrecon.models.runner import OnnxModel
 from ffrecon.sfm.colmap_io import reconstruction_from_cameras, write_reconstruction
 from ffrecon.types import ModelFamily, Prediction
 
@@ -50,11 +52,29 @@ class FeedForwardResult:
 
 
 def predict(model: OnnxModel, capture: Capture, options: FeedForwardOptions) -> Prediction:
-    """Run the model's family adapter on every frame of the capture."""
+    """Run the model's family adapter on every frame of the capture; the result is validated."""
     images = [f.image for f in capture.frames]
     names = list(capture.names)
-    if model.family is ModelFamily.MULTIVIEW:
-        return predict_multiview(images, names, lambda batch: _run_checked(model, MULTIVIEW_INPUT, {MULTIVIEW_INPUT: batch}), model.info(), options.multiview)
+    if model.family is ModelFamily.PAIRWISE:
+        prediction = _predict_pairwise(model, images, names, options)
+        validate_prediction(prediction, camera_outputs="pts3d/pts3d_in_other_view (after global alignment)", depth_outputs="pts3d")
+        return prediction
+    if model.family is ModelFamily.MONODEPTH:
+        from ffrecon.models import monodepth
+
+        if len(images) != 1:
+            raise InputError(f"{model.path.name} is a monocular depth model (one image in, depth out), but the input has {len(images)} images", "pass one photo, or use a multi-view model (VGGT, Depth Anything 3, Pi3) or a pairwise one (DUSt3R, MASt3R) for several")
+        adapter = monodepth.ADAPTER
+        infer = lambda batch: _run_checked(model, adapter.input_name, {adapter.input_name: batch})  # noqa: E731
+        prediction = monodepth.predict_monodepth(images[0], names[0], infer, model.info(), focal_px=capture.frames[0].focal_prior_px, options=options.multiview)
+        validate_prediction(prediction, camera_outputs="(EXIF focal or the stated guess)", depth_outputs="predicted_depth")
+        return prediction
+    adapter = adapter_for(model.family)
+    infer = lambda batch: _run_checked(model, adapter.input_name, {adapter.input_name: batch})  # noqa: E731
+    return predict_multiview(images, names, infer, model.info(), options.multiview, adapter)
+
+
+def _predict_pairwise(model: OnnxModel, images: list, names: list, options: FeedForwardOptions) -> Prediction:
     from ffrecon.models import pairwise  # imported lazily: the pairwise path pulls in the torch aligner
 
     pw_options = options.pairwise or pairwise.PairwiseOptions()
@@ -77,7 +97,7 @@ def _run_checked(model: OnnxModel, image_input: str, feeds: dict) -> dict:
     if fixed is not None and got != fixed:
         raise ModelError(
             f"{model.path.name} was exported for {fixed[1]}x{fixed[0]} inputs, but these photos preprocess to {got[1]}x{got[0]}",
-            "re-export the model for this aspect ratio (tools/export_vggt_onnx.py --height/--width), or use photos of the aspect ratio it was exported for",
+            f"re-export the model for these photos (`ffrecon export-model ... --photos DIR`, or --height {got[0]} --width {got[1]}), or use photos of the aspect ratio it was exported for",
         )
     return model.run(feeds)
 

@@ -100,8 +100,9 @@ def decode_pose_enc(pose_enc: np.ndarray, size_hw: tuple[int, int]) -> tuple[np.
     rot = quat_xyzw_to_matrix(enc[:, 3:7])
     cam_from_world = np.concatenate([rot, enc[:, :3, None]], axis=2)
     K = np.zeros((len(enc), 3, 3))
-    K[:, 0, 0] = (w / 2) / np.tan(enc[:, 8] / 2)
-    K[:, 1, 1] = (h / 2) / np.tan(enc[:, 7] / 2)
+    with np.errstate(divide="ignore"):  # fov 0 gives an infinite focal: validate_prediction reports it
+        K[:, 0, 0] = (w / 2) / np.tan(enc[:, 8] / 2)
+        K[:, 1, 1] = (h / 2) / np.tan(enc[:, 7] / 2)
     K[:, 0, 2], K[:, 1, 2], K[:, 2, 2] = w / 2, h / 2, 1.0
     return cam_from_world, K
 
@@ -164,5 +165,6 @@ ADAPTER = MultiviewAdapter(
     decode=lambda outputs, transforms, names, model, max_side: decode_vggt_outputs(outputs, transforms, names, model, max_depth_side=max_side),
     modes=(PreprocessMode.CROP, PreprocessMode.PAD),
     world_frame="the first frame's camera (VGGT's convention)",
+    camera_outputs="pose_enc",
     description="VGGT contract: pose_enc (t, quat_xyzw, fov_h, fov_w), depth, depth_conf",
 )
