@@ -1,6 +1,7 @@
 # Two commands do everything on a fresh machine:  make demo   and   make test
 # Each sets up on first use what it needs (Debian's libusb for open3d, a virtual environment,
-# torch 2.13.0 CPU first so nothing pulls a CUDA build, then ffrecon with its test extras).
+# torch 2.13.0 CPU first so nothing pulls a CUDA build, then ffrecon with its test and export extras,
+# then Depth Anything 3 without its declared dependencies).
 
 PYTHON ?= python3
 VENV ?= .venv
@@ -22,6 +23,7 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q torch==2.13.0
 	$(PY) -m pip install -q -e '.[test]'
+	$(PY) -m pip install -q --no-deps depth-anything-3==0.1.1  # its declared deps pin numpy<2; the ones it needs come with [export]
 	@touch $(STAMP)
 
 demo: $(STAMP)

@@ -170,17 +170,20 @@ def _print_summary(result) -> None:
 
 
 def _inspect(path: Path) -> None:
-    from ffrecon.models.runner import OnnxModel
+    from ffrecon.models.adapters import adapter_for
+    from ffrecon.models.runner import FAMILY_NAMES, OnnxModel
     from ffrecon.types import ModelFamily
 
     model = OnnxModel(path)
-    print(f"{path.name}: {model.family.value} model{' (SIMULATED)' if model.simulated else ''}")
+    print(f"{path.name}: {FAMILY_NAMES[model.family]} ({model.family.value}) model{' (SIMULATED)' if model.simulated else ''}")
     print("inputs:\n" + "\n".join(f"  {s}" for s in model.inputs))
     print("outputs:\n" + "\n".join(f"  {s}" for s in model.outputs))
-    if model.family is ModelFamily.MULTIVIEW:
-        print("preprocessing: RGB in [0, 1]; 'crop' (default): width 518, height rounded to a multiple of 14, centre-crop to 518; 'pad': long side 518, white padding to 518x518")
-    else:
+    if model.family is ModelFamily.PAIRWISE:
         print("preprocessing: RGB normalised to [-1, 1]; long side 512, sides cropped to multiples of 16; pairs from a pair graph, then global alignment")
+    else:
+        adapter = adapter_for(model.family)
+        print(f"contract: {adapter.description}")
+        print(f"preprocessing modes: {', '.join(m.value for m in adapter.modes)}; world frame: {adapter.world_frame}")
     for k, v in model.metadata.items():
         print(f"  metadata {k}: {v[:200]}")
 

@@ -132,6 +132,8 @@ def test_bad_models_and_existing_output_leave_results_intact(small_demo, tmp_pat
     assert main(["run", str(small_demo.images), "-o", str(out), "--model", str(odd), "--overwrite"]) == 3
     err = capsys.readouterr().err
     assert "pixels" in err and "input_images" in err
+    for family in ("VGGT", "Depth Anything 3", "Pi3", "MapAnything", "monocular depth", "DUSt3R / MASt3R"):
+        assert family in err, family  # every supported family is named with the names it declares
     # A file that is not ONNX at all.
     junk = tmp_path / "junk.onnx"
     junk.write_bytes(b"not a model")

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ffrecon.checks import check_shape
+from ffrecon.checks import check_shape, require_finite
 
 
 @dataclass(frozen=True)
@@ -61,6 +61,7 @@ def umeyama(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None)
     """
     check_shape("src", src, (None, 3))
     check_shape("dst", dst, (src.shape[0], 3))
+    require_finite("Sim(3) fit", src=src, dst=dst, **({} if weights is None else {"weights": weights}))
     w = np.ones(len(src)) if weights is None else np.asarray(weights, dtype=np.float64)
     w = w / w.sum()
     mu_s, mu_d = w @ src, w @ dst

@@ -32,6 +32,7 @@ import torch
 import torch.nn.functional as F
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 
+from ffrecon.checks import require_finite
 from ffrecon.errors import FFReconError, ModelError
 from ffrecon.geometry.alignment import Sim3, umeyama
 from ffrecon.geometry.poses import invert_pose
@@ -294,6 +295,7 @@ def _check_pairs(pairs: Sequence[PairPrediction], size_hw: tuple[int, int]) -> i
         shapes = (p.pts_i_in_i.shape, p.conf_i.shape, p.pts_j_in_i.shape, p.conf_j.shape)
         if shapes != ((h, w, 3), (h, w), (h, w, 3), (h, w)):
             raise FFReconError(f"pair ({p.i}, {p.j}) has shapes {shapes}; expected points [{h}, {w}, 3] and confidences [{h}, {w}]", "pass pairs predicted at image_size_hw")
+        require_finite(f"global alignment, pair ({p.i}, {p.j})", pts3d=p.pts_i_in_i, conf=p.conf_i, pts3d_in_other_view=p.pts_j_in_i, conf_in_other_view=p.conf_j)
         if p.i == p.j or min(p.i, p.j) < 0:
             raise FFReconError(f"pair ({p.i}, {p.j}) is not a pair of two views", "use make_pairs to build the pair graph")
     num_views = max(max(p.i, p.j) for p in pairs) + 1

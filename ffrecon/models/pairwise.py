@@ -27,8 +27,12 @@ log = logging.getLogger("ffrecon.models.pairwise")
 
 PATCH_SIZE = 16
 LONG_SIDE = 512
+SQUARE_SIDE = 224  # upstream's square mode (the *_224_linear checkpoints)
 INPUT_NAMES = ("view1", "view2")
 OUTPUT_NAMES = ("pts3d", "conf", "pts3d_in_other_view", "conf_in_other_view")
+# MASt3R's optional outputs: view1's and view2's descriptors [B, H, W, D] (unit norm) and their
+# confidences [B, H, W] (>= 0). Checked when present, not used yet (matching will use them).
+DESCRIPTOR_NAMES = ("desc", "desc_conf", "desc_in_other_view", "desc_conf_in_other_view")
 
 # A pairwise model: (view1 [B, 3, H, W], view2 [B, 3, H, W]) float32 in [-1, 1] -> the four outputs.
 PairInfer = Callable[[np.ndarray, np.ndarray], Mapping[str, np.ndarray]]
@@ -85,16 +89,48 @@ def make_pairs(num_views: int, graph: PairGraph, *, window: int = 3, reference: 
     return pairs
 
 
+def network_size_hw(height: int, width: int, long_side: int = LONG_SIDE) -> tuple[int, int]:
+    """The network input ``(H, W)`` upstream's ``load_images(size=long_side)`` gives a photo.
+
+    The long side is resized to ``long_side`` (sides rounded), then each side is cropped down to a
+    multiple of 16; a square photo is cropped to 4:3 landscape (upstream's ``square_ok=False``).
+    ``long_side`` 224 is upstream's square mode: the short side goes to 224, centre square crop.
+
+    >>> network_size_hw(3024, 4032), network_size_hw(1000, 700), network_size_hw(800, 800), network_size_hw(480, 640, 224)
+    ((384, 512), (512, 352), (384, 512), (224, 224))
+    """
+    if long_side == SQUARE_SIDE:
+        return (SQUARE_SIDE, SQUARE_SIDE)
+    new_w, new_h = _reference_resize_wh(width, height, long_side)
+    net_w, net_h = new_w // PATCH_SIZE * PATCH_SIZE, new_h // PATCH_SIZE * PATCH_SIZE
+    if new_w == new_h:
+        net_h = 3 * net_w // 4 // PATCH_SIZE * PATCH_SIZE
+    return (net_h, net_w)
+
+
+def _reference_resize_wh(width: int, height: int, long_side: int) -> tuple[int, int]:
+    """Upstream ``_resize_pil_image``'s size: long side to ``long_side`` (224: short side to 224)."""
+    edge = round(long_side * max(width / height, height / width)) if long_side == SQUARE_SIDE else long_side
+    side = max(width, height)
+    return round(width * edge / side), round(height * edge / side)
+
+
 def preprocess_pairwise(images: Sequence[np.ndarray], long_side: int = LONG_SIDE, *, size_hw: tuple[int, int] | None = None) -> tuple[np.ndarray, tuple[ResizeTransform, ...]]:
     """Resize and centre-crop photos for a DUSt3R-style model, recording the pixel mapping.
 
-    The network size comes from the first image (long side to ``long_side``, each side cropped down
-    to a multiple of 16) unless ``size_hw`` fixes it (for exports with a fixed input shape). Every
-    image is scaled to cover that size (PIL Lanczos when shrinking, bicubic when enlarging) and
-    centre-cropped, so images of another aspect ratio lose their margins.
+    Upstream's reference (``dust3r.utils.image.load_images``): each photo's long side is resized to
+    ``long_side`` (PIL Lanczos when shrinking, bicubic otherwise; 224: the short side, for the square
+    224 checkpoints), then centre-cropped (crop box from ``size // 2``) to the network size, and
+    normalised as ``(x / 255 - 0.5) / 0.5``. One network size serves every photo (fixed-shape
+    exports): :func:`network_size_hw` of the first photo unless ``size_hw`` fixes it. A photo that
+    the reference resize does not cover at that size (another aspect ratio or orientation than the
+    first photo) is instead scaled to cover it and centre-cropped, losing its margins, where upstream
+    would give it its own size.
 
     Args:
-        images: N images ``[H, W, 3]`` uint8 RGB.
+        images: N images ``[H, W, 3]`` uint8 RGB (EXIF orientation applied).
+        long_side: the reference long side (512 for the 512 checkpoints; 224 for the 224 ones).
+        size_hw: fixed network size (the export's); its long side then replaces ``long_side``.
     Returns:
         ``(batch [N, 3, Hn, Wn] float32 RGB in [-1, 1], N transforms original -> network)``.
     """
@@ -104,9 +140,9 @@ def preprocess_pairwise(images: Sequence[np.ndarray], long_side: int = LONG_SIDE
         if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
             raise InputError(f"image {k} has shape {image.shape} and dtype {image.dtype}; expected [H, W, 3] uint8 RGB", "load images as 8-bit RGB")
     if size_hw is None:
-        h0, w0 = images[0].shape[:2]
-        s = long_side / max(h0, w0)
-        size_hw = (round(h0 * s) // PATCH_SIZE * PATCH_SIZE, round(w0 * s) // PATCH_SIZE * PATCH_SIZE)
+        size_hw = network_size_hw(*images[0].shape[:2], long_side)
+    else:
+        long_side = max(size_hw)
     net_h, net_w = size_hw
     if net_h < PATCH_SIZE or net_w < PATCH_SIZE or net_h % PATCH_SIZE or net_w % PATCH_SIZE:
         raise InputError(f"network size {net_w}x{net_h} is not a positive multiple of {PATCH_SIZE}", f"use a size whose sides are multiples of {PATCH_SIZE}")
@@ -114,15 +150,17 @@ def preprocess_pairwise(images: Sequence[np.ndarray], long_side: int = LONG_SIDE
     transforms = []
     for k, image in enumerate(images):
         h, w = image.shape[:2]
-        if abs(w / h - net_w / net_h) > 0.1 * net_w / net_h:
-            log.warning("image %d (%dx%d) has another aspect ratio than the network input %dx%d: its margins are cropped away", k, w, h, net_w, net_h)
-        s = max(net_w / w, net_h / h)
-        new_w, new_h = max(net_w, round(w * s)), max(net_h, round(h * s))
-        resample = Image.Resampling.LANCZOS if s < 1 else Image.Resampling.BICUBIC
+        new_w, new_h = _reference_resize_wh(w, h, long_side)
+        if new_w < net_w or new_h < net_h:  # not the reference: scale to cover the network size
+            if abs(w / h - net_w / net_h) > 0.1 * net_w / net_h:
+                log.warning("image %d (%dx%d) has another aspect ratio than the network input %dx%d: its margins are cropped away", k, w, h, net_w, net_h)
+            s = max(net_w / w, net_h / h)
+            new_w, new_h = max(net_w, round(w * s)), max(net_h, round(h * s))
+        resample = Image.Resampling.LANCZOS if max(new_w, new_h) < max(w, h) else Image.Resampling.BICUBIC  # upstream: Lanczos when shrinking
         resized = np.asarray(Image.fromarray(image).resize((new_w, new_h), resample), dtype=np.float32)
-        left, top = (new_w - net_w) // 2, (new_h - net_h) // 2
+        left, top = new_w // 2 - net_w // 2, new_h // 2 - net_h // 2  # upstream's box: centre at size // 2
         crop = resized[top : top + net_h, left : left + net_w]
-        out[k] = (crop / 127.5 - 1.0).transpose(2, 0, 1)
+        out[k] = ((crop / np.float32(255) - np.float32(0.5)) / np.float32(0.5)).transpose(2, 0, 1)  # torchvision ToTensor + Normalize
         transforms.append(ResizeTransform((w, h), (net_w, net_h), new_w / w, new_h / h, -float(left), -float(top)))
     return out, tuple(transforms)
 
@@ -166,6 +204,13 @@ def _check_outputs(outputs: Mapping[str, np.ndarray], b: int, size_hw: tuple[int
         check_finite(name, value, model=model_name)
         if name.startswith("conf") and value.min() < 1.0 - 1e-3:
             raise ModelError(f"pairwise model output '{name}' has values down to {value.min():.3g}; confidences must be >= 1", "export the model with its confidence activation (1 + exp(x)), not raw logits")
+        checked[name] = value
+    for name in (n for n in DESCRIPTOR_NAMES if n in outputs):  # MASt3R: checked and passed on, not used yet
+        value = np.asarray(outputs[name], dtype=np.float32)
+        is_desc = name in ("desc", "desc_in_other_view")
+        if value.shape[:3] != (b, *size_hw) or value.ndim != (4 if is_desc else 3):
+            raise ModelError(f"pairwise model output '{name}' has shape {value.shape}; expected {(b, *size_hw, 'D') if is_desc else (b, *size_hw)}", "export MASt3R with `ffrecon export-model mast3r`")
+        check_finite(name, value, model=model_name)
         checked[name] = value
     return checked
 

@@ -38,6 +38,7 @@ class BundleOptions:
     max_refinements: int = 5  # rounds in the fine pass
     max_refinement_change: float = 0.001  # stop when fewer observations than this fraction change
     max_num_iterations: int = 100  # Ceres iterations per bundle adjustment
+    max_solver_seconds: float = 600.0  # wall-clock bound per bundle adjustment (Ceres stops and keeps its best)
     num_threads: int = -1
 
 
@@ -113,6 +114,7 @@ class _Adjuster:
         ba.ceres.solver_options.num_threads = self.options.num_threads
         ba.ceres.solver_options.max_num_iterations = max_iterations or self.options.max_num_iterations
         ba.ceres.solver_options.function_tolerance = function_tolerance
+        ba.ceres.solver_options.max_solver_time_in_seconds = self.options.max_solver_seconds
         config = pycolmap.BundleAdjustmentConfig()
         for image_id in rec.reg_image_ids():
             config.add_image(image_id)

@@ -46,6 +46,7 @@ from ffrecon.sfm.features import (
 from ffrecon.sfm.guided import GuidanceOptions, GuidanceStats, MatchGuidance, filter_matches, guided_matches
 from ffrecon.sfm.overlap import OverlapOptions, overlap_graph
 from ffrecon.sfm.timing import StageTimer, Timings
+from ffrecon.models.validate import validate_prediction
 from ffrecon.types import PinholeCamera, Prediction
 
 logger = logging.getLogger("ffrecon.sfm")
@@ -138,6 +139,7 @@ def _check_inputs(image_dir: Path, prediction: Prediction) -> None:
         raise InputError(f"{len(missing)} images of the prediction are not in {image_dir}, e.g. {missing[0]}", "pass the folder the model read")
     if len(prediction) < 2:
         raise InputError(f"refinement needs at least two images, got {len(prediction)}", "add images")
+    validate_prediction(prediction)
 
 
 def _shared_camera(prediction: Prediction) -> PinholeCamera | None:

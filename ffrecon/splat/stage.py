@@ -20,7 +20,7 @@ import kornia
 import numpy as np
 import torch
 
-from ffrecon.checks import check_shape
+from ffrecon.checks import check_shape, require_finite
 from ffrecon.errors import InputError
 from ffrecon.export.splat_ply import write_splat_ply
 from ffrecon.geometry.poses import camera_centers
@@ -172,6 +172,7 @@ def _validate(images, names, cam_from_world, cameras, seed_xyz, seed_rgb) -> Non
     check_shape("cam_from_world", np.asarray(cam_from_world), (n, 3, 4))
     check_shape("seed_xyz", np.asarray(seed_xyz), (None, 3))
     check_shape("seed_rgb", np.asarray(seed_rgb), (len(seed_xyz), 3))
+    require_finite("splat", cam_from_world=cam_from_world, seed_xyz=seed_xyz, seed_rgb=seed_rgb, intrinsics=np.array([[c.fx, c.fy, c.cx, c.cy] for c in cameras]))
     for name, image, cam in zip(names, images, cameras):
         check_shape(f"image {name}", image, (cam.height, cam.width, 3))
 

@@ -16,6 +16,9 @@ What the TorchScript exporter cannot take as shipped, and what stands in for it 
   ``torch.arange(S)`` / ``torch.eye(S)``. :func:`reference_view_rewrites` always takes the branch
   and applies the frame-count rule inside the graph (index 0 below 3 frames), with indices built
   from the data's own shape, so the same file is right for 1, 2 or many frames;
+- ``utils.geometry.affine_inverse`` is a ``torch.jit.script`` function using ``Tensor.mT``, which
+  has no ONNX symbolic: :func:`affine_inverse` (the same formula with ``transpose(-1, -2)``) stands
+  in for it in ``model.da3``;
 - DINOv2's position-table resize and the rotary ``cartesian_prod`` / ``int(positions.max())``:
   the shared rewrites in :mod:`.patches`.
 """
@@ -29,7 +32,6 @@ import math
 from collections.abc import Iterator
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from ffrecon.errors import InputError
@@ -223,32 +225,48 @@ def restore_original_order(x: torch.Tensor, b_idx: torch.Tensor) -> torch.Tensor
     return _gather_views(x, torch.where(pos == ref, torch.zeros_like(pos), index))
 
 
+def affine_inverse(A: torch.Tensor) -> torch.Tensor:
+    """``utils.geometry.affine_inverse`` (``[..., 3 or 4, 4]``) without ``Tensor.mT``."""
+    R = A[..., :3, :3]
+    T = A[..., :3, 3:]
+    P = A[..., 3:, :]
+    R_t = R.transpose(-1, -2)
+    return torch.cat([torch.cat([R_t, -R_t @ T], dim=-1), P], dim=-2)
+
+
 @contextlib.contextmanager
-def reference_view_rewrites(upstream: Path | None) -> Iterator[None]:
-    """Swap the rewrites above into DA3's ViT module for one export (originals restored on exit)."""
+def _replaced(owner: object, replacements: dict[str, object]) -> Iterator[None]:
+    saved = {k: getattr(owner, k) for k in replacements}
+    for k, v in replacements.items():
+        setattr(owner, k, v)
+    try:
+        yield
+    finally:
+        for k, v in saved.items():
+            setattr(owner, k, v)
+
+
+@contextlib.contextmanager
+def export_rewrites(upstream: Path | None) -> Iterator[None]:
+    """Swap the rewrites above into DA3's modules for one export (originals restored on exit)."""
     vit = import_upstream("depth_anything_3.model.dinov2.vision_transformer", upstream, family="depth_anything_3")
-    replacements = {
+    da3 = import_upstream("depth_anything_3.model.da3", upstream, family="depth_anything_3")
+    if vit.THRESH_FOR_REF_SELECTION != REF_SELECTION_MIN_FRAMES:
+        raise InputError(f"this depth_anything_3 selects a reference view from {vit.THRESH_FOR_REF_SELECTION} frames, ffrecon's rewrite from {REF_SELECTION_MIN_FRAMES}", "install depth-anything-3==0.1.1, or report the version you use")
+    view_selection = {
         "THRESH_FOR_REF_SELECTION": 1,  # always take the branch; the frame-count rule is in select_reference_view
         "select_reference_view": select_reference_view,
         "reorder_by_reference": reorder_by_reference,
         "restore_original_order": restore_original_order,
     }
-    if vit.THRESH_FOR_REF_SELECTION != REF_SELECTION_MIN_FRAMES:
-        raise InputError(f"this depth_anything_3 selects a reference view from {vit.THRESH_FOR_REF_SELECTION} frames, ffrecon's rewrite from {REF_SELECTION_MIN_FRAMES}", "install depth-anything-3==0.1.1, or report the version you use")
-    saved = {k: getattr(vit, k) for k in replacements}
-    for k, v in replacements.items():
-        setattr(vit, k, v)
-    try:
+    with _replaced(vit, view_selection), _replaced(da3, {"affine_inverse": affine_inverse}):
         yield
-    finally:
-        for k, v in saved.items():
-            setattr(vit, k, v)
 
 
 def trace_context(upstream: Path | None):
     @contextlib.contextmanager
     def context(module: torch.nn.Module):
-        with frozen_position_embeddings(module), reference_view_rewrites(upstream):
+        with frozen_position_embeddings(module), export_rewrites(upstream):
             yield
 
     return context
@@ -290,7 +308,3 @@ def size_for_photo(height: int, width: int) -> tuple[int, int]:
 
     return network_size_hw(height, width)
 
-
-def _example(count: int, size_hw: tuple[int, int], seed: int = 0) -> np.ndarray:
-    """Example input (tests): ``[count, 3, H, W]`` float32 in [0, 1]."""
-    return random_images(count, size_hw, np.random.default_rng(seed))
