@@ -26,7 +26,7 @@ def _setup_logging(verbose: int) -> None:
 def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("-o", "--out", type=Path, required=True, help="output folder (see the README for its layout)")
     p.add_argument("--overwrite", action="store_true", help="replace results already in the output folder")
-    p.add_argument("--chunk-size", type=int, default=None, help="frames per model call (default 8: fits VGGT-1B in ~10 GB on a CPU)")
+    p.add_argument("--chunk-size", type=int, default=None, help="frames per model call (default: as many as fit in 60%% of the free memory, from the model's size; docs/benchmarks.md)")
     p.add_argument("--chunk-overlap", type=int, default=None, help="frames shared by consecutive chunks (default 2)")
     p.add_argument("--preprocess", choices=["crop", "pad"], default="crop", help="VGGT preprocessing mode")
     p.add_argument("--threads", type=int, default=0, help="CPU threads for inference (0: all)")

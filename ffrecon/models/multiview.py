@@ -23,23 +23,20 @@ from ffrecon.types import ModelInfo, Prediction
 
 log = logging.getLogger("ffrecon.models")
 
-# Memory of one call: a VGGT-1B export with plain attention holds a [16, N, N] float32 score matrix
-# in its global-attention layers, N = 1041 tokens per 518x392 frame: ~69 MB x S^2 (measured with
-# tools/attention_memory.py: 4.7 GB peak at S = 8), plus ~5 GB of fp32 weights. So 8 frames need
-# ~10 GB and fit this project's 24 GB machines with room; 16 frames would need ~23 GB and do not.
-DEFAULT_CHUNK_SIZE = 8
+# Without a model file to size it from (ffrecon.models.memory picks the default per model and machine).
+FALLBACK_CHUNK_SIZE = 8
 
 
 @dataclass(frozen=True, kw_only=True)
 class MultiviewOptions:
     mode: PreprocessMode = PreprocessMode.CROP
-    chunk_size: int = DEFAULT_CHUNK_SIZE
+    chunk_size: int | None = None  # frames per model call; None: from the model's size and free memory
     chunk_overlap: int = 2
     max_depth_side: int | None = 1024  # cap on stored depth grids (None: original resolution)
     align_points_per_frame: int = 4000  # depth points per shared frame used for the chunk Sim(3)
 
     def __post_init__(self) -> None:
-        if self.chunk_size < 2 or not 0 < self.chunk_overlap < self.chunk_size:
+        if self.chunk_size is not None and (self.chunk_size < 2 or not 0 < self.chunk_overlap < self.chunk_size):
             raise FFReconError(f"chunk size {self.chunk_size} with overlap {self.chunk_overlap} is not usable", "use chunk_size >= 2 and 0 < chunk_overlap < chunk_size")
 
 
@@ -74,7 +71,8 @@ def predict_multiview(images: Sequence[np.ndarray], names: Sequence[str], infer:
         from ffrecon.models.vggt import ADAPTER as adapter
     if options.mode not in adapter.modes:
         raise ModelError(f"{adapter.family.value} models have no '{options.mode.value}' preprocessing", f"use --preprocess {adapter.modes[0].value}")
-    chunks = plan_chunks(len(images), options.chunk_size, options.chunk_overlap)
+    chunk_size = options.chunk_size or FALLBACK_CHUNK_SIZE
+    chunks = plan_chunks(len(images), chunk_size, min(options.chunk_overlap, chunk_size - 1))
     parts = []
     for chunk in tqdm(chunks, desc="feed-forward", unit="chunk", disable=None):
         batch, transforms = adapter.preprocess([images[k] for k in chunk], options.mode)

@@ -14,6 +14,7 @@ from ffrecon.capture import Capture
 from ffrecon.errors import InputError, ModelError
 from ffrecon.export.pointcloud import FuseOptions, fuse_prediction, write_depth_maps
 from ffrecon.models.adapters import adapter_for
+from ffrecon.models.memory import default_chunk_size
 from ffrecon.models.multiview import MultiviewOptions, predict_multiview
 from ffrecon.models.validate import validate_prediction
 from ffrecon.models.runner import OnnxModel
@@ -71,7 +72,12 @@ def predict(model: OnnxModel, capture: Capture, options: FeedForwardOptions) -> 
         return prediction
     adapter = adapter_for(model.family)
     infer = lambda batch: _run_checked(model, adapter.input_name, {adapter.input_name: batch})  # noqa: E731
-    return predict_multiview(images, names, infer, model.info(), options.multiview, adapter)
+    mv_options = options.multiview
+    if mv_options.chunk_size is None:
+        size_hw = tuple(adapter.preprocess(images[:1], mv_options.mode)[0].shape[-2:])
+        chunk = default_chunk_size(model.path, size_hw, model.metadata)
+        mv_options = dataclasses.replace(mv_options, chunk_size=chunk, chunk_overlap=min(mv_options.chunk_overlap, chunk - 1))
+    return predict_multiview(images, names, infer, model.info(), mv_options, adapter)
 
 
 def _predict_pairwise(model: OnnxModel, images: list, names: list, options: FeedForwardOptions) -> Prediction:

@@ -168,10 +168,14 @@ def export_spec(spec: ExportSpec, options: ExportOptions) -> ExportReport:
         "ffrecon.weights": options.weights,
         "ffrecon.notes": " | ".join(spec.notes),
         "ffrecon.torch": torch.__version__,
+        # For ffrecon.models.memory: the widest attention's head count sizes the frames-squared score matrices.
+        "ffrecon.attention_heads": str(max((int(getattr(m, "num_heads", 0) or 0) for m in spec.module.modules()), default=0)),
+        "ffrecon.parameters": str(params),
         **spec.extra_metadata,
     }
     onnx.helper.set_model_props(model, metadata)
     files = _save(model, out)
+    del model  # the proto holds a copy of every weight: free it before the verification runs the model twice
     export_seconds = time.perf_counter() - start
     differences: dict[str, float] = {}
     verify_seconds = 0.0
@@ -208,7 +212,9 @@ def _save(model, out: Path) -> list[Path]:
     data = out.with_name(out.name + ".data")
     for stale in (out, data):
         stale.unlink(missing_ok=True)
-    if model.ByteSize() < PROTOBUF_LIMIT:
+    # Sum the weights rather than call ByteSize(): protobuf cannot even measure a message over 2 GB.
+    weight_bytes = sum(len(t.raw_data) or t.ByteSize() for t in model.graph.initializer)
+    if weight_bytes < PROTOBUF_LIMIT - 2**26:
         onnx.save_model(model, str(out))
         return [out]
     onnx.save_model(model, str(out), save_as_external_data=True, all_tensors_to_one_file=True, location=data.name, size_threshold=1024)

@@ -1,6 +1,6 @@
 """DUSt3R (naver/dust3r) and MASt3R (naver/mast3r) to ONNX with the pairwise contract (CONTRACTS.md section 2).
 
-Inputs ``view1``, ``view2``: ``[B, 3, H, W]`` float32 RGB normalised to [-1, 1] (``x / 127.5 - 1``),
+Inputs ``view1``, ``view2``: ``[B, 3, H, W]`` float32 RGB normalised to [-1, 1] (``(x / 255 - 0.5) / 0.5``),
 preprocessed by :func:`ffrecon.models.pairwise.preprocess_pairwise` (upstream's ``load_images``).
 Outputs, all ``[B, H, W, ...]`` float32 at the input resolution:
 
@@ -37,6 +37,7 @@ import argparse
 import ast
 import contextlib
 import importlib.util
+import io
 import logging
 import sys
 from pathlib import Path
@@ -76,21 +77,29 @@ TINY_DPT = dict(layer_dims=[16, 32, 64, 64], feature_dim=32, last_dim=16)
 
 
 class PairwiseForOnnx(torch.nn.Module):
-    """``view1, view2 [B, 3, H, W]`` in [-1, 1] to the contract outputs (plus descriptors for MASt3R)."""
+    """``view1, view2 [B, 3, H, W]`` in [-1, 1] to the contract outputs (plus descriptors for MASt3R).
 
-    def __init__(self, model: torch.nn.Module, *, descriptors: bool) -> None:
+    ``desc_dim`` is the descriptor size (None: no descriptors). The outputs are reshaped to their
+    known sizes (``[-1, H, W, 3]`` etc.; values unchanged) so that the ONNX file declares them.
+    """
+
+    def __init__(self, model: torch.nn.Module, size_hw: tuple[int, int], *, desc_dim: int | None) -> None:
         super().__init__()
         self.model = model
-        self.descriptors = descriptors
+        self.size_hw = size_hw
+        self.desc_dim = desc_dim
 
     def forward(self, view1: torch.Tensor, view2: torch.Tensor) -> tuple[torch.Tensor, ...]:
         b = view1.shape[0]
         # Distinct instance names: upstream's is_symmetrized() is False, every pair is encoded as given.
         # true_shape is left out: upstream then uses the image's own shape, as load_images records it.
         res1, res2 = self.model({"img": view1, "instance": [f"view1_{k}" for k in range(b)]}, {"img": view2, "instance": [f"view2_{k}" for k in range(b)]})
-        outputs = (res1["pts3d"], res1["conf"], res2["pts3d_in_other_view"], res2["conf"])
-        if self.descriptors:
-            outputs += (res1["desc"], res1["desc_conf"], res2["desc"], res2["desc_conf"])
+        h, w = self.size_hw
+        points, maps = (-1, h, w, 3), (-1, h, w)
+        outputs = (res1["pts3d"].reshape(points), res1["conf"].reshape(maps), res2["pts3d_in_other_view"].reshape(points), res2["conf"].reshape(maps))
+        if self.desc_dim is not None:
+            desc = (-1, h, w, self.desc_dim)
+            outputs += (res1["desc"].reshape(desc), res1["desc_conf"].reshape(maps), res2["desc"].reshape(desc), res2["desc_conf"].reshape(maps))
         return outputs
 
 
@@ -169,7 +178,8 @@ def pytorch_rope(model: torch.nn.Module) -> str | None:
     try:
         spec = importlib.util.spec_from_file_location("ffrecon_croco_pos_embed_pytorch", source)
         module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
+        with contextlib.redirect_stdout(io.StringIO()):  # upstream prints a warning about the missing extension
+            spec.loader.exec_module(module)
     finally:
         del sys.modules["models.curope"]
         sys.modules.update(hidden)
@@ -179,22 +189,21 @@ def pytorch_rope(model: torch.nn.Module) -> str | None:
     return f"compiled cuRoPE2D replaced by croco's PyTorch RoPE2D (freq {rope.base:g}) for the export"
 
 
-def _model_class(options: ExportOptions):
-    module = import_upstream(MODULES[options.family], options.upstream, family=options.family)
-    return getattr(module, CLASSES[options.family])
+def model_class(family: str, upstream: Path | None) -> type:
+    """Upstream's ``AsymmetricCroCo3DStereo`` (dust3r) or ``AsymmetricMASt3R`` (mast3r)."""
+    return getattr(import_upstream(MODULES[family], upstream, family=family), CLASSES[family])
 
 
 def load_checkpoint(options: ExportOptions) -> torch.nn.Module:
     """The model a checkpoint describes.
 
     - a ``.pth`` training checkpoint with ``args`` (what naver publishes for download): the
-      architecture from ``args.model`` (read, not evaluated; ManyAR_PatchEmbed and landscape_only as
-      upstream ``load_model`` sets them), then the weights (``dec_blocks2`` copied from ``dec_blocks``
-      when absent, by upstream's ``load_state_dict``);
+      architecture from ``args.model`` (read, not evaluated), then the weights (``dec_blocks2``
+      copied from ``dec_blocks`` when absent, by upstream's ``load_state_dict``);
     - a plain state dict (``.pth``/``.safetensors``): the published 512 architecture of the family;
     - a folder with ``config.json`` or a Hugging Face id: upstream's ``from_pretrained``.
     """
-    cls = _model_class(options)
+    cls = model_class(options.family, options.upstream)
     path = Path(options.checkpoint).expanduser()
     if not path.exists() and (path.suffix in WEIGHT_SUFFIXES or str(options.checkpoint).startswith((".", "/", "~"))):
         raise InputError(f"no checkpoint at {path}", "pass the .pth file you downloaded (see docs/models.md), or a Hugging Face id such as naver/DUSt3R_ViTLarge_BaseDecoder_512_dpt")
@@ -205,21 +214,36 @@ def load_checkpoint(options: ExportOptions) -> torch.nn.Module:
         except Exception as exc:  # huggingface_hub and torch raise many types
             raise InputError(f"upstream from_pretrained cannot load {options.checkpoint}: {str(exc).splitlines()[0]}", "pass the .pth file you downloaded, or a folder with config.json and model.safetensors") from exc
     file = find_weights(path)
-    stored = _read_pth(file) if file.suffix in (".pth", ".pt", ".ckpt") else {}
-    if isinstance(stored, dict) and hasattr(stored.get("args"), "model"):
-        name, kwargs = parse_model_string(stored["args"].model)
+    if file.suffix == ".safetensors":
+        state, arch = load_state_dict(file), None
+    else:
+        stored = _read_pth(file)
+        arch = getattr(stored.get("args"), "model", None) if isinstance(stored, dict) else None
+        state = stored.get("model", stored) if isinstance(stored, dict) else stored
+    if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):
+        raise InputError(f"{file} holds no state dict of tensors", "pass the checkpoint .pth naver publishes (keys 'args' and 'model') or a state dict")
+    if arch is None:
+        model = cls(**PUBLISHED[options.family])
+    else:
+        name, kwargs = parse_model_string(arch)
         if name != cls.__name__:
             other = next((f for f, c in CLASSES.items() if c == name), None)
             raise InputError(f"{file.name} holds a {name} model, not {cls.__name__}", f"use `ffrecon export-model {other}`" if other else "pass a DUSt3R or MASt3R checkpoint")
-        if kwargs.get("patch_embed_cls") == "ManyAR_PatchEmbed":
-            kwargs["patch_embed_cls"] = "PatchEmbedDust3R"  # upstream load_model's replacement (same weights)
-        kwargs["landscape_only"] = False
         model = cls(**kwargs)
-        load_into(model, stored["model"], source=str(file))
-        return model
-    model = cls(**PUBLISHED[options.family])
-    load_into(model, load_state_dict(file), source=str(file))
+    load_into(model, state, source=str(file))
     return model
+
+
+def plain_patch_embed(model: torch.nn.Module, upstream: Path | None, family: str) -> None:
+    """Use ``PatchEmbedDust3R`` where a model was built with ``ManyAR_PatchEmbed`` (the training
+    class, which transposes portrait inputs), with the same weights: upstream ``load_model``'s rule."""
+    old = model.patch_embed
+    if type(old).__name__ != "ManyAR_PatchEmbed":
+        return
+    patch_mod = import_upstream("dust3r.patch_embed", upstream, family=family)
+    new = patch_mod.get_patch_embed("PatchEmbedDust3R", old.img_size, old.patch_size, old.proj.out_channels)
+    new.load_state_dict(old.state_dict())
+    model.patch_embed = new
 
 
 def build_model(options: ExportOptions) -> tuple[torch.nn.Module, list[str]]:
@@ -229,14 +253,16 @@ def build_model(options: ExportOptions) -> tuple[torch.nn.Module, list[str]]:
         model = load_checkpoint(options)
     else:
         kwargs = dict(PUBLISHED[options.family], **(TINY if options.tiny else {}))
-        model = _model_class(options)(**kwargs)
+        model = model_class(options.family, options.upstream)(**kwargs)
         if options.tiny:
             _narrow_dpt(model, options.upstream, options.family)
             notes.append(f"tiny configuration {TINY}, DPT widths {TINY_DPT}")
+    plain_patch_embed(model, options.upstream, options.family)
     landscape_heads_off(model, options.upstream, options.family)
     note = pytorch_rope(model)
     if note:
         notes.append(note)
+    notes.append("heads called at the export's HxW (upstream's landscape_only=False path); rotary tables and int(positions.max()) frozen at HxW; expm1 as exp - 1")
     return model.eval().float(), notes
 
 
@@ -265,12 +291,13 @@ def build(options: ExportOptions, size_hw: tuple[int, int]) -> ExportSpec:
     torch.manual_seed(options.seed)
     model, notes = build_model(options)
     descriptors = options.family == "mast3r"
+    desc_dim = int(model.downstream_head1.local_feat_dim) if descriptors else None
     names = OUTPUT_NAMES + (DESCRIPTOR_NAMES if descriptors else ())
     kind = "tiny configuration" if options.tiny else "published 512 architecture" if options.checkpoint is None else "checkpoint"
     label = "MASt3R" if descriptors else "DUSt3R"
     return ExportSpec(
         family=options.family,
-        module=PairwiseForOnnx(model, descriptors=descriptors).eval(),
+        module=PairwiseForOnnx(model, size_hw, desc_dim=desc_dim).eval(),
         input_names=INPUT_NAMES,
         output_names=names,
         dynamic_axes={k: {0: "B"} for k in INPUT_NAMES + names},
@@ -279,7 +306,7 @@ def build(options: ExportOptions, size_hw: tuple[int, int]) -> ExportSpec:
         contract="pairwise",
         description=f"{label} ({kind}, weights: {options.weights}) exported by ffrecon export-model, input {size_hw[1]}x{size_hw[0]}",
         notes=notes,
-        extra_metadata={"ffrecon.descriptor_dim": str(DESC_DIM)} if descriptors else {},
+        extra_metadata={"ffrecon.descriptor_dim": str(desc_dim)} if descriptors else {},
         trace_context=trace_context(size_hw),
     )
 

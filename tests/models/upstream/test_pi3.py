@@ -8,6 +8,7 @@ upstream's own PyTorch model (rebuilt from the same seed), its own preprocessing
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import sys
 import types
@@ -25,8 +26,10 @@ from ffrecon.models.adapters import PreprocessMode, adapter_for
 from ffrecon.models.exporting import ExportOptions, family_module
 from ffrecon.models.exporting.common import relative_difference, torch_outputs
 from ffrecon.models.exporting.pi3 import closest_rotation
+from ffrecon.models.exporting.upstream import import_upstream
 from ffrecon.models.pi3 import ADAPTER, decode_pi3_outputs, network_size_hw, preprocess_pi3
 from ffrecon.models.runner import OnnxModel
+from ffrecon.models.validate import validate_prediction
 from ffrecon.types import ModelFamily, ModelInfo
 
 from .conftest import real_photos, upstream_dir
@@ -54,10 +57,7 @@ def spec():
 
 @pytest.fixture(scope="module")
 def upstream_utils():
-    upstream_dir("pi3")
-    from pi3.utils import geometry
-
-    return geometry
+    return import_upstream("pi3.utils.geometry", upstream_dir("pi3"), family="pi3")
 
 
 def _upstream_cameras(outputs: dict[str, np.ndarray], geometry) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -73,7 +73,7 @@ def test_family_and_onnx_equals_pytorch_at_another_frame_count(exported, spec):
     assert model.family is ModelFamily.PI3 and adapter_for(model.family) is ADAPTER
     assert model.metadata["ffrecon.contract"] == "pi3" and "60 deg" in model.metadata["ffrecon.notes"]
     assert model.fixed_size_hw("images") == SIZE_HW
-    batch, _ = preprocess_pi3(real_photos(3))  # real photos, 3 frames (traced with 1)
+    batch, _ = preprocess_pi3(real_photos(2))  # real photos, 2 frames (traced with 1)
     want = torch_outputs(spec, (batch,))
     got = model.run({"images": batch})
     for name in spec.output_names:
@@ -82,9 +82,7 @@ def test_family_and_onnx_equals_pytorch_at_another_frame_count(exported, spec):
 
 def test_svd_free_camera_head_equals_upstream_svd():
     """The exported camera head's projection onto SO(3) equals upstream's torch.svd form."""
-    upstream_dir("pi3")
-    from pi3.models.layers.camera_head import CameraHead
-
+    CameraHead = import_upstream("pi3.models.layers.camera_head", upstream_dir("pi3"), family="pi3").CameraHead
     rng = np.random.default_rng(0)
     raw = torch.from_numpy(rng.normal(size=(512, 9)).astype(np.float32))
     near = torch.linalg.qr(torch.from_numpy(rng.normal(size=(64, 3, 3))))[0].float().reshape(-1, 9) * 3 + 0.01
@@ -99,8 +97,11 @@ def test_svd_free_camera_head_equals_upstream_svd():
 def fake_torchvision(monkeypatch):
     """``torchvision.transforms.ToTensor`` for upstream's loader (torchvision is not installed here).
 
-    For RGB uint8 PIL images ToTensor is exactly ``HWC -> CHW`` and ``float / 255``.
+    For RGB uint8 PIL images ToTensor is exactly ``HWC -> CHW`` and ``float / 255``. Where
+    torchvision is installed, the real one is used.
     """
+    if importlib.util.find_spec("torchvision") is not None:
+        return
     transforms = types.ModuleType("torchvision.transforms")
     transforms.ToTensor = lambda: (lambda pil: torch.from_numpy(np.array(pil)).permute(2, 0, 1).contiguous().float().div(255))
     package = types.ModuleType("torchvision")
@@ -109,20 +110,22 @@ def fake_torchvision(monkeypatch):
     monkeypatch.setitem(sys.modules, "torchvision.transforms", transforms)
 
 
-@pytest.mark.parametrize("orientation", ["landscape", "portrait"])
+@pytest.mark.parametrize("orientation", ["landscape", "portrait", "mixed"])
 def test_preprocessing_equals_upstream_loader(landscape_and_portrait, orientation, tmp_path, fake_torchvision):
-    upstream_dir("pi3")
-    from pi3.utils.basic import load_images_as_tensor
-
-    photos = landscape_and_portrait[orientation]
+    """Bit-identical to upstream's loader; a mixed set is resized to the first photo's size (upstream's rule)."""
+    load_images_as_tensor = import_upstream("pi3.utils.basic", upstream_dir("pi3"), family="pi3").load_images_as_tensor
+    mixed = [landscape_and_portrait["landscape"][0], landscape_and_portrait["portrait"][1]]
+    photos = mixed if orientation == "mixed" else landscape_and_portrait[orientation]
     for k, photo in enumerate(photos):
         Image.fromarray(photo).save(tmp_path / f"{k:02d}.png")
     want = load_images_as_tensor(str(tmp_path), verbose=False).numpy()
     batch, transforms = preprocess_pi3(photos)
     assert batch.shape == want.shape and np.array_equal(batch, want)
     h, w = photos[0].shape[:2]
-    assert batch.shape[2:] == network_size_hw(h, w) == (SIZE_HW if orientation == "landscape" else SIZE_HW[::-1])
-    assert all(t.offset_x == t.offset_y == 0 and t.net_size_wh == batch.shape[:1:-1] for t in transforms)
+    assert batch.shape[2:] == network_size_hw(h, w) == (SIZE_HW[::-1] if orientation == "portrait" else SIZE_HW)
+    for photo, t in zip(photos, transforms):
+        assert (t.scale_x, t.scale_y) == (batch.shape[3] / photo.shape[1], batch.shape[2] / photo.shape[0])
+        assert t.offset_x == t.offset_y == 0 and t.net_size_wh == batch.shape[:1:-1]
     with pytest.raises(ModelError, match="no 'pad' preprocessing"):
         preprocess_pi3(photos, PreprocessMode.PAD)
 
@@ -132,10 +135,10 @@ def test_decoded_cameras_equal_upstream_decoding(landscape_and_portrait, spec, u
     """640x480 / 480x640 photos: ffrecon's cam_from_world (frame 0 = world) and intrinsics in photo
     pixels equal upstream's se3_inverse and recover_intrinsic_from_rays_d on the same PyTorch outputs,
     undone by the preprocessing's per-axis resize; depth equals local z resampled at photo pixels."""
-    photos = landscape_and_portrait[orientation]
+    photos = landscape_and_portrait[orientation][:2]
     batch, transforms = ADAPTER.preprocess(photos, PreprocessMode.CROP)
     outputs = torch_outputs(spec, (batch,))
-    pred = decode_pi3_outputs(outputs, transforms, ["a", "b", "c"], INFO, max_depth_side=None)
+    pred = decode_pi3_outputs(outputs, transforms, ["a", "b"], INFO, max_depth_side=None)
     cam_from_world, K, depth = _upstream_cameras(outputs, upstream_utils)
     np.testing.assert_allclose(pred.cam_from_world, cam_from_world[:, :3], rtol=TOL, atol=TOL)
     np.testing.assert_allclose(pred.cam_from_world[0], np.eye(4)[:3], atol=1e-6)
@@ -177,6 +180,61 @@ def test_depth_and_points_equal_upstream_unprojection(spec, upstream_utils, phot
         world_from_cam = np.linalg.inv(poses[0]) @ poses[k]  # camera k in frame 0's world
         want, _ = upstream_utils.depthmap_to_absolute_camera_coordinates(depth[k], K[k], world_from_cam)
         assert relative_difference(pred.world_points(k), want) < TOL
+
+
+def _pinhole_outputs(n: int, size_hw: tuple[int, int], focal: np.ndarray, seed: int = 0) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """Pi3 outputs of a perfect pinhole model (centred principal point): returns (outputs, world_from_cam [n, 4, 4])."""
+    rng = np.random.default_rng(seed)
+    h, w = size_hw
+    ys, xs = np.mgrid[0:h, 0:w] + 0.5
+    z = np.stack([1.5 + 0.001 * xs + 0.002 * ys + 0.3 * k for k in range(n)])
+    local = np.stack([(xs - w / 2) / focal[:, None, None, 0] * z, (ys - h / 2) / focal[:, None, None, 1] * z, z], axis=-1)
+    world_from_cam = np.tile(np.eye(4), (n, 1, 1))
+    world_from_cam[:, :3, :3] = torch.linalg.qr(torch.from_numpy(rng.normal(size=(n, 3, 3))))[0].numpy()
+    world_from_cam[:, :3, :3] *= np.sign(np.linalg.det(world_from_cam[:, :3, :3]))[:, None, None]
+    world_from_cam[:, :3, 3] = rng.normal(size=(n, 3))
+    outputs = {"local_points": local[None].astype(np.float32), "conf": np.zeros((1, n, h, w, 1), np.float32), "camera_poses": world_from_cam[None].astype(np.float32)}
+    return outputs, world_from_cam
+
+
+def test_decode_recovers_a_known_pinhole_camera_set():
+    """Without upstream: exact local points of known cameras decode to those cameras, frame 0 as world."""
+    photos = [np.zeros((480, 640, 3), np.uint8)] * 3
+    batch, transforms = preprocess_pi3(photos)
+    focal = np.array([[500.0, 505.0], [450.0, 452.0], [600.0, 590.0]])  # network pixels
+    outputs, world_from_cam = _pinhole_outputs(3, batch.shape[2:], focal)
+    pred = decode_pi3_outputs(outputs, transforms, ["a", "b", "c"], INFO)
+    want = np.linalg.inv(world_from_cam) @ world_from_cam[0]
+    np.testing.assert_allclose(pred.cam_from_world, want[:, :3], rtol=TOL, atol=1e-5)
+    for k, t in enumerate(transforms):
+        np.testing.assert_allclose(pred.cameras[k].K, [[focal[k, 0] / t.scale_x, 0, 320], [0, focal[k, 1] / t.scale_y, 240], [0, 0, 1]], rtol=TOL)
+        np.testing.assert_allclose(pred.depth_conf[k], 2.0)  # logit 0: sigmoid 0.5
+    validate_prediction(pred, camera_outputs=ADAPTER.camera_outputs)
+
+
+def test_bad_outputs_name_the_output():
+    batch, transforms = preprocess_pi3([np.zeros((480, 640, 3), np.uint8)] * 2)
+    good, _ = _pinhole_outputs(2, batch.shape[2:], np.full((2, 2), 500.0))
+    with pytest.raises(ModelError, match="lack \\['camera_poses'\\]"):
+        decode_pi3_outputs({k: v for k, v in good.items() if k != "camera_poses"}, transforms, ["a", "b"], INFO)
+    with pytest.raises(ModelError, match="'local_points' has shape \\[2, 434, 574, 2\\]"):
+        decode_pi3_outputs({**good, "local_points": good["local_points"][..., :2]}, transforms, ["a", "b"], INFO)
+    bad = good["conf"].copy()
+    bad[0, 1, 3, 3] = np.inf
+    with pytest.raises(ModelError, match="'conf' has 1 non-finite"):
+        decode_pi3_outputs({**good, "conf": bad}, transforms, ["a", "b"], INFO)
+
+
+def test_untrained_rays_stop_with_the_decoded_output_error(landscape_and_portrait):
+    """Left as initialised (--keep-untrained-heads), the point head's rays fit no usable focal: the
+    decoded-output check names the outputs it came from instead of letting a broken camera through."""
+    options = ExportOptions(family="pi3", out=Path("unused.onnx"), upstream=upstream_dir("pi3"), tiny=True, size_hw=SIZE_HW, keep_untrained_heads=True)
+    untrained = family_module("pi3").build(options, SIZE_HW)
+    assert "left as initialised" in untrained.notes[0]
+    batch, transforms = preprocess_pi3(landscape_and_portrait["landscape"][:2])
+    pred = decode_pi3_outputs(torch_outputs(untrained, (batch,)), transforms, ["a", "b"], INFO)
+    with pytest.raises(ModelError, match="'camera_poses \\(poses\\) and local_points.*unusable focal length"):
+        validate_prediction(pred, camera_outputs=ADAPTER.camera_outputs)
 
 
 def test_run_writes_upstream_cameras(exported, spec, upstream_utils, photo_folder, tmp_path):
