@@ -28,7 +28,7 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--overwrite", action="store_true", help="replace results already in the output folder")
     p.add_argument("--chunk-size", type=int, default=None, help="frames per model call (default: as many as fit in 60%% of the free memory, from the model's size; docs/benchmarks.md)")
     p.add_argument("--chunk-overlap", type=int, default=None, help="frames shared by consecutive chunks (default 2)")
-    p.add_argument("--preprocess", choices=["crop", "pad"], default="crop", help="VGGT preprocessing mode")
+    p.add_argument("--preprocess", choices=["crop", "pad", "resize"], default=None, help="preprocessing mode (default: the model family's reference; VGGT: crop or pad, DA3: resize or crop)")
     p.add_argument("--threads", type=int, default=0, help="CPU threads for inference (0: all)")
     p.add_argument("--no-colmap", action="store_true", help="skip the COLMAP cross-check")
     p.add_argument("--no-refine", action="store_true", help="skip the bundle-adjustment refinement")
@@ -48,7 +48,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
     run = sub.add_parser("run", help="reconstruct a folder of photos or a video")
     run.add_argument("input", type=Path, help="folder of images (jpg, png, tiff, webp, bmp) or a video file")
-    run.add_argument("--model", type=Path, required=True, help="ONNX model (VGGT- or DUSt3R-style; see docs/exporting_models.md)")
+    run.add_argument("--model", type=Path, required=True, help="ONNX model (any family in docs/models.md; make one with `ffrecon export-model`)")
     run.add_argument("--video-frames", type=int, default=48, help="frames to keep from a video")
     run.add_argument("--skip-bad-images", action="store_true", help="leave out unreadable files and non-images instead of stopping")
     _add_run_options(run)
@@ -89,6 +89,7 @@ def _add_export_parser(sub) -> None:
     export.add_argument("--opset", type=int, default=17)
     export.add_argument("--skip-verify", action="store_true", help="do not compare onnxruntime with PyTorch")
     export.add_argument("--keep-untrained-heads", action="store_true", help="with random weights, leave heads that decode to invalid cameras as initialised (tests ffrecon's checks)")
+    export.add_argument("--variant", default=None, help="upstream configuration to build with --random-init (da3: da3-small|base|large|giant; monodepth: small|base|large, optionally -metric)")
     export.add_argument("--seed", type=int, default=0)
     export.add_argument("-v", "--verbose", action="count", default=0)
     export.add_argument("-q", "--quiet", action="store_true")
@@ -105,7 +106,7 @@ def _export(args: argparse.Namespace) -> None:
         family=args.family, out=args.out, checkpoint=args.checkpoint, upstream=args.upstream,
         size_hw=(args.height, args.width) if args.height else None, photos=args.photos, fp16=args.fp16,
         random_init=args.random_init, tiny=args.tiny, keep_untrained_heads=args.keep_untrained_heads,
-        opset=args.opset, count=args.frames, verify=not args.skip_verify, seed=args.seed,
+        opset=args.opset, count=args.frames, verify=not args.skip_verify, seed=args.seed, variant=args.variant,
     )
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the tracer's warnings are about the Python-side size logic the export fixes on purpose
@@ -117,10 +118,10 @@ def _run_options(args: argparse.Namespace, ground_truth: Path | None = None):
     from ffrecon.capture import CaptureOptions
     from ffrecon.models.multiview import MultiviewOptions
     from ffrecon.models.stage import FeedForwardOptions
-    from ffrecon.models.vggt import PreprocessMode
+    from ffrecon.models.adapters import PreprocessMode
     from ffrecon.pipeline import RunOptions
 
-    mv_kwargs = {"mode": PreprocessMode(args.preprocess)}
+    mv_kwargs = {"mode": PreprocessMode(args.preprocess) if args.preprocess else None}
     if args.chunk_size:
         mv_kwargs["chunk_size"] = args.chunk_size
     if args.chunk_overlap:
@@ -179,7 +180,9 @@ def _inspect(path: Path) -> None:
     print("inputs:\n" + "\n".join(f"  {s}" for s in model.inputs))
     print("outputs:\n" + "\n".join(f"  {s}" for s in model.outputs))
     if model.family is ModelFamily.PAIRWISE:
-        print("preprocessing: RGB normalised to [-1, 1]; long side 512, sides cropped to multiples of 16; pairs from a pair graph, then global alignment")
+        print("preprocessing: RGB (x/255 - 0.5) / 0.5; long side 512 (224 checkpoints: short side 224, centre square), sides cropped to multiples of 16, square photos to 4:3; pairs from a pair graph, then global alignment")
+        if {"desc", "desc_conf"} <= {o.name for o in model.outputs}:
+            print("MASt3R descriptors (desc, desc_conf per view) are checked but not used yet")
     else:
         adapter = adapter_for(model.family)
         print(f"contract: {adapter.description}")

@@ -115,6 +115,12 @@ def _img(png: bytes, alt: str) -> str:
     return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{base64.b64encode(png).decode()}">'
 
 
+def _feedforward_rows(ff: dict) -> list[dict]:
+    """What the model's cameras mean: world frame, decoding assumptions, changes made at export."""
+    rows = [("world frame", ff.get("world_frame")), ("assumptions", ff.get("assumptions")), ("model notes", ff.get("model", {}).get("notes")), ("model", ff.get("model", {}).get("description"))]
+    return [{"item": k, "value": v} for k, v in rows if v]
+
+
 def render_html(data: dict, figures: dict[str, list[Figure]], galleries: dict[str, list[tuple[str, bytes]]]) -> str:
     """The whole page: verdict banner, summary, then one section per stage with figures and tables."""
     parts = [f"<!doctype html><html><head><meta charset='utf-8'><title>ffrecon report</title><style>{_CSS}</style></head><body>"]
@@ -132,7 +138,7 @@ def render_html(data: dict, figures: dict[str, list[Figure]], galleries: dict[st
         parts.append("<h2>Summary</h2>" + _table(summary))
     sections = [
         ("capture", "Capture", data.get("capture_flags", [])),
-        ("feedforward", "Feed-forward cameras and depth", []),
+        ("feedforward", "Feed-forward cameras and depth", _feedforward_rows(data.get("feedforward", {}))),
         ("gates", "Verification gates", data.get("gates", [])),
         ("poses", "Pose error", data.get("pose_error_rows", [])),
         ("refine", "Refinement", data.get("refine_rows", [])),

@@ -23,6 +23,7 @@ from ffrecon.types import ModelFamily, ModelInfo, Prediction
 class PreprocessMode(enum.Enum):
     CROP = "crop"  # the family's reference resize-and-crop (VGGT: width 518, centre-crop height to 518)
     PAD = "pad"  # longest side to the target, padded (VGGT: white, to a square)
+    RESIZE = "resize"  # longest side to the target, sides to the patch multiple, no crop (DA3's reference)
 
 
 # preprocess(images [H, W, 3] uint8 RGB, mode) -> (model input batch, one transform per image)
@@ -38,7 +39,7 @@ class MultiviewAdapter:
     output_names: tuple[str, ...]  # outputs the family must declare (detection) and decode needs
     preprocess: Preprocess
     decode: Decode
-    modes: tuple[PreprocessMode, ...] = (PreprocessMode.CROP,)
+    modes: tuple[PreprocessMode, ...] = (PreprocessMode.CROP,)  # the first is the family's reference default
     world_frame: str = "the first frame's camera"  # what the decoded world frame is, for the report
     camera_outputs: str = "cameras"  # the output(s) cameras are decoded from, named in validation errors
     description: str = ""

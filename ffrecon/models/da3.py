@@ -116,9 +116,9 @@ def preprocess_da3(images: Sequence[np.ndarray], method: str = DEFAULT_METHOD, p
             left, top = (bw - nw) // 2, (bh - nh) // 2
             arr = arr[top : top + nh, left : left + nw]
             off_x, off_y = -float(left), -float(top)
-        scale_x, scale_y = (nw if method.endswith("resize") else bw) / w, (nh if method.endswith("resize") else bh) / h
+        scaled_w, scaled_h = (nw, nh) if method.endswith("resize") else (bw, bh)  # size before any crop
         arrays.append(arr)
-        transforms.append(ResizeTransform((w, h), (nw, nh), scale_x, scale_y, off_x, off_y))
+        transforms.append(ResizeTransform((w, h), (nw, nh), scaled_w / w, scaled_h / h, off_x, off_y))
     min_h = min(a.shape[0] for a in arrays)
     min_w = min(a.shape[1] for a in arrays)
     for k, arr in enumerate(arrays):

@@ -2,11 +2,12 @@
 
 A multi-view transformer's "global" attention layers attend over all tokens of all S frames at once.
 Exported to ONNX as MatMul-Softmax-MatMul, each such layer holds a ``[heads, S*T, S*T]`` float32
-score matrix (T tokens per frame), so peak memory grows with S squared; the weights and per-frame
-activations add a constant and a linear term. Measured with ``tools/bench_models.py`` (numbers in
-docs/benchmarks.md), the model below is conservative on this project's 24 GB CPU machines:
+score matrix (T tokens per frame), and the softmax writes a second one beside it, so peak memory
+grows with S squared; the weights and per-frame activations add a constant and a linear term.
+Fitted to the full-size VGGT-1B export at 518 x 392 with ``tools/bench_models.py`` (2, 4, 8 frames:
+5.98, 8.05, 15.63 GB; fit 5.05 + 0.178 S + 0.143 S^2 GB; docs/benchmarks.md):
 
-    peak(S) ~ WEIGHT_FACTOR * file bytes + S * LINEAR_BYTES_PER_TOKEN * T + heads * 4 bytes * (S * T)^2
+    peak(S) ~ WEIGHT_FACTOR * file bytes + S * LINEAR_BYTES_PER_TOKEN * T + SCORE_COPIES * heads * 4 bytes * (S * T)^2
 
 The default chunk size is the largest S whose peak stays under ``MEMORY_FRACTION`` of the memory
 available now (``/proc/meminfo``), between ``MIN_CHUNK`` and ``MAX_CHUNK``.
@@ -21,9 +22,10 @@ from pathlib import Path
 
 log = logging.getLogger("ffrecon.models")
 
-WEIGHT_FACTOR = 1.3  # onnxruntime's resident copy of the weights (plus pre-packed kernels) per file byte
-LINEAR_BYTES_PER_TOKEN = 4 * 1024 * 60  # activations per token that live at once (about 60 float32 vectors of width 1024)
-MEMORY_FRACTION = 0.6
+WEIGHT_FACTOR = 1.15  # onnxruntime's resident weights per file byte (fit: 5.05 GB for a 4.54 GB file)
+LINEAR_BYTES_PER_TOKEN = 4 * 1024 * 45  # activations alive per token (fit: 0.178 GB per 1041-token frame)
+SCORE_COPIES = 2  # scores and softmax output (fit: 0.143 GB x S^2 = 2 x 16 heads x 4 B x 1041^2)
+MEMORY_FRACTION = 0.7
 MIN_CHUNK, MAX_CHUNK = 2, 64
 DEFAULT_HEADS = 16  # VGGT-1B, Pi3 and DA3-large use 16-head global attention
 SPECIAL_TOKENS = 5  # camera/register tokens per frame (VGGT, Pi3)
@@ -56,6 +58,9 @@ class CallMemory:
 
         >>> CallMemory(1e9, 0.0, 1e9).max_frames(5e9)
         2
+        >>> m = call_memory(int(4.54 * 2**30), (392, 518))  # VGGT-1B fp32: measured 15.63 GB at 8 frames
+        >>> round(m.peak_bytes(8) / 2**30, 1), m.max_frames(16 * 2**30)
+        (14.9, 8)
         """
         s = 0
         while s < 10_000 and self.peak_bytes(s + 1) <= budget_bytes:
@@ -66,7 +71,7 @@ class CallMemory:
 def call_memory(model_bytes: int, size_hw: tuple[int, int], *, heads: int = DEFAULT_HEADS, patch: int = 14) -> CallMemory:
     """The memory model above for a model file of ``model_bytes`` at network input ``size_hw``."""
     tokens = (size_hw[0] // patch) * (size_hw[1] // patch) + SPECIAL_TOKENS
-    return CallMemory(WEIGHT_FACTOR * model_bytes, LINEAR_BYTES_PER_TOKEN * tokens, 4.0 * max(heads, 1) * tokens**2)
+    return CallMemory(WEIGHT_FACTOR * model_bytes, LINEAR_BYTES_PER_TOKEN * tokens, SCORE_COPIES * 4.0 * max(heads, 1) * tokens**2)
 
 
 def model_file_bytes(path: Path) -> int:

@@ -29,7 +29,7 @@ FALLBACK_CHUNK_SIZE = 8
 
 @dataclass(frozen=True, kw_only=True)
 class MultiviewOptions:
-    mode: PreprocessMode = PreprocessMode.CROP
+    mode: PreprocessMode | None = None  # None: the family's reference preprocessing (its adapter's first mode)
     chunk_size: int | None = None  # frames per model call; None: from the model's size and free memory
     chunk_overlap: int = 2
     max_depth_side: int | None = 1024  # cap on stored depth grids (None: original resolution)
@@ -69,13 +69,14 @@ def predict_multiview(images: Sequence[np.ndarray], names: Sequence[str], infer:
     """
     if adapter is None:
         from ffrecon.models.vggt import ADAPTER as adapter
-    if options.mode not in adapter.modes:
-        raise ModelError(f"{adapter.family.value} models have no '{options.mode.value}' preprocessing", f"use --preprocess {adapter.modes[0].value}")
+    mode = options.mode or adapter.modes[0]
+    if mode not in adapter.modes:
+        raise ModelError(f"{adapter.family.value} models have no '{mode.value}' preprocessing", f"use --preprocess {' or '.join(m.value for m in adapter.modes)}")
     chunk_size = options.chunk_size or FALLBACK_CHUNK_SIZE
     chunks = plan_chunks(len(images), chunk_size, min(options.chunk_overlap, chunk_size - 1))
     parts = []
     for chunk in tqdm(chunks, desc="feed-forward", unit="chunk", disable=None):
-        batch, transforms = adapter.preprocess([images[k] for k in chunk], options.mode)
+        batch, transforms = adapter.preprocess([images[k] for k in chunk], mode)
         outputs = infer(batch)
         part = adapter.decode(outputs, transforms, [names[k] for k in chunk], model, options.max_depth_side)
         validate_prediction(part, camera_outputs=adapter.camera_outputs)  # before merging: bad cameras poison the chunk Sim(3)

@@ -59,7 +59,7 @@ class OnnxModel:
     def __init__(self, path: Path | str, *, threads: int = 0, use_cuda: bool = True) -> None:
         self.path = Path(path)
         if not self.path.is_file():
-            raise InputError(f"model file not found: {self.path}", "pass the path of an .onnx file (see docs/exporting_models.md to make one)")
+            raise InputError(f"model file not found: {self.path}", "pass the path of an .onnx file (see docs/models.md to make one)")
         options = ort.SessionOptions()
         options.intra_op_num_threads = threads or (os.cpu_count() or 1)
         options.log_severity_level = 3

@@ -19,7 +19,7 @@ from ffrecon.models.multiview import MultiviewOptions, predict_multiview
 from ffrecon.models.validate import validate_prediction
 from ffrecon.models.runner import OnnxModel
 from ffrecon.sfm.colmap_io import reconstruction_from_cameras, write_reconstruction
-from ffrecon.types import ModelFamily, Prediction
+from ffrecon.types import ModelFamily, ModelInfo, Prediction
 
 log = logging.getLogger("ffrecon.models")
 
@@ -40,16 +40,36 @@ class FeedForwardResult:
     sparse_dir: Path
     seconds: float
     providers: tuple[str, ...]
+    assumptions: str = ""  # what decoding had to assume (monocular depth), for the report
 
     def to_report(self) -> dict:
         m = self.prediction.model
         return {
-            "model": {"path": m.path, "family": m.family.value, "simulated": m.simulated, "description": m.description, "providers": list(self.providers)},
+            "model": {"path": m.path, "family": m.family.value, "simulated": m.simulated, "description": m.description, "providers": list(self.providers), "notes": m.metadata.get("ffrecon.notes", "")},
+            "world_frame": _world_frame(m),
+            "assumptions": self.assumptions,
             "num_frames": len(self.prediction),
             "num_points": int(len(self.points_xyz)),
             "seconds": self.seconds,
             "cameras": [{"name": n, "fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy, "width": c.width, "height": c.height} for n, c in zip(self.prediction.names, self.prediction.cameras)],
         }
+
+
+def _world_frame(model: ModelInfo) -> str:
+    if model.family is ModelFamily.PAIRWISE:
+        return "the first photo's camera (global alignment of the pairs)"
+    if model.simulated:
+        return "the first frame's camera"
+    return adapter_for(model.family).world_frame
+
+
+def _assumptions(model: ModelInfo, capture: Capture) -> str:
+    """What the decoding had to assume, for the report (monocular depth: scale and the focal length)."""
+    if model.family is not ModelFamily.MONODEPTH:
+        return ""
+    from ffrecon.models import monodepth
+
+    return monodepth.describe_assumptions(model.metadata.get("ffrecon.depth_kind", "relative_inverse"), capture.frames[0].focal_prior_px)
 
 
 def predict(model: OnnxModel, capture: Capture, options: FeedForwardOptions) -> Prediction:
@@ -74,7 +94,7 @@ def predict(model: OnnxModel, capture: Capture, options: FeedForwardOptions) -> 
     infer = lambda batch: _run_checked(model, adapter.input_name, {adapter.input_name: batch})  # noqa: E731
     mv_options = options.multiview
     if mv_options.chunk_size is None:
-        size_hw = tuple(adapter.preprocess(images[:1], mv_options.mode)[0].shape[-2:])
+        size_hw = tuple(adapter.preprocess(images[:1], mv_options.mode or adapter.modes[0])[0].shape[-2:])
         chunk = default_chunk_size(model.path, size_hw, model.metadata)
         mv_options = dataclasses.replace(mv_options, chunk_size=chunk, chunk_overlap=min(mv_options.chunk_overlap, chunk - 1))
     return predict_multiview(images, names, infer, model.info(), mv_options, adapter)
@@ -119,4 +139,4 @@ def run_feedforward(capture: Capture, model_path: Path, options: FeedForwardOpti
     rec = reconstruction_from_cameras(prediction.names, prediction.cam_from_world, prediction.cameras, xyz, rgb)
     sparse_dir = write_reconstruction(rec, ff_dir / "sparse")
     write_depth_maps(ff_dir / "depth", prediction)
-    return FeedForwardResult(prediction, xyz, rgb, sparse_dir, time.perf_counter() - start, model.providers)
+    return FeedForwardResult(prediction, xyz, rgb, sparse_dir, time.perf_counter() - start, model.providers, _assumptions(model.info(), capture))

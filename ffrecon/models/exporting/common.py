@@ -44,6 +44,7 @@ class ExportOptions:
     fp16: bool = False
     random_init: bool = False  # the real full-size architecture with random weights
     tiny: bool = False  # the same upstream classes at a small configuration (tests)
+    variant: str | None = None  # which upstream configuration to build, for families with several (da3, monodepth)
     keep_untrained_heads: bool = False  # random weights: leave heads that decode to invalid cameras as they are (tests)
     opset: int = 17
     count: int = 2  # frames (or pairs) in the traced example; verification uses count + 1

@@ -13,7 +13,7 @@ What the TorchScript exporter cannot take as shipped, and what stands in for it 
 
 - reference-view selection runs only when ``x.shape[1] >= THRESH_FOR_REF_SELECTION`` (3), a Python
   branch the tracer would freeze at the traced frame count, and builds its indices with
-  ``torch.arange(S)`` / ``torch.eye(S)``. :func:`reference_view_rewrites` always takes the branch
+  ``torch.arange(S)`` / ``torch.eye(S)``. :func:`export_rewrites` always takes the branch
   and applies the frame-count rule inside the graph (index 0 below 3 frames), with indices built
   from the data's own shape, so the same file is right for 1, 2 or many frames;
 - ``utils.geometry.affine_inverse`` is a ``torch.jit.script`` function using ``Tensor.mT``, which
@@ -35,6 +35,7 @@ from pathlib import Path
 import torch
 
 from ffrecon.errors import InputError
+from ffrecon.models import da3 as contract
 from ffrecon.models.exporting.common import ExportOptions, ExportSpec, random_images
 from ffrecon.models.exporting.patches import frozen_position_embeddings
 from ffrecon.models.exporting.upstream import import_upstream
@@ -42,10 +43,9 @@ from ffrecon.models.exporting.weights import load_into, load_state_dict
 
 log = logging.getLogger("ffrecon.export_model")
 
-INPUT_NAMES = ("images",)
-OUTPUT_NAMES = ("depth", "depth_conf", "extrinsics", "intrinsics")
-PATCH_SIZE = 14
-PROCESS_RES = 504  # DA3's reference processing resolution (InputProcessor, api.inference)
+INPUT_NAMES = (contract.INPUT_NAME,)
+OUTPUT_NAMES = contract.OUTPUT_NAMES
+PATCH_SIZE = contract.PATCH_SIZE
 DEFAULT_SIZE_HW = (378, 504)  # a 4:3 landscape photo under the reference upper_bound_resize
 IMAGENET_MEAN = (0.485, 0.456, 0.406)  # InputProcessor.NORMALIZE
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -119,7 +119,7 @@ def build_tiny(upstream: Path | None) -> torch.nn.Module:
     backbone.alt_start = backbone.qknorm_start = backbone.rope_start = alt
     backbone.cat_token = True
     backbone.pretrained = vit.DinoVisionTransformer(img_size=518, patch_size=PATCH_SIZE, embed_dim=dim, depth=blocks, num_heads=2, mlp_ratio=4, alt_start=alt, qknorm_start=alt, rope_start=alt, cat_token=True)
-    head = dualdpt.DualDPT(dim_in=2 * dim, output_dim=2, features=32, out_channels=[16, 32, 64, 64])
+    head = dualdpt.DualDPT(dim_in=2 * dim, output_dim=2, features=16, out_channels=[8, 16, 32, 32])
     return da3.DepthAnything3Net(backbone, head, cam_dec=cam_dec.CameraDec(dim_in=2 * dim), cam_enc=cam_enc.CameraEnc(dim_out=dim, num_heads=2, trunk_depth=1))
 
 
@@ -130,14 +130,33 @@ def build_net(options: ExportOptions) -> tuple[torch.nn.Module, str]:
     cfg = import_upstream("depth_anything_3.cfg", options.upstream, family="depth_anything_3")
     registry = import_upstream("depth_anything_3.registry", options.upstream, family="depth_anything_3").MODEL_REGISTRY
     name = config_name(options)
+    log.info("building Depth Anything 3 from upstream config %s", name)
     net = cfg.create_object(cfg.load_config(registry[name]))
     net.gs_head = net.gs_adapter = None  # the 3D Gaussian branch runs only with infer_gs
     if options.checkpoint:
         state = load_state_dict(Path(options.checkpoint))
         if all(k.startswith("model.") for k in state):  # DepthAnything3 (the API class) holds the net as .model
             state = {k.removeprefix("model."): v for k, v in state.items()}
-        load_into(net, state, ignore_prefixes=UNUSED_PREFIXES, source=options.checkpoint)
+        load_into(net, _with_shared_names(net, state), ignore_prefixes=UNUSED_PREFIXES, source=options.checkpoint)
     return net, name
+
+
+def _with_shared_names(net: torch.nn.Module, state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """``state`` plus every name of a tensor the net shares under several names.
+
+    DualDPT reuses one LayerNorm in its four auxiliary output blocks; safetensors' ``save_model``
+    (what the Hugging Face upload used) stores such a tensor under one of its names only.
+    """
+    groups: dict[int, list[str]] = {}
+    for key, value in net.state_dict(keep_vars=True).items():
+        groups.setdefault(value.data_ptr(), []).append(key)
+    state = dict(state)
+    for names in groups.values():
+        present = next((n for n in names if n in state), None)
+        for n in names:
+            if present is not None and n not in state:
+                state[n] = state[present]
+    return state
 
 
 def plausible_fov(net: torch.nn.Module, size_hw: tuple[int, int], fov_w_deg: float = PLAUSIBLE_FOV_DEG) -> str:
@@ -304,7 +323,5 @@ def size_for_photo(height: int, width: int) -> tuple[int, int]:
     >>> size_for_photo(480, 640), size_for_photo(640, 480), size_for_photo(3000, 4000)
     ((378, 504), (504, 378), (378, 504))
     """
-    from ffrecon.models.da3 import network_size_hw
-
-    return network_size_hw(height, width)
+    return contract.network_size_hw(height, width, contract.DEFAULT_METHOD)
 
