@@ -147,13 +147,14 @@ def export_spec(spec: ExportSpec, options: ExportOptions) -> ExportReport:
         raw = Path(tmp) / "raw.onnx"
         context = spec.trace_context(spec.module) if spec.trace_context else contextlib.nullcontext()
         with torch.no_grad(), context:
-            torch_outputs(spec, tuple(x.numpy() for x in example))  # fills the size-dependent caches (see patches)
+            warm = torch_outputs(spec, tuple(x.numpy() for x in example))  # fills the size-dependent caches (see patches)
             try:
                 with export_rewrites():
                     torch.onnx.export(spec.module, example, str(raw), input_names=list(spec.input_names), output_names=list(spec.output_names), dynamic_axes=spec.dynamic_axes, opset_version=options.opset, dynamo=False)
             except Exception as exc:  # the exporter raises many types; all mean "this graph did not export"
                 raise ModelError(f"the ONNX exporter failed on {spec.family}: {str(exc).splitlines()[0]}", "this upstream version uses an operator ffrecon does not rewrite yet; report it with the upstream commit") from exc
         model = onnx.load(str(raw))  # also reads external weight files the exporter wrote
+    _declare_output_shapes(model, warm, spec.dynamic_axes)
     if options.fp16:
         try:
             from onnxconverter_common import float16
@@ -205,6 +206,24 @@ def verify(spec: ExportSpec, path: Path, inputs: tuple[np.ndarray, ...]) -> dict
         raise ModelError(f"onnxruntime cannot load {path}: {str(exc).splitlines()[0]}", "fp16 files may need onnxruntime-gpu; verify there, or pass --skip-verify") from exc
     got = session.run(list(spec.output_names), dict(zip(spec.input_names, inputs)))
     return {name: relative_difference(have, reference[name]) for name, have in zip(spec.output_names, got)}
+
+
+def _declare_output_shapes(model, outputs: dict[str, np.ndarray], dynamic_axes: dict[str, dict[int, str]]) -> None:
+    """Name the dynamic axes and fix the others in the declared output shapes (the tracer leaves
+    names like ``Concatlocal_points_dim_0``), so ``ffrecon inspect-model`` shows the contract."""
+    for output in model.graph.output:
+        if output.name not in outputs:
+            continue
+        dims = output.type.tensor_type.shape.dim
+        shape = outputs[output.name].shape
+        if len(dims) != len(shape):
+            continue
+        for axis, dim in enumerate(dims):
+            name = dynamic_axes.get(output.name, {}).get(axis)
+            if name:
+                dim.dim_param = name
+            else:
+                dim.dim_value = int(shape[axis])
 
 
 def _save(model, out: Path) -> list[Path]:
