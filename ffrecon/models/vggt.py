@@ -49,6 +49,8 @@ def preprocess_vggt(images: Sequence[np.ndarray], mode: PreprocessMode = Preproc
         Images of different network sizes are padded with white to the largest, centred, as the
         reference code does.
     """
+    if mode not in (PreprocessMode.CROP, PreprocessMode.PAD):
+        raise ModelError(f"VGGT has no '{mode.value}' preprocessing", "use --preprocess crop (the reference default) or pad")
     resized: list[np.ndarray] = []
     transforms: list[ResizeTransform] = []
     for image in images:

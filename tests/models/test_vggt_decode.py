@@ -6,7 +6,7 @@ import pytest
 from ffrecon.errors import ModelError
 from ffrecon.geometry.poses import compose_poses, invert_pose
 from ffrecon.geometry.rotations import random_rotation
-from ffrecon.models.vggt import PreprocessMode, decode_vggt_outputs, encode_pose_enc, preprocess_vggt
+from ffrecon.models.vggt import ADAPTER, PreprocessMode, decode_vggt_outputs, encode_pose_enc, preprocess_vggt
 from ffrecon.types import ModelFamily, ModelInfo
 
 MODEL = ModelInfo("test", ModelFamily.MULTIVIEW)
@@ -39,7 +39,7 @@ def _outputs_from_truth(cam_from_world, K, transforms):
 
 
 @pytest.mark.parametrize("size_wh", [(320, 240), (240, 320), (1000, 750), (600, 900)], ids=["landscape", "portrait", "landscape-large", "portrait-large"])
-@pytest.mark.parametrize("mode", list(PreprocessMode))
+@pytest.mark.parametrize("mode", list(ADAPTER.modes))
 def test_decode_recovers_original_cameras(size_wh, mode):
     width, height = size_wh
     cam_from_world, K = _ground_truth(width, height)
@@ -57,7 +57,7 @@ def test_decode_recovers_original_cameras(size_wh, mode):
         np.testing.assert_allclose(cam.K, K[k], rtol=1e-4)
 
 
-@pytest.mark.parametrize("mode", list(PreprocessMode))
+@pytest.mark.parametrize("mode", list(ADAPTER.modes))
 def test_depth_maps_back_to_original_pixels(mode):
     width, height = 240, 320  # portrait: crop mode cuts the top and bottom
     cam_from_world, K = _ground_truth(width, height, n=2)
