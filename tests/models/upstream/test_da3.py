@@ -217,11 +217,29 @@ def test_decode_rejects_bad_outputs(exported):
             da3.decode_da3_outputs({**good, key: bad}, transforms, ["a", "b"], info)
 
 
-def test_cli_run_completes(exported, photo_folder, tmp_path):
+def test_cli_run_writes_upstream_cameras(exported, upstream_input_processor, photo_folder, tmp_path):
+    """`ffrecon run` on four 640x480 photos completes (a gate may honestly fail on untrained output)
+    and feedforward/sparse holds DA3's own poses (relative to the first photo) and intrinsics."""
+    import pycolmap
+    from PIL import Image
+
     from ffrecon.cli import main
 
-    path, _, _ = exported
+    path, _, spec = exported
     out = tmp_path / "out"
     code = main(["run", str(photo_folder), "-o", str(out), "--model", str(path), "--no-splat", "-q"])
     assert code in (0, 5)  # 5: an honest gate failure on untrained output
-    assert (out / "feedforward" / "sparse").is_dir()
+    rec = pycolmap.Reconstruction(out / "feedforward" / "sparse")
+    files = sorted(photo_folder.glob("*.jpg"))
+    images = [np.asarray(Image.open(f).convert("RGB")) for f in files]
+    method = da3.MODE_METHODS[da3.ADAPTER.modes[0]]
+    tensor, _ = upstream_input_processor(images, method)
+    _, up = _upstream_reference(spec.module.net, tensor)
+    want_pose = compose_poses(up.extrinsics.astype(np.float64), invert_pose(up.extrinsics[0].astype(np.float64))[None])
+    sx, sy = SIZE_HW[1] / 640, SIZE_HW[0] / 480
+    for k, f in enumerate(files):
+        image = rec.find_image_with_name(f.name)
+        assert relative_difference(image.cam_from_world().matrix(), want_pose[k]) <= TOLERANCE
+        fx, fy, cx, cy = rec.cameras[image.camera_id].params
+        K = up.intrinsics[k].astype(np.float64)
+        np.testing.assert_allclose([fx, fy, cx, cy], [K[0, 0] / sx, K[1, 1] / sy, K[0, 2] / sx, K[1, 2] / sy], rtol=TOLERANCE)
