@@ -176,3 +176,44 @@ def test_untrained_fov_stops_within_a_minute_with_exit_3(tmp_path, photo_folder)
     assert time.monotonic() - start < 60
     assert (out / "earlier" / "result.txt").read_text() == "keep me"
     assert not (out / "report.json").exists()
+
+
+def _to_tensor_stub():
+    """torchvision.transforms.ToTensor as upstream's loader uses it (torchvision has no CPU wheel here)."""
+    import sys
+    import types
+
+    class ToTensor:
+        def __call__(self, pic):
+            return torch.from_numpy(np.array(pic, dtype=np.uint8)).permute(2, 0, 1).contiguous().float().div(255)
+
+    transforms = types.ModuleType("torchvision.transforms")
+    transforms.ToTensor = ToTensor
+    torchvision = types.ModuleType("torchvision")
+    torchvision.transforms = transforms
+    return {"torchvision": torchvision, "torchvision.transforms": transforms} if "torchvision" not in sys.modules else {}
+
+
+@pytest.mark.parametrize("size", [(640, 480), (480, 640), (500, 500)], ids=["landscape", "portrait", "square"])
+@pytest.mark.parametrize("mode", [PreprocessMode.CROP, PreprocessMode.PAD], ids=lambda m: m.value)
+def test_preprocessing_equals_upstream_loader(exported, tmp_path, size, mode):
+    """ffrecon's VGGT preprocessing gives the same tensor as upstream's load_and_preprocess_images."""
+    import sys
+    from unittest import mock
+
+    from PIL import Image
+
+    photos = real_photos(2, size)
+    paths = []
+    for k, photo in enumerate(photos):
+        paths.append(tmp_path / f"{k}.png")
+        Image.fromarray(photo).save(paths[-1])
+    with mock.patch.dict(sys.modules, _to_tensor_stub()):
+        sys.modules.pop("vggt.utils.load_fn", None)
+        from vggt.utils.load_fn import load_and_preprocess_images
+
+        want = load_and_preprocess_images([str(p) for p in paths], mode=mode.value).numpy()
+        sys.modules.pop("vggt.utils.load_fn", None)
+    got, _ = preprocess_vggt(photos, mode)
+    assert got.shape == want.shape
+    np.testing.assert_allclose(got, want, atol=1e-6)
