@@ -70,5 +70,9 @@ def export_model(options: ExportOptions) -> ExportReport:
     if size_hw[0] % patch or size_hw[1] % patch or min(size_hw) <= 0:
         raise FFReconError(f"input size {size_hw[1]}x{size_hw[0]} is not a multiple of {options.family}'s patch size {patch}", f"use --height and --width that are multiples of {patch}")
     options = replace(options, size_hw=size_hw)
-    spec = module.build(options, size_hw)
+    try:
+        spec = module.build(options, size_hw)
+    except ImportError as exc:  # upstream code importing an optional package of its own deep inside
+        missing = getattr(exc, "name", None) or str(exc)
+        raise InputError(f"building {options.family} needs the Python package '{missing}', which is not installed", f"pip install 'ffrecon[export]'; if '{missing}' is not among its packages, install it (pip install {missing})") from exc
     return export_spec(spec, options)

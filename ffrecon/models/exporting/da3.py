@@ -131,8 +131,12 @@ def build_net(options: ExportOptions) -> tuple[torch.nn.Module, str]:
     registry = import_upstream("depth_anything_3.registry", options.upstream, family="depth_anything_3").MODEL_REGISTRY
     name = config_name(options)
     log.info("building Depth Anything 3 from upstream config %s", name)
-    net = cfg.create_object(cfg.load_config(registry[name]))
-    net.gs_head = net.gs_adapter = None  # the 3D Gaussian branch runs only with infer_gs
+    config = cfg.load_config(registry[name])
+    for key in ("gs_head", "gs_adapter"):  # the 3D Gaussian branch runs only with infer_gs (and imports evo)
+        if key in config:
+            del config[key]
+    net = cfg.create_object(config)
+    net.gs_head = net.gs_adapter = None
     if options.checkpoint:
         state = load_state_dict(Path(options.checkpoint))
         if all(k.startswith("model.") for k in state):  # DepthAnything3 (the API class) holds the net as .model
