@@ -160,8 +160,7 @@ def export_spec(spec: ExportSpec, options: ExportOptions) -> ExportReport:
             from onnxconverter_common import float16
         except ImportError as exc:
             raise FFReconError("--fp16 needs onnxconverter-common", "pip install 'ffrecon[export]'") from exc
-        # Inputs and outputs stay float32 so that ffrecon feeds and reads float32.
-        model = float16.convert_float_to_float16(model, keep_io_types=True, disable_shape_infer=True)
+        model = _to_fp16(model, float16)
     metadata = {
         "ffrecon.contract": spec.contract,
         "ffrecon.family": spec.family,
@@ -206,6 +205,27 @@ def verify(spec: ExportSpec, path: Path, inputs: tuple[np.ndarray, ...]) -> dict
         raise ModelError(f"onnxruntime cannot load {path}: {str(exc).splitlines()[0]}", "fp16 files may need onnxruntime-gpu; verify there, or pass --skip-verify") from exc
     got = session.run(list(spec.output_names), dict(zip(spec.input_names, inputs)))
     return {name: relative_difference(have, reference[name]) for name, have in zip(spec.output_names, got)}
+
+
+def _to_fp16(model, float16):
+    """fp16 weights and compute, float32 inputs and outputs (so that ffrecon feeds and reads float32).
+
+    onnxconverter-common retypes tensors and initialisers but leaves the exporter's own
+    ``Cast(to=float32)`` nodes (the ``.to(dtype)`` and ``.float()`` calls in upstream code), which then
+    feed float32 into fp16 arithmetic and the file fails to load. Those casts are retyped to fp16
+    here; the casts the converter adds itself (at the inputs and outputs) are left alone.
+    """
+    import onnx
+
+    exporter_casts = {n.name for n in model.graph.node if n.op_type == "Cast"}
+    model = float16.convert_float_to_float16(model, keep_io_types=True, disable_shape_infer=True)
+    outputs = {o.name for o in model.graph.output}
+    for node in model.graph.node:
+        if node.op_type == "Cast" and node.name in exporter_casts and not set(node.output) & outputs:
+            for attr in node.attribute:
+                if attr.name == "to" and attr.i == onnx.TensorProto.FLOAT:
+                    attr.i = onnx.TensorProto.FLOAT16
+    return model
 
 
 def _declare_output_shapes(model, outputs: dict[str, np.ndarray], dynamic_axes: dict[str, dict[int, str]]) -> None:

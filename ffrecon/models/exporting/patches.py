@@ -13,7 +13,10 @@ untouched, so the verification compares the export against the original code):
   and frozen, which is right because positions depend only on the fixed input size (H, W).
   Exports therefore fix H and W and keep the frame (or pair) count dynamic.
 
-Family-specific rewrites (float64 tables, fused attention) live with their family's exporter.
+- ``F.scaled_dot_product_attention`` (fused attention) is written out as MatMul-Softmax-MatMul with a
+  constant scale (code that imported the function by name keeps the fused op, which exports too).
+
+Family-specific rewrites live with their family's exporter.
 """
 
 from __future__ import annotations
@@ -49,16 +52,33 @@ def register_symbolics() -> None:
         _registered = True
 
 
+def _attention(query: torch.Tensor, key: torch.Tensor, value: torch.Tensor, attn_mask: torch.Tensor | None = None, dropout_p: float = 0.0, is_causal: bool = False, scale: float | None = None, **_: object) -> torch.Tensor:
+    """``F.scaled_dot_product_attention`` (inference) as MatMul-Softmax-MatMul with a constant scale.
+
+    The fused op's ONNX symbolic computes its scale from the runtime shape through float32 Cast
+    nodes, which fp16 conversion cannot retype (the file then fails to load); the head width is
+    fixed, so the scale is a constant here. Same arithmetic as PyTorch's math backend.
+    """
+    if is_causal or dropout_p:
+        raise RuntimeError("ffrecon's attention rewrite covers inference without causal masks only")
+    factor = float(scale) if scale is not None else float(query.shape[-1]) ** -0.5
+    scores = torch.matmul(query * factor, key.transpose(-2, -1))
+    if attn_mask is not None:
+        scores = scores.masked_fill(~attn_mask, float("-inf")) if attn_mask.dtype == torch.bool else scores + attn_mask
+    return torch.matmul(torch.softmax(scores, dim=-1), value)
+
+
 @contextlib.contextmanager
 def export_rewrites() -> Iterator[None]:
     """Apply the rewrites above for the duration of one export."""
     register_symbolics()
-    original = torch.cartesian_prod
+    originals = (torch.cartesian_prod, torch.nn.functional.scaled_dot_product_attention)
     torch.cartesian_prod = _cartesian_prod
+    torch.nn.functional.scaled_dot_product_attention = _attention
     try:
         yield
     finally:
-        torch.cartesian_prod = original
+        torch.cartesian_prod, torch.nn.functional.scaled_dot_product_attention = originals
 
 
 @contextlib.contextmanager
