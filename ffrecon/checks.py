@@ -25,6 +25,26 @@ def check_shape(name: str, array: np.ndarray, expected: Sequence[int | None]) ->
         raise ValueError(f"{name}: expected shape ({want}), got {shape}")
 
 
+def strip_batch_axis(name: str, array: np.ndarray, shape: Sequence[int | None], *, fix: str) -> np.ndarray:
+    """A model output without its optional leading batch axis of 1, checked against ``shape`` (None: any size).
+
+    >>> strip_batch_axis("depth", np.zeros((1, 2, 4, 5)), (None, None, None), fix="").shape
+    (2, 4, 5)
+    >>> strip_batch_axis("depth", np.zeros((2, 4)), (None, None, None), fix="re-export")
+    Traceback (most recent call last):
+    ...
+    ffrecon.errors.ModelError: model output 'depth' has shape [2, 4]; expected [1, ?, ?, ?] (the leading 1 optional)
+      fix: re-export
+    """
+    array = np.asarray(array)
+    if array.ndim == len(shape) + 1 and array.shape[0] == 1:
+        array = array[0]
+    if array.ndim != len(shape) or any(s is not None and s != a for s, a in zip(shape, array.shape)):
+        want = "[1, " + ", ".join("?" if s is None else str(s) for s in shape) + "]"
+        raise ModelError(f"model output '{name}' has shape {list(array.shape)}; expected {want} (the leading 1 optional)", fix)
+    return array
+
+
 def require_finite(step: str, **arrays: np.ndarray) -> None:
     """Refuse NaN/inf inputs to an iterative or linear-algebra step (they can make LAPACK spin forever).
 

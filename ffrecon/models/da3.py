@@ -29,7 +29,7 @@ from collections.abc import Mapping, Sequence
 import cv2
 import numpy as np
 
-from ffrecon.checks import check_finite
+from ffrecon.checks import check_finite, strip_batch_axis
 from ffrecon.errors import InputError, ModelError
 from ffrecon.geometry.poses import compose_poses, invert_pose
 from ffrecon.models.adapters import MultiviewAdapter, PreprocessMode
@@ -132,11 +132,7 @@ def preprocess_da3(images: Sequence[np.ndarray], method: str = DEFAULT_METHOD, p
 
 
 def _squeeze_batch(name: str, array: np.ndarray, rank: int) -> np.ndarray:
-    if array.ndim == rank + 1 and array.shape[0] == 1:
-        return array[0]
-    if array.ndim == rank:
-        return array
-    raise ModelError(f"model output '{name}' has shape {array.shape}; expected {rank} axes (plus an optional leading batch axis of 1)", "export the model with `ffrecon export-model da3` (outputs depth, depth_conf [1,S,H,W], extrinsics [1,S,3,4], intrinsics [1,S,3,3])")
+    return strip_batch_axis(name, array, (None,) * rank, fix="export the model with `ffrecon export-model da3` (outputs depth, depth_conf [1,S,H,W], extrinsics [1,S,3,4], intrinsics [1,S,3,3])")
 
 
 def decode_da3_outputs(outputs: Mapping[str, np.ndarray], transforms: Sequence[ResizeTransform], names: Sequence[str], model: ModelInfo, *, max_depth_side: int | None = None) -> Prediction:

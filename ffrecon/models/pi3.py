@@ -28,7 +28,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 from PIL import Image
 
-from ffrecon.checks import check_finite
+from ffrecon.checks import check_finite, strip_batch_axis
 from ffrecon.errors import ModelError
 from ffrecon.geometry.poses import compose_poses, invert_pose
 from ffrecon.models.adapters import MultiviewAdapter, PreprocessMode
@@ -125,14 +125,7 @@ def depth_conf_from_logit(logit: np.ndarray) -> np.ndarray:
 
 
 def _without_batch(name: str, array: np.ndarray, shape: tuple[int | None, ...]) -> np.ndarray:
-    """Drop the leading batch axis of 1 and check the rest against ``shape`` (None: any)."""
-    array = np.asarray(array)
-    if array.ndim == len(shape) + 1 and array.shape[0] == 1:
-        array = array[0]
-    if array.ndim != len(shape) or any(s is not None and s != a for s, a in zip(shape, array.shape)):
-        want = "[1, " + ", ".join("?" if s is None else str(s) for s in shape) + "]"
-        raise ModelError(f"model output '{name}' has shape {list(array.shape)}; the Pi3 contract expects {want}", "export the model with `ffrecon export-model pi3` (docs/models.md)")
-    return array
+    return strip_batch_axis(name, array, shape, fix="export the model with `ffrecon export-model pi3` (docs/models.md)")
 
 
 def decode_pi3_outputs(outputs: Mapping[str, np.ndarray], transforms: Sequence[ResizeTransform], names: Sequence[str], model: ModelInfo, *, max_depth_side: int | None = None) -> Prediction:

@@ -10,7 +10,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 from PIL import Image
 
-from ffrecon.checks import check_finite
+from ffrecon.checks import check_finite, strip_batch_axis
 from ffrecon.errors import ModelError
 from ffrecon.geometry.rotations import matrix_to_quat_xyzw, quat_xyzw_to_matrix
 from ffrecon.models.adapters import MultiviewAdapter, PreprocessMode
@@ -120,11 +120,7 @@ def encode_pose_enc(cam_from_world: np.ndarray, K: np.ndarray, size_hw: tuple[in
 
 def _squeeze_batch(name: str, array: np.ndarray, rank_without_batch: int) -> np.ndarray:
     """Accept outputs with or without the leading batch axis of size 1."""
-    if array.ndim == rank_without_batch + 1 and array.shape[0] == 1:
-        return array[0]
-    if array.ndim == rank_without_batch:
-        return array
-    raise ModelError(f"model output '{name}' has shape {array.shape}; expected {rank_without_batch} axes (plus an optional leading batch axis of 1)", "export the model with the VGGT output contract (CONTRACTS.md section 1)")
+    return strip_batch_axis(name, array, (None,) * rank_without_batch, fix="export the model with the VGGT output contract (`ffrecon export-model vggt`; docs/models.md)")
 
 
 def decode_vggt_outputs(outputs: Mapping[str, np.ndarray], transforms: Sequence[ResizeTransform], names: Sequence[str], model: ModelInfo, *, max_depth_side: int | None = None) -> Prediction:
