@@ -33,7 +33,7 @@ from ffrecon.checks import check_finite, strip_batch_axis
 from ffrecon.errors import InputError, ModelError
 from ffrecon.geometry.poses import compose_poses, invert_pose
 from ffrecon.models.adapters import MultiviewAdapter, PreprocessMode
-from ffrecon.models.resize import ResizeTransform
+from ffrecon.models.resize import ResizeTransform, prediction_in_original_pixels
 from ffrecon.types import ModelFamily, ModelInfo, Prediction
 
 PATCH_SIZE = 14
@@ -162,12 +162,7 @@ def decode_da3_outputs(outputs: Mapping[str, np.ndarray], transforms: Sequence[R
         raise ModelError(f"model output 'intrinsics' has non-positive focal lengths {focal.min():.3g}", "the camera decoder is broken or untrained; re-export (random weights: without --keep-untrained-heads)")
     # DA3's world is its reference view's camera: re-express every pose relative to frame 0.
     cam_from_world = compose_poses(extrinsics[:, :3], invert_pose(extrinsics[0, :3])[None])
-    cameras, depths, confs = [], [], []
-    for k, t in enumerate(transforms):
-        cameras.append(t.camera_to_original(K_net[k]))
-        depths.append(t.map_to_original(depth[k], max_side=max_depth_side))
-        confs.append(t.map_to_original(conf[k], max_side=max_depth_side))
-    return Prediction(tuple(names), cam_from_world, tuple(cameras), tuple(depths), tuple(confs), model)
+    return prediction_in_original_pixels(names, cam_from_world, K_net, depth, conf, transforms, model, max_depth_side=max_depth_side)
 
 
 ADAPTER = MultiviewAdapter(

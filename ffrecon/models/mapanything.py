@@ -43,7 +43,7 @@ from ffrecon.errors import ModelError
 from ffrecon.geometry.poses import compose_poses, invert_pose
 from ffrecon.geometry.rotations import quat_xyzw_to_matrix
 from ffrecon.models.adapters import MultiviewAdapter, PreprocessMode
-from ffrecon.models.resize import ResizeTransform
+from ffrecon.models.resize import ResizeTransform, prediction_in_original_pixels
 from ffrecon.types import ModelFamily, ModelInfo, Prediction
 
 PATCH_SIZE = 14
@@ -172,12 +172,7 @@ def decode_mapanything_outputs(outputs: Mapping[str, np.ndarray], transforms: Se
         depth = np.where(length > 0, dist * rays[..., 2] / length, 0.0).astype(np.float32)
     depth_conf = np.where(depth > 0, conf, 0.0).astype(np.float32)
     depth = np.maximum(depth, np.float32(0.0))
-    cameras, depths, confs = [], [], []
-    for k, t in enumerate(transforms):
-        cameras.append(t.camera_to_original(K_net[k]))
-        depths.append(t.map_to_original(depth[k], max_side=max_depth_side))
-        confs.append(t.map_to_original(depth_conf[k], max_side=max_depth_side))
-    return Prediction(tuple(names), cam_from_world, tuple(cameras), tuple(depths), tuple(confs), model)
+    return prediction_in_original_pixels(names, cam_from_world, K_net, depth, depth_conf, transforms, model, max_depth_side=max_depth_side)
 
 
 ADAPTER = MultiviewAdapter(

@@ -32,7 +32,7 @@ from ffrecon.checks import check_finite, strip_batch_axis
 from ffrecon.errors import ModelError
 from ffrecon.geometry.poses import compose_poses, invert_pose
 from ffrecon.models.adapters import MultiviewAdapter, PreprocessMode
-from ffrecon.models.resize import ResizeTransform
+from ffrecon.models.resize import ResizeTransform, prediction_in_original_pixels
 from ffrecon.types import ModelFamily, ModelInfo, Prediction
 
 PATCH_SIZE = 14
@@ -157,13 +157,10 @@ def decode_pi3_outputs(outputs: Mapping[str, np.ndarray], transforms: Sequence[R
     depth = local_points[..., 2].astype(np.float32)
     depth_conf = np.where(depth > 0, depth_conf_from_logit(conf), np.float32(0.0))
     depth = np.maximum(depth, np.float32(0.0))
-    cameras, depths, confs = [], [], []
-    for k, t in enumerate(transforms):
-        K_net = np.array([[focal[k, 0], 0.0, wn / 2], [0.0, focal[k, 1], hn / 2], [0.0, 0.0, 1.0]])
-        cameras.append(t.camera_to_original(K_net))
-        depths.append(t.map_to_original(depth[k], max_side=max_depth_side))
-        confs.append(t.map_to_original(depth_conf[k], max_side=max_depth_side))
-    return Prediction(tuple(names), cam_from_world, tuple(cameras), tuple(depths), tuple(confs), model)
+    K_net = np.zeros((len(transforms), 3, 3))
+    K_net[:, 0, 0], K_net[:, 1, 1] = focal[:, 0], focal[:, 1]
+    K_net[:, 0, 2], K_net[:, 1, 2], K_net[:, 2, 2] = wn / 2, hn / 2, 1.0
+    return prediction_in_original_pixels(names, cam_from_world, K_net, depth, depth_conf, transforms, model, max_depth_side=max_depth_side)
 
 
 ADAPTER = MultiviewAdapter(

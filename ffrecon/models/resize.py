@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from ffrecon.types import PinholeCamera
+from ffrecon.types import ModelInfo, PinholeCamera, Prediction
 
 
 @dataclass(frozen=True)
@@ -69,3 +69,17 @@ class ResizeTransform:
         outside = (map_x < -0.5) | (map_x > wn - 0.5) | (map_y < -0.5) | (map_y > hn - 0.5)
         out[outside] = 0.0
         return out
+
+
+def prediction_in_original_pixels(names, cam_from_world: np.ndarray, K_net: np.ndarray, depth: np.ndarray, conf: np.ndarray, transforms, model: ModelInfo, *, max_depth_side: int | None = None) -> Prediction:
+    """A :class:`Prediction` from network-resolution outputs: intrinsics, depth and confidence of each
+    frame mapped back to its original photo through its transform (every family ends its decoding here).
+
+    Args:
+        cam_from_world: ``[S, 3, 4]``; K_net: ``[S, 3, 3]`` in network pixels; depth, conf: ``[S, Hn, Wn]``.
+        transforms: the S transforms of the preprocessing; max_depth_side: see :meth:`ResizeTransform.map_to_original`.
+    """
+    cameras = tuple(t.camera_to_original(K_net[k]) for k, t in enumerate(transforms))
+    depths = tuple(t.map_to_original(depth[k], max_side=max_depth_side) for k, t in enumerate(transforms))
+    confs = tuple(t.map_to_original(conf[k], max_side=max_depth_side) for k, t in enumerate(transforms))
+    return Prediction(tuple(names), np.asarray(cam_from_world, dtype=np.float64), cameras, depths, confs, model)

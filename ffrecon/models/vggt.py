@@ -14,7 +14,7 @@ from ffrecon.checks import check_finite, strip_batch_axis
 from ffrecon.errors import ModelError
 from ffrecon.geometry.rotations import matrix_to_quat_xyzw, quat_xyzw_to_matrix
 from ffrecon.models.adapters import MultiviewAdapter, PreprocessMode
-from ffrecon.models.resize import ResizeTransform
+from ffrecon.models.resize import ResizeTransform, prediction_in_original_pixels
 from ffrecon.types import ModelFamily, ModelInfo, Prediction
 
 PATCH_SIZE = 14
@@ -147,12 +147,7 @@ def decode_vggt_outputs(outputs: Mapping[str, np.ndarray], transforms: Sequence[
         raise ModelError(f"model outputs disagree with the {s} input frames: pose_enc {pose_enc.shape}, depth {depth.shape}, depth_conf {conf.shape}", "check that the model follows the VGGT contract")
     size_hw = depth.shape[1:3]
     cam_from_world, K_net = decode_pose_enc(pose_enc, size_hw)
-    cameras, depths, confs = [], [], []
-    for k, t in enumerate(transforms):
-        cameras.append(t.camera_to_original(K_net[k]))
-        depths.append(t.map_to_original(depth[k], max_side=max_depth_side))
-        confs.append(t.map_to_original(conf[k], max_side=max_depth_side))
-    return Prediction(tuple(names), cam_from_world, tuple(cameras), tuple(depths), tuple(confs), model)
+    return prediction_in_original_pixels(names, cam_from_world, K_net, depth, conf, transforms, model, max_depth_side=max_depth_side)
 
 
 ADAPTER = MultiviewAdapter(
