@@ -152,16 +152,16 @@ def decode_da3_outputs(outputs: Mapping[str, np.ndarray], transforms: Sequence[R
         check_finite(key, np.asarray(outputs[key]), model=model.path)
     depth = _squeeze_batch("depth", np.asarray(outputs["depth"]), 3)
     conf = _squeeze_batch("depth_conf", np.asarray(outputs["depth_conf"]), 3)
-    extrinsics = _squeeze_batch("extrinsics", np.asarray(outputs["extrinsics"], dtype=np.float64), 3)
+    cam_from_ref = _squeeze_batch("extrinsics", np.asarray(outputs["extrinsics"], dtype=np.float64), 3)  # DA3's reference view
     K_net = _squeeze_batch("intrinsics", np.asarray(outputs["intrinsics"], dtype=np.float64), 3)
     s = len(transforms)
-    if depth.shape[0] != s or conf.shape != depth.shape or extrinsics.shape[0] != s or extrinsics.shape[1:] not in ((3, 4), (4, 4)) or K_net.shape != (s, 3, 3):
-        raise ModelError(f"model outputs disagree with the {s} input frames: depth {depth.shape}, depth_conf {conf.shape}, extrinsics {extrinsics.shape}, intrinsics {K_net.shape}", "check that the model follows the da3 contract (`ffrecon inspect-model`)")
+    if depth.shape[0] != s or conf.shape != depth.shape or cam_from_ref.shape[0] != s or cam_from_ref.shape[1:] not in ((3, 4), (4, 4)) or K_net.shape != (s, 3, 3):
+        raise ModelError(f"model outputs disagree with the {s} input frames: depth {depth.shape}, depth_conf {conf.shape}, extrinsics {cam_from_ref.shape}, intrinsics {K_net.shape}", "check that the model follows the da3 contract (`ffrecon inspect-model`)")
     focal = K_net[:, [0, 1], [0, 1]]
     if not (focal > 0).all():
         raise ModelError(f"model output 'intrinsics' has non-positive focal lengths {focal.min():.3g}", "the camera decoder is broken or untrained; re-export (random weights: without --keep-untrained-heads)")
     # DA3's world is its reference view's camera: re-express every pose relative to frame 0.
-    cam_from_world = compose_poses(extrinsics[:, :3], invert_pose(extrinsics[0, :3])[None])
+    cam_from_world = compose_poses(cam_from_ref[:, :3], invert_pose(cam_from_ref[0, :3])[None])
     return prediction_in_original_pixels(names, cam_from_world, K_net, depth, conf, transforms, model, max_depth_side=max_depth_side)
 
 
