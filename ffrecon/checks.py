@@ -25,6 +25,21 @@ def check_shape(name: str, array: np.ndarray, expected: Sequence[int | None]) ->
         raise ValueError(f"{name}: expected shape ({want}), got {shape}")
 
 
+def require_outputs(outputs, required: Sequence[str], *, fix: str) -> None:
+    """Raise :class:`ModelError` naming the required model outputs that are missing.
+
+    >>> require_outputs({"depth": 1}, ("depth",), fix="")
+    >>> require_outputs({"depth": 1}, ("depth", "pose_enc"), fix="re-export")
+    Traceback (most recent call last):
+    ...
+    ffrecon.errors.ModelError: model outputs lack ['pose_enc']; got ['depth']
+      fix: re-export
+    """
+    missing = [k for k in required if k not in outputs]
+    if missing:
+        raise ModelError(f"model outputs lack {missing}; got {sorted(outputs)}", fix)
+
+
 def strip_batch_axis(name: str, array: np.ndarray, shape: Sequence[int | None], *, fix: str) -> np.ndarray:
     """A model output without its optional leading batch axis of 1, checked against ``shape`` (None: any size).
 

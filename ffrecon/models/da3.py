@@ -29,7 +29,7 @@ from collections.abc import Mapping, Sequence
 import cv2
 import numpy as np
 
-from ffrecon.checks import check_finite, strip_batch_axis
+from ffrecon.checks import check_finite, require_outputs, strip_batch_axis
 from ffrecon.errors import InputError, ModelError
 from ffrecon.geometry.poses import compose_poses, invert_pose
 from ffrecon.models.adapters import MultiviewAdapter, PreprocessMode
@@ -145,9 +145,7 @@ def decode_da3_outputs(outputs: Mapping[str, np.ndarray], transforms: Sequence[R
         transforms: the S transforms from :func:`preprocess_da3`; names: S frame names.
         max_depth_side: cap on the long side of the returned depth grids (None: original size).
     """
-    missing = [k for k in OUTPUT_NAMES if k not in outputs]
-    if missing:
-        raise ModelError(f"model outputs lack {missing}; got {sorted(outputs)}", "a Depth Anything 3 model must output depth, depth_conf, extrinsics and intrinsics (export it with `ffrecon export-model da3`)")
+    require_outputs(outputs, OUTPUT_NAMES, fix="a Depth Anything 3 model must output depth, depth_conf, extrinsics and intrinsics (export it with `ffrecon export-model da3`)")
     for key in OUTPUT_NAMES:
         check_finite(key, np.asarray(outputs[key]), model=model.path)
     depth = _squeeze_batch("depth", np.asarray(outputs["depth"]), 3)

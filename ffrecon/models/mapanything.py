@@ -38,7 +38,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 from PIL import Image
 
-from ffrecon.checks import check_finite, strip_batch_axis
+from ffrecon.checks import check_finite, require_outputs, strip_batch_axis
 from ffrecon.errors import ModelError
 from ffrecon.geometry.poses import compose_poses, invert_pose
 from ffrecon.geometry.rotations import quat_xyzw_to_matrix
@@ -147,9 +147,7 @@ def decode_mapanything_outputs(outputs: Mapping[str, np.ndarray], transforms: Se
     Returns:
         cam_from_world with frame 0 as the world; K from the rays, z-depth and conf per frame.
     """
-    missing = [k for k in OUTPUT_NAMES if k not in outputs]
-    if missing:
-        raise ModelError(f"model outputs lack {missing}; got {sorted(outputs)}", f"a MapAnything-contract model must output {', '.join(OUTPUT_NAMES)} (docs/models.md)")
+    require_outputs(outputs, OUTPUT_NAMES, fix=f"a MapAnything-contract model must output {', '.join(OUTPUT_NAMES)} (docs/models.md)")
     s = len(transforms)
     wn, hn = transforms[0].net_size_wh
     rays = _without_batch("ray_directions", outputs["ray_directions"], (s, hn, wn, 3))

@@ -17,7 +17,7 @@ import numpy as np
 from PIL import Image
 from tqdm.auto import tqdm
 
-from ffrecon.checks import check_finite
+from ffrecon.checks import check_finite, require_outputs
 from ffrecon.errors import FFReconError, InputError, ModelError
 from ffrecon.models.global_alignment import AlignmentOptions, PairPrediction, global_align
 from ffrecon.models.resize import ResizeTransform
@@ -192,9 +192,7 @@ def run_pairs(batch: np.ndarray, pairs: Sequence[tuple[int, int]], infer: PairIn
 
 
 def _check_outputs(outputs: Mapping[str, np.ndarray], b: int, size_hw: tuple[int, int], model_name: str) -> dict[str, np.ndarray]:
-    missing = [k for k in OUTPUT_NAMES if k not in outputs]
-    if missing:
-        raise ModelError(f"pairwise model outputs lack {missing}; got {sorted(outputs)}", f"a DUSt3R-contract model must output {', '.join(OUTPUT_NAMES)} (CONTRACTS.md section 2)")
+    require_outputs(outputs, OUTPUT_NAMES, fix=f"a DUSt3R-contract model must output {', '.join(OUTPUT_NAMES)} (CONTRACTS.md section 2)")
     checked = {}
     for name in OUTPUT_NAMES:
         value = np.asarray(outputs[name], dtype=np.float32)

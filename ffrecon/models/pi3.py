@@ -28,7 +28,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 from PIL import Image
 
-from ffrecon.checks import check_finite, strip_batch_axis
+from ffrecon.checks import check_finite, require_outputs, strip_batch_axis
 from ffrecon.errors import ModelError
 from ffrecon.geometry.poses import compose_poses, invert_pose
 from ffrecon.models.adapters import MultiviewAdapter, PreprocessMode
@@ -140,9 +140,7 @@ def decode_pi3_outputs(outputs: Mapping[str, np.ndarray], transforms: Sequence[R
     Returns:
         cam_from_world with frame 0 as the world; K, depth (local z) and ``1 + exp(conf)`` per frame.
     """
-    missing = [k for k in OUTPUT_NAMES if k not in outputs]
-    if missing:
-        raise ModelError(f"model outputs lack {missing}; got {sorted(outputs)}", "a Pi3-contract model must output local_points, conf and camera_poses (docs/models.md)")
+    require_outputs(outputs, OUTPUT_NAMES, fix="a Pi3-contract model must output local_points, conf and camera_poses (docs/models.md)")
     n = len(transforms)
     wn, hn = transforms[0].net_size_wh
     local_points = _without_batch("local_points", outputs["local_points"], (n, hn, wn, 3))

@@ -10,7 +10,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 from PIL import Image
 
-from ffrecon.checks import check_finite, strip_batch_axis
+from ffrecon.checks import check_finite, require_outputs, strip_batch_axis
 from ffrecon.errors import ModelError
 from ffrecon.geometry.rotations import matrix_to_quat_xyzw, quat_xyzw_to_matrix
 from ffrecon.models.adapters import MultiviewAdapter, PreprocessMode
@@ -133,9 +133,7 @@ def decode_vggt_outputs(outputs: Mapping[str, np.ndarray], transforms: Sequence[
         names: S frame names.
         max_depth_side: cap on the long side of the returned depth grids (None: original size).
     """
-    missing = [k for k in OUTPUT_NAMES if k not in outputs]
-    if missing:
-        raise ModelError(f"model outputs lack {missing}; got {sorted(outputs)}", "a VGGT-contract model must output pose_enc, depth and depth_conf (CONTRACTS.md section 1)")
+    require_outputs(outputs, OUTPUT_NAMES, fix="a VGGT-contract model must output pose_enc, depth and depth_conf (CONTRACTS.md section 1)")
     for key in OUTPUT_NAMES:
         check_finite(key, np.asarray(outputs[key]), model=model.path)
     pose_enc = _squeeze_batch("pose_enc", np.asarray(outputs["pose_enc"]), 2)

@@ -81,6 +81,35 @@ def export_rewrites() -> Iterator[None]:
         torch.cartesian_prod, torch.nn.functional.scaled_dot_product_attention = originals
 
 
+def _cache_key(args: tuple, kwargs: dict) -> tuple:
+    """Arguments reduced to what size-only tables depend on: tensors by shape and dtype, the rest by value."""
+    def reduce(a):
+        if isinstance(a, torch.Tensor) and a.ndim == 0 and not a.is_floating_point():
+            return int(a)  # a size read under tracing
+        if isinstance(a, torch.Tensor):
+            return ("tensor", tuple(int(s) for s in a.shape), a.dtype)
+        return a
+
+    return tuple(reduce(a) for a in args) + tuple((k, reduce(v)) for k, v in sorted(kwargs.items()))
+
+
+def _filled_outside_trace(original, label: str):
+    """``original`` behind a cache keyed by its arguments' shapes and values: filled by the original
+    code when called outside a trace, served as a constant inside one (missing there is an error)."""
+    cache: dict[tuple, object] = {}
+
+    def cached(*args, **kwargs):
+        key = _cache_key(args, kwargs)
+        if key not in cache:
+            if torch.jit.is_tracing():
+                raise RuntimeError(f"{label}{key} was not precomputed before tracing")
+            value = original(*args, **kwargs)
+            cache[key] = value.detach() if isinstance(value, torch.Tensor) else value
+        return cache[key]
+
+    return cached
+
+
 @contextlib.contextmanager
 def frozen_position_embeddings(model: torch.nn.Module) -> Iterator[int]:
     """Serve every DINOv2-style ``interpolate_pos_encoding`` from a cache filled by the original code.
@@ -94,37 +123,14 @@ def frozen_position_embeddings(model: torch.nn.Module) -> Iterator[int]:
     wrapped = []
     for sub in model.modules():
         original = getattr(sub, "interpolate_pos_encoding", None)
-        if original is None or not callable(original):
-            continue
-        cache: dict[tuple, torch.Tensor] = {}
-
-        def cached(x: torch.Tensor, w, h, _original=original, _cache=cache) -> torch.Tensor:
-            key = (int(x.shape[1]), int(w), int(h), x.dtype)
-            if key not in _cache:
-                if torch.jit.is_tracing():
-                    raise RuntimeError(f"position table for {key} was not precomputed before tracing")
-                _cache[key] = _original(x, w, h).detach()
-            return _cache[key]
-
-        sub.interpolate_pos_encoding = cached
-        wrapped.append(sub)
+        if callable(original):
+            sub.interpolate_pos_encoding = _filled_outside_trace(original, "interpolate_pos_encoding")
+            wrapped.append(sub)
     try:
         yield len(wrapped)
     finally:
         for sub in wrapped:
             del sub.interpolate_pos_encoding  # the instance attribute; the class method shows again
-
-
-def _cache_key(args: tuple, kwargs: dict) -> tuple:
-    """Arguments reduced to what size-only tables depend on: tensors by shape and dtype, the rest by value."""
-    def reduce(a):
-        if isinstance(a, torch.Tensor) and a.ndim == 0 and not a.is_floating_point():
-            return int(a)  # a size read under tracing
-        if isinstance(a, torch.Tensor):
-            return ("tensor", tuple(int(s) for s in a.shape), a.dtype)
-        return a
-
-    return tuple(reduce(a) for a in args) + tuple((k, reduce(v)) for k, v in sorted(kwargs.items()))
 
 
 @contextlib.contextmanager
@@ -136,22 +142,9 @@ def frozen_functions(*targets: tuple[object, str]) -> Iterator[None]:
     the input size. ``targets`` are ``(module, function_name)``; the same input shapes must always mean
     the same values, which holds within one export (fixed H and W).
     """
-    saved = []
-    for owner, name in targets:
-        original = getattr(owner, name)
-        cache: dict[tuple, object] = {}
-
-        def cached(*args, _original=original, _cache=cache, _name=name, **kwargs):
-            key = _cache_key(args, kwargs)
-            if key not in _cache:
-                if torch.jit.is_tracing():
-                    raise RuntimeError(f"{_name}{key} was not precomputed before tracing")
-                value = _original(*args, **kwargs)
-                _cache[key] = value.detach() if isinstance(value, torch.Tensor) else value
-            return _cache[key]
-
-        setattr(owner, name, cached)
-        saved.append((owner, name, original))
+    saved = [(owner, name, getattr(owner, name)) for owner, name in targets]
+    for owner, name, original in saved:
+        setattr(owner, name, _filled_outside_trace(original, name))
     try:
         yield
     finally:
