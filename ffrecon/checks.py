@@ -56,7 +56,9 @@ def strip_batch_axis(name: str, array: np.ndarray, shape: Sequence[int | None], 
         array = array[0]
     if array.ndim != len(shape) or any(s is not None and s != a for s, a in zip(shape, array.shape)):
         want = "[1, " + ", ".join("?" if s is None else str(s) for s in shape) + "]"
-        raise ModelError(f"model output '{name}' has shape {list(array.shape)}; expected {want} (the leading 1 optional)", fix)
+        raise ModelError(
+            f"model output '{name}' has shape {list(array.shape)}; expected {want} (the leading 1 optional)", fix
+        )
     return array
 
 

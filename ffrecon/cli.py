@@ -26,31 +26,54 @@ def _setup_logging(verbose: int) -> None:
 def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("-o", "--out", type=Path, required=True, help="output folder (see the README for its layout)")
     p.add_argument("--overwrite", action="store_true", help="replace results already in the output folder")
-    p.add_argument("--chunk-size", type=int, default=None, help="frames per model call (default: as many as fit in 60%% of the free memory, from the model's size; docs/benchmarks.md)")
+    p.add_argument(
+        "--chunk-size",
+        type=int,
+        default=None,
+        help="frames per model call (default: as many as fit in 60%% of the free memory, from the model's size; docs/benchmarks.md)",
+    )
     p.add_argument("--chunk-overlap", type=int, default=None, help="frames shared by consecutive chunks (default 2)")
-    p.add_argument("--preprocess", choices=["crop", "pad", "resize"], default=None, help="preprocessing mode (default: the model family's reference; VGGT: crop or pad, DA3: resize or crop)")
+    p.add_argument(
+        "--preprocess",
+        choices=["crop", "pad", "resize"],
+        default=None,
+        help="preprocessing mode (default: the model family's reference; VGGT: crop or pad, DA3: resize or crop)",
+    )
     p.add_argument("--threads", type=int, default=0, help="CPU threads for inference (0: all)")
     p.add_argument("--no-colmap", action="store_true", help="skip the COLMAP cross-check")
     p.add_argument("--no-refine", action="store_true", help="skip the bundle-adjustment refinement")
     p.add_argument("--no-splat", action="store_true", help="skip the Gaussian splat")
     p.add_argument("--force", action="store_true", help="go on past failed verification gates")
     p.add_argument("--min-registration", type=float, default=None, help="registration-ratio gate (default 0.85)")
-    p.add_argument("--splat-seconds", type=float, default=None, help="splat optimisation budget in seconds (default 120)")
-    p.add_argument("--mesh", action="store_true", help="also write a Poisson mesh (mesh.ply, mesh.glb) from the point cloud")
+    p.add_argument(
+        "--splat-seconds", type=float, default=None, help="splat optimisation budget in seconds (default 120)"
+    )
+    p.add_argument(
+        "--mesh", action="store_true", help="also write a Poisson mesh (mesh.ply, mesh.glb) from the point cloud"
+    )
     p.add_argument("--reference", type=Path, default=None, help="a reference COLMAP model to score the cameras against")
     p.add_argument("-v", "--verbose", action="count", default=0)
     p.add_argument("-q", "--quiet", action="store_true")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="ffrecon", description="Photos or a video in, a verified 3D reconstruction out.")
+    parser = argparse.ArgumentParser(
+        prog="ffrecon", description="Photos or a video in, a verified 3D reconstruction out."
+    )
     parser.add_argument("--version", action="version", version=f"ffrecon {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     run = sub.add_parser("run", help="reconstruct a folder of photos or a video")
     run.add_argument("input", type=Path, help="folder of images (jpg, png, tiff, webp, bmp) or a video file")
-    run.add_argument("--model", type=Path, required=True, help="ONNX model (any family in docs/models.md; make one with `ffrecon export-model`)")
+    run.add_argument(
+        "--model",
+        type=Path,
+        required=True,
+        help="ONNX model (any family in docs/models.md; make one with `ffrecon export-model`)",
+    )
     run.add_argument("--video-frames", type=int, default=48, help="frames to keep from a video")
-    run.add_argument("--skip-bad-images", action="store_true", help="leave out unreadable files and non-images instead of stopping")
+    run.add_argument(
+        "--skip-bad-images", action="store_true", help="leave out unreadable files and non-images instead of stopping"
+    )
     _add_run_options(run)
     demo = sub.add_parser("demo", help="synthetic scene + simulated model through every stage (no downloads)")
     demo.add_argument("--frames", type=int, default=24)
@@ -75,21 +98,63 @@ def _add_export_parser(sub) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     export.add_argument("family", choices=list(FAMILIES), help="model family")
-    export.add_argument("-o", "--out", type=Path, required=True, help="output .onnx file (weights over 2 GB go to OUT.onnx.data beside it)")
+    export.add_argument(
+        "-o",
+        "--out",
+        type=Path,
+        required=True,
+        help="output .onnx file (weights over 2 GB go to OUT.onnx.data beside it)",
+    )
     weights = export.add_mutually_exclusive_group(required=True)
     weights.add_argument("--checkpoint", help="the checkpoint file or folder you downloaded")
-    weights.add_argument("--random-init", action="store_true", help="the real full-size architecture with random weights (checks the export path without weights)")
-    weights.add_argument("--tiny", action="store_true", help="the same upstream classes at a small configuration, random weights (tests)")
-    export.add_argument("--upstream", type=Path, default=None, help="root of the upstream code clone, when it is not an installed package")
-    export.add_argument("--height", type=int, default=None, help="network input height (default: from --photos, else the family's default)")
+    weights.add_argument(
+        "--random-init",
+        action="store_true",
+        help="the real full-size architecture with random weights (checks the export path without weights)",
+    )
+    weights.add_argument(
+        "--tiny", action="store_true", help="the same upstream classes at a small configuration, random weights (tests)"
+    )
+    export.add_argument(
+        "--upstream",
+        type=Path,
+        default=None,
+        help="root of the upstream code clone, when it is not an installed package",
+    )
+    export.add_argument(
+        "--height",
+        type=int,
+        default=None,
+        help="network input height (default: from --photos, else the family's default)",
+    )
     export.add_argument("--width", type=int, default=None, help="network input width")
-    export.add_argument("--photos", type=Path, default=None, help="a photo or folder the model will be used on: sets --height/--width by the family's preprocessing")
-    export.add_argument("--fp16", action="store_true", help="fp16 weights and compute, float32 inputs/outputs (GPU; half the size)")
-    export.add_argument("--frames", type=int, default=2, help="frames (pairs for pairwise models) in the traced example; the check runs one more (default %(default)s)")
+    export.add_argument(
+        "--photos",
+        type=Path,
+        default=None,
+        help="a photo or folder the model will be used on: sets --height/--width by the family's preprocessing",
+    )
+    export.add_argument(
+        "--fp16", action="store_true", help="fp16 weights and compute, float32 inputs/outputs (GPU; half the size)"
+    )
+    export.add_argument(
+        "--frames",
+        type=int,
+        default=2,
+        help="frames (pairs for pairwise models) in the traced example; the check runs one more (default %(default)s)",
+    )
     export.add_argument("--opset", type=int, default=17)
     export.add_argument("--skip-verify", action="store_true", help="do not compare onnxruntime with PyTorch")
-    export.add_argument("--keep-untrained-heads", action="store_true", help="with random weights, leave heads that decode to invalid cameras as initialised (tests ffrecon's checks)")
-    export.add_argument("--variant", default=None, help="upstream configuration to build with --random-init (da3: da3-small|base|large|giant; monodepth: small|base|large, optionally -metric)")
+    export.add_argument(
+        "--keep-untrained-heads",
+        action="store_true",
+        help="with random weights, leave heads that decode to invalid cameras as initialised (tests ffrecon's checks)",
+    )
+    export.add_argument(
+        "--variant",
+        default=None,
+        help="upstream configuration to build with --random-init (da3: da3-small|base|large|giant; monodepth: small|base|large, optionally -metric)",
+    )
     export.add_argument("--seed", type=int, default=0)
     export.add_argument("-v", "--verbose", action="count", default=0)
     export.add_argument("-q", "--quiet", action="store_true")
@@ -101,24 +166,39 @@ def _export(args: argparse.Namespace) -> None:
     from ffrecon.models.exporting import ExportOptions, export_model
 
     if (args.height is None) != (args.width is None):
-        raise FFReconError("--height and --width go together", "pass both, or neither (then --photos or the family's default decides)")
+        raise FFReconError(
+            "--height and --width go together", "pass both, or neither (then --photos or the family's default decides)"
+        )
     options = ExportOptions(
-        family=args.family, out=args.out, checkpoint=args.checkpoint, upstream=args.upstream,
-        size_hw=(args.height, args.width) if args.height else None, photos=args.photos, fp16=args.fp16,
-        random_init=args.random_init, tiny=args.tiny, keep_untrained_heads=args.keep_untrained_heads,
-        opset=args.opset, count=args.frames, verify=not args.skip_verify, seed=args.seed, variant=args.variant,
+        family=args.family,
+        out=args.out,
+        checkpoint=args.checkpoint,
+        upstream=args.upstream,
+        size_hw=(args.height, args.width) if args.height else None,
+        photos=args.photos,
+        fp16=args.fp16,
+        random_init=args.random_init,
+        tiny=args.tiny,
+        keep_untrained_heads=args.keep_untrained_heads,
+        opset=args.opset,
+        count=args.frames,
+        verify=not args.skip_verify,
+        seed=args.seed,
+        variant=args.variant,
     )
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # the tracer's warnings are about the Python-side size logic the export fixes on purpose
+        warnings.simplefilter(
+            "ignore"
+        )  # the tracer's warnings are about the Python-side size logic the export fixes on purpose
         report = export_model(options)
     print(report.summary())
 
 
 def _run_options(args: argparse.Namespace, ground_truth: Path | None = None):
     from ffrecon.capture import CaptureOptions
+    from ffrecon.models.adapters import PreprocessMode
     from ffrecon.models.multiview import MultiviewOptions
     from ffrecon.models.stage import FeedForwardOptions
-    from ffrecon.models.adapters import PreprocessMode
     from ffrecon.pipeline import RunOptions
 
     mv_kwargs = {"mode": PreprocessMode(args.preprocess) if args.preprocess else None}
@@ -126,7 +206,9 @@ def _run_options(args: argparse.Namespace, ground_truth: Path | None = None):
         mv_kwargs["chunk_size"] = args.chunk_size
     if args.chunk_overlap:
         mv_kwargs["chunk_overlap"] = args.chunk_overlap
-    capture = CaptureOptions(video_frames=getattr(args, "video_frames", 48), skip_bad_images=getattr(args, "skip_bad_images", False))
+    capture = CaptureOptions(
+        video_frames=getattr(args, "video_frames", 48), skip_bad_images=getattr(args, "skip_bad_images", False)
+    )
     extra = {}
     if args.no_colmap:
         extra["colmap"] = None
@@ -176,11 +258,15 @@ def _inspect(path: Path) -> None:
     from ffrecon.types import ModelFamily
 
     model = OnnxModel(path)
-    print(f"{path.name}: {FAMILY_NAMES[model.family]} ({model.family.value}) model{' (SIMULATED)' if model.simulated else ''}")
+    print(
+        f"{path.name}: {FAMILY_NAMES[model.family]} ({model.family.value}) model{' (SIMULATED)' if model.simulated else ''}"
+    )
     print("inputs:\n" + "\n".join(f"  {s}" for s in model.inputs))
     print("outputs:\n" + "\n".join(f"  {s}" for s in model.outputs))
     if model.family is ModelFamily.PAIRWISE:
-        print("preprocessing: RGB (x/255 - 0.5) / 0.5; long side 512 (224 checkpoints: short side 224, centre square), sides cropped to multiples of 16, square photos to 4:3; pairs from a pair graph, then global alignment")
+        print(
+            "preprocessing: RGB (x/255 - 0.5) / 0.5; long side 512 (224 checkpoints: short side 224, centre square), sides cropped to multiples of 16, square photos to 4:3; pairs from a pair graph, then global alignment"
+        )
         if {"desc", "desc_conf"} <= {o.name for o in model.outputs}:
             print("MASt3R descriptors (desc, desc_conf per view) are checked but not used yet")
     else:
@@ -203,10 +289,14 @@ def main(argv: list[str] | None = None) -> int:
             return 0
         if args.command == "demo":
             from ffrecon.demo import DemoOptions, prepare_demo
-            from ffrecon.synthetic import SceneOptions
             from ffrecon.pipeline import run
+            from ffrecon.synthetic import SceneOptions
 
-            demo = prepare_demo(DemoOptions(scene=SceneOptions(num_frames=args.frames, width=args.width, height=args.height, seed=args.seed)))
+            demo = prepare_demo(
+                DemoOptions(
+                    scene=SceneOptions(num_frames=args.frames, width=args.width, height=args.height, seed=args.seed)
+                )
+            )
             result = run(demo.images, args.out, demo.model, _run_options(args, ground_truth=demo.scene_dir))
         else:
             from ffrecon.pipeline import run

@@ -16,13 +16,13 @@ from pathlib import Path
 import numpy as np
 
 from ffrecon import __version__
+from ffrecon import report_sections as sections
 from ffrecon.capture import Capture, CaptureOptions, run_capture
 from ffrecon.errors import GateFailed
 from ffrecon.export.nerfstudio import write_transforms
 from ffrecon.export.pointcloud import fuse_prediction, write_point_cloud
 from ffrecon.export.report import ReportBuilder
 from ffrecon.models.stage import FeedForwardOptions, FeedForwardResult, run_feedforward
-from ffrecon import report_sections as sections
 from ffrecon.workspace import staged_output
 
 log = logging.getLogger("ffrecon")
@@ -100,16 +100,30 @@ def _splat_seed(capture: Capture, ff: FeedForwardResult, cam_from_world: np.ndar
     from ffrecon.splat.stage import split_views
 
     pred = dataclasses.replace(ff.prediction, cam_from_world=cam_from_world, cameras=tuple(cameras))
-    images = [f.image if f.image.shape[:2] == d.shape else cv2.resize(f.image, d.shape[::-1], interpolation=cv2.INTER_AREA) for f, d in zip(capture.frames, pred.depth)]
+    images = [
+        f.image if f.image.shape[:2] == d.shape else cv2.resize(f.image, d.shape[::-1], interpolation=cv2.INTER_AREA)
+        for f, d in zip(capture.frames, pred.depth)
+    ]
     train, _ = split_views(len(pred), splat_options.holdout_every)
-    return seed_from_prediction(pred, images, max_points=splat_options.max_seed_points, frames=train, seed=splat_options.seed)
+    return seed_from_prediction(
+        pred, images, max_points=splat_options.max_seed_points, frames=train, seed=splat_options.seed
+    )
 
 
 def run(source: Path, out_dir: Path, model: Path, options: RunOptions | None = None) -> RunResult:
     """Reconstruct ``source`` (folder of photos or a video) with ``model`` into ``out_dir``."""
     options = options or RunOptions()
     report = ReportBuilder()
-    report.data.update({"ffrecon_version": __version__, "created": dt.datetime.now().isoformat(timespec="seconds"), "command": options.command, "skipped_stages": [], "timings": {}, "forced": options.force})
+    report.data.update(
+        {
+            "ffrecon_version": __version__,
+            "created": dt.datetime.now().isoformat(timespec="seconds"),
+            "command": options.command,
+            "skipped_stages": [],
+            "timings": {},
+            "forced": options.force,
+        }
+    )
     exit_code = 0
     with staged_output(Path(out_dir), overwrite=options.overwrite) as work:
         capture = _timed(report, "capture", run_capture, Path(source), options.capture, work)
@@ -123,12 +137,25 @@ def run(source: Path, out_dir: Path, model: Path, options: RunOptions | None = N
         multi = len(capture.frames) >= 2
         if not multi:
             for stage in ("colmap cross-check", "pose comparison", "refinement", "splat"):
-                _skip(report, stage, "needs two or more views; this run has one photo (its depth, camera and point cloud are still produced)")
+                _skip(
+                    report,
+                    stage,
+                    "needs two or more views; this run has one photo (its depth, camera and point cloud are still produced)",
+                )
         colmap = None
         if multi and options.colmap is not None:
             from ffrecon.sfm.crosscheck import run_colmap
 
-            colmap = _timed(report, "colmap", run_colmap, capture.image_dir, capture.names, options.colmap, work / "colmap", focal_prior_px=_focal_prior(capture, ff))
+            colmap = _timed(
+                report,
+                "colmap",
+                run_colmap,
+                capture.image_dir,
+                capture.names,
+                options.colmap,
+                work / "colmap",
+                focal_prior_px=_focal_prior(capture, ff),
+            )
             sections.add_colmap(report, colmap)
         elif multi:
             _skip(report, "colmap cross-check", "turned off (--no-colmap)")
@@ -160,7 +187,19 @@ def run(source: Path, out_dir: Path, model: Path, options: RunOptions | None = N
             from ffrecon.splat.stage import run_splat
 
             seed_xyz, seed_rgb = _splat_seed(capture, ff, final_cam_from_world, final_cameras, options.splat)
-            splat = _timed(report, "splat", run_splat, [f.image for f in capture.frames], capture.names, final_cam_from_world, final_cameras, seed_xyz, seed_rgb, options.splat, work)
+            splat = _timed(
+                report,
+                "splat",
+                run_splat,
+                [f.image for f in capture.frames],
+                capture.names,
+                final_cam_from_world,
+                final_cameras,
+                seed_xyz,
+                seed_rgb,
+                options.splat,
+                work,
+            )
             sections.add_splat(report, splat)
         elif multi and exit_code == 0:
             _skip(report, "splat", "turned off (--no-splat)")
@@ -168,10 +207,20 @@ def run(source: Path, out_dir: Path, model: Path, options: RunOptions | None = N
         points_xyz, points_rgb = ff.points_xyz, ff.points_rgb
         if refined is not None and final_cam_from_world is refined.cam_from_world:
             # Re-fuse the depth maps with the refined cameras so points.ply agrees with sparse/0.
-            final_pred = dataclasses.replace(ff.prediction, cam_from_world=final_cam_from_world, cameras=tuple(final_cameras))
-            points_xyz, points_rgb = fuse_prediction(final_pred, [f.image for f in capture.frames], options.feedforward.fuse)
+            final_pred = dataclasses.replace(
+                ff.prediction, cam_from_world=final_cam_from_world, cameras=tuple(final_cameras)
+            )
+            points_xyz, points_rgb = fuse_prediction(
+                final_pred, [f.image for f in capture.frames], options.feedforward.fuse
+            )
         write_point_cloud(work / "points.ply", points_xyz, points_rgb)
-        write_transforms(work / "transforms.json", [f"images/{n}" for n in capture.names], final_cam_from_world, final_cameras, ply_file_path="points.ply")
+        write_transforms(
+            work / "transforms.json",
+            [f"images/{n}" for n in capture.names],
+            final_cam_from_world,
+            final_cameras,
+            ply_file_path="points.ply",
+        )
         sections.add_outputs(report, work)
         sections.finish_report(report, ok_message=f"{len(capture.frames)} frame(s) reconstructed")
         report.write(work)

@@ -37,11 +37,16 @@ class PinholeCamera:
 
     def scaled(self, sx: float, sy: float) -> "PinholeCamera":
         """The same camera for an image resized by (sx, sy) (no half-pixel terms: COLMAP rule)."""
-        return PinholeCamera(round(self.width * sx), round(self.height * sy), self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy)
+        return PinholeCamera(
+            round(self.width * sx), round(self.height * sy), self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy
+        )
 
     def fov_deg(self) -> tuple[float, float]:
         """Horizontal and vertical field of view in degrees."""
-        return (float(np.degrees(2 * np.arctan(self.width / 2 / self.fx))), float(np.degrees(2 * np.arctan(self.height / 2 / self.fy))))
+        return (
+            float(np.degrees(2 * np.arctan(self.width / 2 / self.fx))),
+            float(np.degrees(2 * np.arctan(self.height / 2 / self.fy))),
+        )
 
 
 @dataclass(frozen=True)

@@ -30,7 +30,10 @@ def staged_output(out_dir: Path, *, overwrite: bool):
     """
     out_dir = Path(out_dir).resolve()
     if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())) and not overwrite:
-        raise OutputExistsError(f"the output folder {out_dir} already holds results", "pass --overwrite to replace them, or choose another folder with -o")
+        raise OutputExistsError(
+            f"the output folder {out_dir} already holds results",
+            "pass --overwrite to replace them, or choose another folder with -o",
+        )
     stage = staging_path(out_dir)
     if stage.exists():
         shutil.rmtree(stage)

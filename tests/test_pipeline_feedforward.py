@@ -4,7 +4,6 @@ import json
 import shutil
 
 import cv2
-
 import numpy as np
 import open3d as o3d
 import pycolmap
@@ -19,8 +18,8 @@ from ffrecon.geometry.rotations import rotation_angle_deg
 from ffrecon.models.global_alignment import AlignmentOptions
 from ffrecon.models.multiview import MultiviewOptions, predict_multiview
 from ffrecon.models.pairwise import PairwiseOptions
-from ffrecon.models.stage import FeedForwardOptions
 from ffrecon.models.runner import MULTIVIEW_INPUT, OnnxModel
+from ffrecon.models.stage import FeedForwardOptions
 from ffrecon.pipeline import RunOptions, run
 from ffrecon.synthetic import SceneOptions, make_scene
 from ffrecon.synthetic.simulated_model import SimulationOptions, build_simulated_vggt
@@ -119,7 +118,7 @@ def test_single_photo_gives_depth_camera_and_cloud(small_demo, tmp_path):
 def test_bad_models_and_existing_output_leave_results_intact(small_demo, tmp_path, capsys):
     out = tmp_path / "out"
     out.mkdir()
-    (out / "report.json").write_text("{\"earlier\": true}")
+    (out / "report.json").write_text('{"earlier": true}')
     # An existing OUT with results: refused, untouched.
     assert main(["run", str(small_demo.images), "-o", str(out), "--model", str(small_demo.model)]) == 4
     assert "already holds results" in capsys.readouterr().err

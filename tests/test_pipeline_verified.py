@@ -57,7 +57,14 @@ def _independent_metrics(est, ref):
     sim = pycolmap.estimate_sim3d(c_est, c_ref)
     aligned = np.array([sim * c for c in c_est])
     ate = float(np.sqrt(np.mean(np.sum((aligned - c_ref) ** 2, axis=1))))
-    return {"RRA@5": float((rot_err < 5).mean()), "RTA@5": float((trans_err < 5).mean()), "RRA@15": float((rot_err < 15).mean()), "AUC@5": auc(np.maximum(rot_err, trans_err), 5), "AUC@30": auc(np.maximum(rot_err, trans_err), 30), "ATE": ate}
+    return {
+        "RRA@5": float((rot_err < 5).mean()),
+        "RTA@5": float((trans_err < 5).mean()),
+        "RRA@15": float((rot_err < 15).mean()),
+        "AUC@5": auc(np.maximum(rot_err, trans_err), 5),
+        "AUC@30": auc(np.maximum(rot_err, trans_err), 30),
+        "ATE": ate,
+    }
 
 
 def test_refined_model_reaches_colmap_accuracy(demo_run):

@@ -32,7 +32,9 @@ def attention_model(num_tokens: int) -> bytes:
         helper.make_node("MatMul", ["p", "v"], ["out"]),
     ]
     out = [helper.make_tensor_value_info("out", TensorProto.FLOAT, [HEADS, num_tokens, HEAD_DIM])]
-    model = helper.make_model(helper.make_graph(nodes, "attention", inputs, out), opset_imports=[helper.make_opsetid("", 17)])
+    model = helper.make_model(
+        helper.make_graph(nodes, "attention", inputs, out), opset_imports=[helper.make_opsetid("", 17)]
+    )
     model.ir_version = 8
     return model.SerializeToString()
 
@@ -44,7 +46,9 @@ def main(frame_counts: list[int]) -> None:
         x = np.random.default_rng(0).random((HEADS, n, HEAD_DIM), dtype=np.float32) * 0.1
         session.run(None, {"q": x, "k": x, "v": x})
         peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
-        print(f"S={frames:3d}  tokens={n:6d}  peak RSS {peak:6.2f} GB   one [H,N,N] fp32 matrix {HEADS * n * n * 4 / 1e9:6.2f} GB")
+        print(
+            f"S={frames:3d}  tokens={n:6d}  peak RSS {peak:6.2f} GB   one [H,N,N] fp32 matrix {HEADS * n * n * 4 / 1e9:6.2f} GB"
+        )
 
 
 if __name__ == "__main__":

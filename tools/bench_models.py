@@ -50,31 +50,47 @@ print(json.dumps({"frames": frames, "status": status, "load_s": load, "run_s": r
 
 
 def measure(model: Path, photos: Path, frames: int, limit_gb: float) -> dict:
-    proc = subprocess.run([sys.executable, "-c", CHILD, str(model), str(photos), str(frames), str(limit_gb)], capture_output=True, text=True)
+    proc = subprocess.run(
+        [sys.executable, "-c", CHILD, str(model), str(photos), str(frames), str(limit_gb)],
+        capture_output=True,
+        text=True,
+    )
     lines = [line for line in proc.stdout.splitlines() if line.startswith("{")]
     if not lines:
-        return {"frames": frames, "status": f"failed (exit {proc.returncode}): {proc.stderr.strip().splitlines()[-1][:150] if proc.stderr.strip() else ''}"}
+        return {
+            "frames": frames,
+            "status": f"failed (exit {proc.returncode}): {proc.stderr.strip().splitlines()[-1][:150] if proc.stderr.strip() else ''}",
+        }
     return json.loads(lines[-1])
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("model", type=Path)
-    parser.add_argument("--photos", type=Path, default=Path(__file__).resolve().parents[1].parent / "shared" / "data" / "lund")
+    parser.add_argument(
+        "--photos", type=Path, default=Path(__file__).resolve().parents[1].parent / "shared" / "data" / "lund"
+    )
     parser.add_argument("--frames", type=int, nargs="+", default=[4, 8, 24])
-    parser.add_argument("--memory-limit-gb", type=float, default=20.0, help="address-space limit per run (default %(default)s)")
-    parser.add_argument("--fit", action="store_true", help="fit peak memory = a + b S + c S^2 over the runs that fitted")
+    parser.add_argument(
+        "--memory-limit-gb", type=float, default=20.0, help="address-space limit per run (default %(default)s)"
+    )
+    parser.add_argument(
+        "--fit", action="store_true", help="fit peak memory = a + b S + c S^2 over the runs that fitted"
+    )
     args = parser.parse_args()
     size = sum(p.stat().st_size for p in args.model.parent.glob(args.model.name + "*")) / 2**30
     print(f"{args.model.name}: {size:.2f} GB on disk")
-    print(f"| frames | status | load s | inference s | s / frame | peak memory GB |")
-    print(f"|---|---|---|---|---|---|")
+    print("| frames | status | load s | inference s | s / frame | peak memory GB |")
+    print("|---|---|---|---|---|---|")
     rows = []
     for frames in args.frames:
         r = measure(args.model, args.photos, frames, args.memory_limit_gb)
         rows.append(r)
         if r["status"] == "ok":
-            print(f"| {frames} | ok | {r['load_s']:.1f} | {r['run_s']:.1f} | {r['run_s'] / frames:.2f} | {r['peak_gb']:.2f} |", flush=True)
+            print(
+                f"| {frames} | ok | {r['load_s']:.1f} | {r['run_s']:.1f} | {r['run_s'] / frames:.2f} | {r['peak_gb']:.2f} |",
+                flush=True,
+            )
         else:
             print(f"| {frames} | {r['status']} | | | | |", flush=True)
     ok = [r for r in rows if r["status"] == "ok"]

@@ -40,8 +40,14 @@ def _prediction(scene_dir: Path) -> Prediction:
     scene = load_scene(scene_dir)
     with np.load(scene_dir / "prediction.npz") as data:
         cameras = tuple(PinholeCamera.from_K(K, scene.camera.width, scene.camera.height) for K in data["K"])
-        return Prediction(scene.names, data["cam_from_world"], cameras, tuple(data["depth"]), tuple(data["conf"]),
-                          ModelInfo("simulated", ModelFamily.MULTIVIEW, simulated=True))
+        return Prediction(
+            scene.names,
+            data["cam_from_world"],
+            cameras,
+            tuple(data["depth"]),
+            tuple(data["conf"]),
+            ModelInfo("simulated", ModelFamily.MULTIVIEW, simulated=True),
+        )
 
 
 def prepare(scene_dir: Path, frames: int, texture: Texture, seed: int) -> None:
@@ -51,7 +57,13 @@ def prepare(scene_dir: Path, frames: int, texture: Texture, seed: int) -> None:
     sim = SimulationOptions(seed=seed)
     truth, _ = simulate(scene, sim)
     pred = prediction_from_truth(scene, truth, sim)
-    np.savez(scene_dir / "prediction.npz", cam_from_world=truth.cam_from_world, K=truth.K, depth=truth.depth, conf=np.stack(pred.depth_conf))
+    np.savez(
+        scene_dir / "prediction.npz",
+        cam_from_world=truth.cam_from_world,
+        K=truth.K,
+        depth=truth.depth,
+        conf=np.stack(pred.depth_conf),
+    )
 
 
 def child(method: str, scene_dir: Path, out_dir: Path) -> dict:
@@ -60,18 +72,31 @@ def child(method: str, scene_dir: Path, out_dir: Path) -> dict:
     prediction = _prediction(scene_dir)
     start = time.perf_counter()
     if method == "colmap":
-        result = run_colmap(scene_dir / "images", scene.names, ColmapOptions(), out_dir / "colmap",
-                            focal_prior_px=[c.fx for c in prediction.cameras])
+        result = run_colmap(
+            scene_dir / "images",
+            scene.names,
+            ColmapOptions(),
+            out_dir / "colmap",
+            focal_prior_px=[c.fx for c in prediction.cameras],
+        )
         stages = result.timings.to_report()
     else:
         reuse = out_dir / "colmap" / "database.db" if method == "refine_reuse" else None
-        result = run_refine(scene_dir / "images", prediction, RefineOptions(reuse_features_from=reuse), out_dir / method)
+        result = run_refine(
+            scene_dir / "images", prediction, RefineOptions(reuse_features_from=reuse), out_dir / method
+        )
         stages = result.timings.to_report()
     wall = time.perf_counter() - start
     errors = pose_errors(result.cam_from_world, scene.cam_from_world, result.registered)
     return {
-        "method": method, "wall_s": wall, "stages": stages, "registered": int(result.registered.sum()),
-        "auc5": errors.auc[5], "auc30": errors.auc[30], "ate_rel": errors.ate_relative, "med_rot": errors.median_rotation_deg,
+        "method": method,
+        "wall_s": wall,
+        "stages": stages,
+        "registered": int(result.registered.sum()),
+        "auc5": errors.auc[5],
+        "auc30": errors.auc[30],
+        "ate_rel": errors.ate_relative,
+        "med_rot": errors.median_rotation_deg,
         "peak_mb": _peak_rss_mb(),
     }
 
@@ -108,8 +133,10 @@ def main() -> None:
     if args.child:
         print(json.dumps(child(args.child, args.scene, args.out)))
         return
-    header = (f"{'N':>4} {'method':<8} {'pairs/extr':>10} {'match':>7} {'map/BA':>7} {'total':>7} {'ratio':>6} "
-              f"{'reg':>4} {'AUC@5':>6} {'AUC@30':>6} {'ATE%':>6} {'medrot':>7} {'peakMB':>7}")
+    header = (
+        f"{'N':>4} {'method':<8} {'pairs/extr':>10} {'match':>7} {'map/BA':>7} {'total':>7} {'ratio':>6} "
+        f"{'reg':>4} {'AUC@5':>6} {'AUC@30':>6} {'ATE%':>6} {'medrot':>7} {'peakMB':>7}"
+    )
     print(f"texture={args.texture}; times in seconds; ratio = COLMAP total / method total; ATE% of the camera extent")
     print(header)
     with tempfile.TemporaryDirectory(prefix="ffrecon-bench-") as tmp:
@@ -124,9 +151,12 @@ def main() -> None:
                 first = _stage(row, "pair_selection", "feature_extraction")
                 last = _stage(row, "mapping", "triangulation_and_bundle_adjustment", "export")
                 total = row["stages"]["total"]
-                print(f"{frames:>4} {label:<8} {first:>10.2f} {_stage(row, 'matching'):>7.2f} {last:>7.2f} {total:>7.2f} "
-                      f"{colmap_total / total:>6.2f} {row['registered']:>4} {row['auc5']:>6.3f} {row['auc30']:>6.3f} "
-                      f"{100 * row['ate_rel']:>6.3f} {row['med_rot']:>7.3f} {row['peak_mb']:>7.0f}", flush=True)
+                print(
+                    f"{frames:>4} {label:<8} {first:>10.2f} {_stage(row, 'matching'):>7.2f} {last:>7.2f} {total:>7.2f} "
+                    f"{colmap_total / total:>6.2f} {row['registered']:>4} {row['auc5']:>6.3f} {row['auc30']:>6.3f} "
+                    f"{100 * row['ate_rel']:>6.3f} {row['med_rot']:>7.3f} {row['peak_mb']:>7.0f}",
+                    flush=True,
+                )
     print("refine* reuses the cross-check's SIFT features (as the pipeline does); refine extracts its own.")
 
 

@@ -36,7 +36,9 @@ from ffrecon.synthetic.simulated_model import SimulationOptions, simulate
 def noisy_seed(scene, views: list[int], seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Points of ``views`` from the simulated model's noisy depth at the true cameras, with colours."""
     truth, _ = simulate(scene, SimulationOptions(seed=seed))
-    xyz = np.concatenate([unproject_depth(truth.depth[i], scene.camera.K, scene.cam_from_world[i]).reshape(-1, 3) for i in views])
+    xyz = np.concatenate(
+        [unproject_depth(truth.depth[i], scene.camera.K, scene.cam_from_world[i]).reshape(-1, 3) for i in views]
+    )
     rgb = np.concatenate([scene.images[i].reshape(-1, 3) for i in views]).astype(np.float32) / 255.0
     return xyz, rgb
 
@@ -44,7 +46,9 @@ def noisy_seed(scene, views: list[int], seed: int = 0) -> tuple[np.ndarray, np.n
 def bench_render(xyz: np.ndarray, rgb: np.ndarray, scene, counts: list[int], raster: RasterOptions) -> None:
     K = torch.tensor(scene.camera.K, dtype=torch.float32)
     w, h = scene.camera.width, scene.camera.height
-    print(f"\nrenderer, {w}x{h}, tile {raster.tile_size}, {torch.get_num_threads()} thread(s): forward and forward+backward, median of 5")
+    print(
+        f"\nrenderer, {w}x{h}, tile {raster.tile_size}, {torch.get_num_threads()} thread(s): forward and forward+backward, median of 5"
+    )
     print(f"{'gaussians':>10} {'pairs':>9} {'evals/px':>9} {'fwd ms':>8} {'fwd+bwd ms':>11} {'it/s':>6}")
     for n in counts:
         x, c = reduce_points(xyz, rgb, voxel_size=None, max_points=n)
@@ -65,12 +69,16 @@ def bench_render(xyz: np.ndarray, rgb: np.ndarray, scene, counts: list[int], ras
                 fwd.append(t1 - t0)
                 full.append(t2 - t0)
         med = float(np.median(full))
-        print(f"{len(x):>10} {out.layout.num_pairs:>9} {out.layout.padded_evaluations / (w * h):>9.0f} {1e3 * np.median(fwd):>8.0f} {1e3 * med:>11.0f} {1 / med:>6.2f}")
+        print(
+            f"{len(x):>10} {out.layout.num_pairs:>9} {out.layout.padded_evaluations / (w * h):>9.0f} {1e3 * np.median(fwd):>8.0f} {1e3 * med:>11.0f} {1 / med:>6.2f}"
+        )
 
 
 def bench_optimize(scene, xyz, rgb, train, test, args) -> None:
     options = SplatOptions()
-    x, c = reduce_points(xyz, rgb, voxel_size=None, max_points=min(options.max_seed_points, options.max_gaussians), seed=0)
+    x, c = reduce_points(
+        xyz, rgb, voxel_size=None, max_points=min(options.max_seed_points, options.max_gaussians), seed=0
+    )
     seed = initial_gaussians(x, c, sh_degree=options.sh_degree)
     targets = [torch.from_numpy(im).float() / 255.0 for im in scene.images]
     Ks = np.stack([scene.camera.K] * len(scene))
@@ -79,24 +87,56 @@ def bench_optimize(scene, xyz, rgb, train, test, args) -> None:
         values = []
         with torch.no_grad():
             for i in test:
-                out = render(g.means, g.quats_wxyz, g.log_scales, g.opacity_logits, g.sh, torch.tensor(poses[i], dtype=torch.float32),
-                             torch.tensor(Ks[i], dtype=torch.float32), scene.camera.width, scene.camera.height, sh_degree=g.sh_degree, with_depth=False)
+                out = render(
+                    g.means,
+                    g.quats_wxyz,
+                    g.log_scales,
+                    g.opacity_logits,
+                    g.sh,
+                    torch.tensor(poses[i], dtype=torch.float32),
+                    torch.tensor(Ks[i], dtype=torch.float32),
+                    scene.camera.width,
+                    scene.camera.height,
+                    sh_degree=g.sh_degree,
+                    with_depth=False,
+                )
                 values.append(image_metrics(out.rgb, targets[i])[0])
         return float(np.mean(values))
 
-    print(f"\noptimisation: {len(train)} training / {len(test)} held-out views, seed {len(seed)} Gaussians, budget {args.seconds:.0f} s, "
-          f"{torch.get_num_threads()} thread(s); evaluation time excluded")
+    print(
+        f"\noptimisation: {len(train)} training / {len(test)} held-out views, seed {len(seed)} Gaussians, budget {args.seconds:.0f} s, "
+        f"{torch.get_num_threads()} thread(s); evaluation time excluded"
+    )
     print(f"{'iteration':>9} {'seconds':>8} {'it/s':>6} {'gaussians':>10} {'held-out PSNR':>14}")
     print(f"{0:>9} {0.0:>8.1f} {'':>6} {len(seed):>10} {heldout_psnr(seed, scene.cam_from_world):>14.2f}")
 
     def callback(it, seconds, g, poses):
         print(f"{it:>9} {seconds:>8.1f} {it / seconds:>6.2f} {len(g):>10} {heldout_psnr(g, poses):>14.2f}", flush=True)
 
-    opt = replace(options.optimizer, iterations=options.iterations, max_seconds=args.seconds, sh_degree=options.sh_degree,
-                  max_gaussians=options.max_gaussians, progress=False, threads=args.threads)
-    result = optimize(seed, targets, scene.cam_from_world, Ks, train, opt, scale=scene_scale(scene.cam_from_world[train], x), callback=callback, callback_every=args.eval_every)
-    print(f"{result.iterations:>9} {result.seconds:>8.1f} {result.iterations / result.seconds:>6.2f} {len(result.gaussians):>10} "
-          f"{heldout_psnr(result.gaussians, result.cam_from_world):>14.2f}   (final)")
+    opt = replace(
+        options.optimizer,
+        iterations=options.iterations,
+        max_seconds=args.seconds,
+        sh_degree=options.sh_degree,
+        max_gaussians=options.max_gaussians,
+        progress=False,
+        threads=args.threads,
+    )
+    result = optimize(
+        seed,
+        targets,
+        scene.cam_from_world,
+        Ks,
+        train,
+        opt,
+        scale=scene_scale(scene.cam_from_world[train], x),
+        callback=callback,
+        callback_every=args.eval_every,
+    )
+    print(
+        f"{result.iterations:>9} {result.seconds:>8.1f} {result.iterations / result.seconds:>6.2f} {len(result.gaussians):>10} "
+        f"{heldout_psnr(result.gaussians, result.cam_from_world):>14.2f}   (final)"
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -106,7 +146,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--eval-every", type=int, default=50, help="iterations between held-out evaluations")
     parser.add_argument("--threads", type=int, default=None, help="torch threads (default: all cores but one)")
     parser.add_argument("--counts", default="30000,60000,100000", help="Gaussian counts for the renderer benchmark")
-    parser.add_argument("--tile", type=int, default=RasterOptions().tile_size, help="tile size of the renderer benchmark")
+    parser.add_argument(
+        "--tile", type=int, default=RasterOptions().tile_size, help="tile size of the renderer benchmark"
+    )
     parser.add_argument("--render-only", action="store_true")
     parser.add_argument("--optimize-only", action="store_true")
     args = parser.parse_args(argv)

@@ -32,10 +32,26 @@ def _conv_weight(rng: np.random.Generator, out_ch: int, in_ch: int, k: int) -> n
     return (rng.normal(size=(out_ch, in_ch, k, k)) * np.sqrt(2.0 / (in_ch * k * k))).astype(np.float32)
 
 
-def _conv(g: GraphBuilder, rng: np.random.Generator, x: str, in_ch: int, out_ch: int, k: int, *, stride: int = 1, relu: bool = True) -> str:
+def _conv(
+    g: GraphBuilder,
+    rng: np.random.Generator,
+    x: str,
+    in_ch: int,
+    out_ch: int,
+    k: int,
+    *,
+    stride: int = 1,
+    relu: bool = True,
+) -> str:
     pad = (k - 1) // 2 if stride == 1 else 0
     bias = (0.1 * rng.normal(size=out_ch)).astype(np.float32)
-    y = g.op("Conv", [x, g.const(_conv_weight(rng, out_ch, in_ch, k), "w"), g.const(bias, "b")], kernel_shape=[k, k], strides=[stride, stride], pads=[pad] * 4)
+    y = g.op(
+        "Conv",
+        [x, g.const(_conv_weight(rng, out_ch, in_ch, k), "w"), g.const(bias, "b")],
+        kernel_shape=[k, k],
+        strides=[stride, stride],
+        pads=[pad] * 4,
+    )
     return g.op("Relu", [y]) if relu else y
 
 
@@ -102,21 +118,36 @@ def build_tiny_vggt(seed: int = 0) -> onnx.ModelProto:
 
     # Camera head: pooled features -> translation, quaternion, horizontal field of view.
     pooled = g.op("Flatten", [g.op("GlobalAveragePool", [feat])], axis=1)  # [S, WIDTH]
-    head = g.op("Add", [g.op("MatMul", [pooled, g.const((0.3 * rng.normal(size=(WIDTH, 8))).astype(np.float32), "w")]),
-                        g.const(np.array([0, 0, 0, 0, 0, 0, 2.0, 0], np.float32), "b")])  # bias towards w = 1
+    head = g.op(
+        "Add",
+        [
+            g.op("MatMul", [pooled, g.const((0.3 * rng.normal(size=(WIDTH, 8))).astype(np.float32), "w")]),
+            g.const(np.array([0, 0, 0, 0, 0, 0, 2.0, 0], np.float32), "b"),
+        ],
+    )  # bias towards w = 1
     t_raw, q_raw, fov_raw = _split_channels(g, head, [3, 4, 1])
     zero = g.const(np.array(0, np.int64))
     # The first frame is the world: subtract its translation, compose quaternions with its inverse.
     t = g.op("Sub", [t_raw, g.op("Gather", [t_raw, zero], axis=0)])
     norm = g.op("Sqrt", [g.op("ReduceSum", [g.op("Mul", [q_raw, q_raw]), axis1], keepdims=1)])
     q = g.op("Div", [q_raw, g.op("Add", [norm, g.const(np.float32(1e-6))])])
-    q0_conj = g.op("Mul", [g.op("Gather", [q, axis0], axis=0), g.const(np.array([-1, -1, -1, 1], np.float32))])  # [1, 4]
+    q0_conj = g.op(
+        "Mul", [g.op("Gather", [q, axis0], axis=0), g.const(np.array([-1, -1, -1, 1], np.float32))]
+    )  # [1, 4]
     basis = g.const(quat_product_basis().reshape(4, 16).astype(np.float32), "quat_basis")
-    q_rel = g.op("MatMul", [q, g.op("Reshape", [g.op("MatMul", [q0_conj, basis]), g.const(np.array([4, 4], np.int64))])])
+    q_rel = g.op(
+        "MatMul", [q, g.op("Reshape", [g.op("MatMul", [q0_conj, basis]), g.const(np.array([4, 4], np.int64))])]
+    )
     # fov_w in (0.5, 1.7) rad; fov_h from the aspect ratio, so the decoded pixels are square.
     fov_w = g.op("Add", [g.op("Mul", [g.op("Sigmoid", [fov_raw]), g.const(np.float32(1.2))]), g.const(np.float32(0.5))])
     shape = g.op("Cast", [g.op("Shape", [x])], to=onnx.TensorProto.FLOAT)
-    aspect = g.op("Div", [g.op("Gather", [shape, g.const(np.array(2, np.int64))], axis=0), g.op("Gather", [shape, g.const(np.array(3, np.int64))], axis=0)])
+    aspect = g.op(
+        "Div",
+        [
+            g.op("Gather", [shape, g.const(np.array(2, np.int64))], axis=0),
+            g.op("Gather", [shape, g.const(np.array(3, np.int64))], axis=0),
+        ],
+    )
     half_w = g.op("Mul", [fov_w, g.const(np.float32(0.5))])
     fov_h = g.op("Mul", [g.op("Atan", [g.op("Mul", [g.op("Tan", [half_w]), aspect])]), g.const(np.float32(2.0))])
     pose_enc = g.op("Concat", [t, q_rel, fov_h, fov_w], axis=1)
@@ -134,7 +165,10 @@ def build_tiny_dust3r(seed: int = 0) -> onnx.ModelProto:
     views = [g.input(name, ["B", 3, "H", "W"]) for name in ("view1", "view2")]
     w_enc = g.const(_conv_weight(rng, WIDTH, 3, DUST3R_PATCH), "w_enc")  # shared encoder
     b_enc = g.const((0.1 * rng.normal(size=WIDTH)).astype(np.float32), "b_enc")
-    feats = [g.op("Relu", [g.op("Conv", [v, w_enc, b_enc], kernel_shape=[DUST3R_PATCH] * 2, strides=[DUST3R_PATCH] * 2)]) for v in views]
+    feats = [
+        g.op("Relu", [g.op("Conv", [v, w_enc, b_enc], kernel_shape=[DUST3R_PATCH] * 2, strides=[DUST3R_PATCH] * 2)])
+        for v in views
+    ]
     w_mix = g.const(_conv_weight(rng, WIDTH, 2 * WIDTH, 3), "w_mix")  # shared decoder: own + other view
     b_mix = g.const((0.1 * rng.normal(size=WIDTH)).astype(np.float32), "b_mix")
     w_head = g.const(_conv_weight(rng, 4, WIDTH, 1), "w_head")
@@ -142,7 +176,14 @@ def build_tiny_dust3r(seed: int = 0) -> onnx.ModelProto:
     axis1 = g.const(np.array([1], np.int64))
     rays = _pixel_rays(g, views[0])
     for own, other, suffix in ((feats[0], feats[1], ""), (feats[1], feats[0], "_in_other_view")):
-        mixed = g.op("Relu", [g.op("Conv", [g.op("Concat", [own, other], axis=1), w_mix, b_mix], kernel_shape=[3, 3], pads=[1, 1, 1, 1])])
+        mixed = g.op(
+            "Relu",
+            [
+                g.op(
+                    "Conv", [g.op("Concat", [own, other], axis=1), w_mix, b_mix], kernel_shape=[3, 3], pads=[1, 1, 1, 1]
+                )
+            ],
+        )
         dense = _upsample(g, g.op("Conv", [mixed, w_head, b_head], kernel_shape=[1, 1]), DUST3R_PATCH)  # [B, 4, H, W]
         xy, z_raw, conf_raw = _split_channels(g, dense, [2, 1, 1])
         z = _positive(g, z_raw)
@@ -163,7 +204,10 @@ def write_test_nets(out_dir: Path, seed: int = 0) -> tuple[Path, Path]:
     paths = (out_dir / "tiny_vggt.onnx", out_dir / "tiny_dust3r.onnx")
     for path, model in zip(paths, (build_tiny_vggt(seed), build_tiny_dust3r(seed))):
         entry = model.metadata_props.add()
-        entry.key, entry.value = "ffrecon.description", f"untrained fixture (random weights, seed {seed}); meaningless geometry"
+        entry.key, entry.value = (
+            "ffrecon.description",
+            f"untrained fixture (random weights, seed {seed}); meaningless geometry",
+        )
         onnx.checker.check_model(model)
         onnx.save_model(model, str(path))
         log.info("wrote %s (%d bytes)", path, path.stat().st_size)

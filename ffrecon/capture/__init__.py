@@ -59,10 +59,16 @@ def _load_folder(folder: Path, options: CaptureOptions, image_dir: Path) -> tupl
     if others:
         listed = ", ".join(p.name for p in others[:5]) + (" ..." if len(others) > 5 else "")
         if not options.skip_bad_images:
-            raise InputError(f"{folder} holds {len(others)} file(s) that are not images ({listed}); supported: {', '.join(IMAGE_EXTENSIONS)}", "move them out of the folder, or pass --skip-bad-images to leave them out")
+            raise InputError(
+                f"{folder} holds {len(others)} file(s) that are not images ({listed}); supported: {', '.join(IMAGE_EXTENSIONS)}",
+                "move them out of the folder, or pass --skip-bad-images to leave them out",
+            )
         skipped += [(p.name, "not an image") for p in others]
     if not paths:
-        raise InputError(f"no images found in {folder}", f"put photos ({', '.join(IMAGE_EXTENSIONS)}) in the folder, or pass a video file")
+        raise InputError(
+            f"no images found in {folder}",
+            f"put photos ({', '.join(IMAGE_EXTENSIONS)}) in the folder, or pass a video file",
+        )
     if options.max_images and len(paths) > options.max_images:
         step = len(paths) / options.max_images
         paths = [paths[int(k * step)] for k in range(options.max_images)]
@@ -98,7 +104,10 @@ def run_capture(source: Path, options: CaptureOptions, out_dir: Path) -> Capture
     skipped: list[tuple[str, str]] = []
     if source.is_file():
         if source.suffix.lower() not in VIDEO_EXTENSIONS:
-            raise InputError(f"{source.name} is neither a folder nor a video ({', '.join(VIDEO_EXTENSIONS)})", "pass a folder of images or a video file")
+            raise InputError(
+                f"{source.name} is neither a folder nor a video ({', '.join(VIDEO_EXTENSIONS)})",
+                "pass a folder of images or a video file",
+            )
         frames = []
         for name, rgb in extract_video_frames(source, options.video_frames):
             target = image_dir / name

@@ -117,7 +117,10 @@ def load_image(path: Path) -> tuple[np.ndarray, float | None, bool]:
     """
     raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED | cv2.IMREAD_ANYDEPTH)
     if raw is None or raw.size == 0:
-        raise InputError(f"cannot decode image {path.name} (corrupt, truncated or not really a {path.suffix} file)", f"remove or replace {path}, or pass --skip-bad-images to leave it out")
+        raise InputError(
+            f"cannot decode image {path.name} (corrupt, truncated or not really a {path.suffix} file)",
+            f"remove or replace {path}, or pass --skip-bad-images to leave it out",
+        )
     rgb = _to_rgb8(raw)
     orientation, f35, f_px = read_exif(path)
     upright = _apply_orientation(rgb, orientation)

@@ -77,7 +77,9 @@ def _orb_inliers(a: tuple, b: tuple, matcher: cv2.BFMatcher) -> int:
     return int(mask.sum()) if mask is not None else 0
 
 
-def assess_capture(names: Sequence[str], images: Sequence[np.ndarray], options: QualityOptions = QualityOptions()) -> CaptureQuality:
+def assess_capture(
+    names: Sequence[str], images: Sequence[np.ndarray], options: QualityOptions = QualityOptions()
+) -> CaptureQuality:
     """Score every frame; flag blur, exposure drift and frames with too little overlap.
 
     Overlap is checked against the ``overlap_neighbours`` frames before and after in input order
@@ -100,9 +102,30 @@ def assess_capture(names: Sequence[str], images: Sequence[np.ndarray], options: 
     med = float(np.median(sharp))
     for k, name in enumerate(names):
         if n > 1 and sharp[k] < options.blur_ratio * med or sharp[k] < options.blur_absolute:
-            flags.append(FrameFlag(name, "blur", float(sharp[k]), f"{name} looks blurred (sharpness {sharp[k]:.1f}, median {med:.1f}): retake it or drop it"))
+            flags.append(
+                FrameFlag(
+                    name,
+                    "blur",
+                    float(sharp[k]),
+                    f"{name} looks blurred (sharpness {sharp[k]:.1f}, median {med:.1f}): retake it or drop it",
+                )
+            )
         if abs(stops[k]) > options.exposure_stops:
-            flags.append(FrameFlag(name, "exposure", float(stops[k]), f"{name} is {stops[k]:+.1f} stops from the median exposure: lock exposure while capturing"))
+            flags.append(
+                FrameFlag(
+                    name,
+                    "exposure",
+                    float(stops[k]),
+                    f"{name} is {stops[k]:+.1f} stops from the median exposure: lock exposure while capturing",
+                )
+            )
         if n > 1 and best[k] < options.min_overlap_matches:
-            flags.append(FrameFlag(name, "overlap", float(best[k]), f"{name} shares only {best[k]} feature matches with its neighbours: capture more views between it and the others"))
+            flags.append(
+                FrameFlag(
+                    name,
+                    "overlap",
+                    float(best[k]),
+                    f"{name} shares only {best[k]} feature matches with its neighbours: capture more views between it and the others",
+                )
+            )
     return CaptureQuality(tuple(sharp.tolist()), tuple(stops.tolist()), tuple(best), tuple(flags))

@@ -24,11 +24,17 @@ def extract_video_frames(path: Path, num_frames: int) -> list[tuple[str, np.ndar
     """
     cap = cv2.VideoCapture(str(path))
     if not cap.isOpened():
-        raise InputError(f"cannot open video {path.name}", "check the file plays; re-encode it with `ffmpeg -i IN -c:v libx264 OUT.mp4` if OpenCV cannot read its codec")
+        raise InputError(
+            f"cannot open video {path.name}",
+            "check the file plays; re-encode it with `ffmpeg -i IN -c:v libx264 OUT.mp4` if OpenCV cannot read its codec",
+        )
     total = int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) or 0
     if total <= 0:
         cap.release()
-        raise InputError(f"video {path.name} reports no frames", "re-encode the video (ffmpeg) or extract frames to a folder yourself")
+        raise InputError(
+            f"video {path.name} reports no frames",
+            "re-encode the video (ffmpeg) or extract frames to a folder yourself",
+        )
     num = min(num_frames, total)
     edges = np.linspace(0, total, num + 1).round().astype(int)
     best: list[tuple[float, int, np.ndarray | None]] = [(-1.0, -1, None)] * num
@@ -43,8 +49,13 @@ def extract_video_frames(path: Path, num_frames: int) -> list[tuple[str, np.ndar
         if score > best[window][0]:
             best[window] = (score, index, bgr)
     cap.release()
-    frames = [(f"{path.stem}_{idx:06d}.png", cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)) for _, idx, bgr in best if bgr is not None]
+    frames = [
+        (f"{path.stem}_{idx:06d}.png", cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)) for _, idx, bgr in best if bgr is not None
+    ]
     if not frames:
-        raise InputError(f"no frame of {path.name} could be decoded", "re-encode the video (ffmpeg) or extract frames to a folder yourself")
+        raise InputError(
+            f"no frame of {path.name} could be decoded",
+            "re-encode the video (ffmpeg) or extract frames to a folder yourself",
+        )
     log.info("kept %d of %d video frames (sharpest of each window)", len(frames), total)
     return frames

@@ -23,7 +23,9 @@ class MeshOptions:
     normal_neighbours: int = 30
 
 
-def poisson_mesh(xyz: np.ndarray, rgb: np.ndarray, camera_centers: np.ndarray, options: MeshOptions = MeshOptions()) -> o3d.geometry.TriangleMesh:
+def poisson_mesh(
+    xyz: np.ndarray, rgb: np.ndarray, camera_centers: np.ndarray, options: MeshOptions = MeshOptions()
+) -> o3d.geometry.TriangleMesh:
     """Screened Poisson surface of ``xyz [M, 3]`` (world) with colours ``rgb [M, 3]`` in [0, 1].
 
     Normals are estimated from neighbours and flipped to face the nearest of ``camera_centers
@@ -58,7 +60,14 @@ def poisson_mesh(xyz: np.ndarray, rgb: np.ndarray, camera_centers: np.ndarray, o
     return mesh
 
 
-def write_mesh(ply_path: Path, glb_path: Path | None, xyz: np.ndarray, rgb: np.ndarray, camera_centers: np.ndarray, options: MeshOptions = MeshOptions()) -> tuple[Path, Path | None]:
+def write_mesh(
+    ply_path: Path,
+    glb_path: Path | None,
+    xyz: np.ndarray,
+    rgb: np.ndarray,
+    camera_centers: np.ndarray,
+    options: MeshOptions = MeshOptions(),
+) -> tuple[Path, Path | None]:
     """Write the Poisson mesh as PLY (open3d) and, when ``glb_path`` is given, as GLB (trimesh)."""
     mesh = poisson_mesh(xyz, rgb, camera_centers, options)
     ply_path = Path(ply_path)
@@ -67,7 +76,11 @@ def write_mesh(ply_path: Path, glb_path: Path | None, xyz: np.ndarray, rgb: np.n
         raise OSError(f"open3d could not write {ply_path}")
     if glb_path is not None:
         colours = (np.clip(np.asarray(mesh.vertex_colors), 0, 1) * 255).astype(np.uint8)
-        tm = trimesh.Trimesh(vertices=np.asarray(mesh.vertices), faces=np.asarray(mesh.triangles),
-                             vertex_colors=np.concatenate([colours, np.full((len(colours), 1), 255, np.uint8)], axis=1), process=False)
+        tm = trimesh.Trimesh(
+            vertices=np.asarray(mesh.vertices),
+            faces=np.asarray(mesh.triangles),
+            vertex_colors=np.concatenate([colours, np.full((len(colours), 1), 255, np.uint8)], axis=1),
+            process=False,
+        )
         Path(glb_path).write_bytes(tm.export(file_type="glb"))
     return ply_path, (Path(glb_path) if glb_path is not None else None)

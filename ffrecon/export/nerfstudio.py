@@ -28,7 +28,14 @@ def _intrinsics(cam: PinholeCamera) -> dict:
     return {"fl_x": cam.fx, "fl_y": cam.fy, "cx": cam.cx, "cy": cam.cy, "w": cam.width, "h": cam.height}
 
 
-def write_transforms(path: Path, file_paths: Sequence[str], cam_from_world: np.ndarray, cameras: Sequence[PinholeCamera], *, ply_file_path: str | None = None) -> Path:
+def write_transforms(
+    path: Path,
+    file_paths: Sequence[str],
+    cam_from_world: np.ndarray,
+    cameras: Sequence[PinholeCamera],
+    *,
+    ply_file_path: str | None = None,
+) -> Path:
     """Write transforms.json; ``file_paths`` are relative to the file's folder.
 
     The first camera's intrinsics go at the top level (tools that read only those still work);

@@ -111,7 +111,10 @@ def error_bars_png(
     """Two panels of grouped bars per image (one group per label); missing values are marked x."""
     n = len(names)
     fig = Figure(figsize=(max(6.0, 0.28 * n + 2.0), 5.0))
-    panels = ((rotation_deg, "rotation error [deg]", rotation_threshold_deg), (center_error, f"centre error [{center_unit}]", center_threshold))
+    panels = (
+        (rotation_deg, "rotation error [deg]", rotation_threshold_deg),
+        (center_error, f"centre error [{center_unit}]", center_threshold),
+    )
     x = np.arange(n)
     for row, (data, ylabel, threshold) in enumerate(panels, start=1):
         ax = fig.add_subplot(2, 1, row)

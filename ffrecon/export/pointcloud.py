@@ -25,7 +25,9 @@ class FuseOptions:
     remove_outliers: bool = True
 
 
-def fuse_prediction(prediction: Prediction, images: Sequence[np.ndarray], options: FuseOptions = FuseOptions()) -> tuple[np.ndarray, np.ndarray]:
+def fuse_prediction(
+    prediction: Prediction, images: Sequence[np.ndarray], options: FuseOptions = FuseOptions()
+) -> tuple[np.ndarray, np.ndarray]:
     """Confidence-filtered points of every frame in the world frame.
 
     Returns ``(xyz [M, 3] float64 world, rgb [M, 3] float32 in [0, 1])``, voxel-downsampled.
@@ -38,7 +40,9 @@ def fuse_prediction(prediction: Prediction, images: Sequence[np.ndarray], option
         conf = prediction.depth_conf[k]
         valid &= conf >= np.quantile(conf[valid], options.conf_quantile)
         h, w = valid.shape
-        colour = images[k] if images[k].shape[:2] == (h, w) else cv2.resize(images[k], (w, h), interpolation=cv2.INTER_AREA)
+        colour = (
+            images[k] if images[k].shape[:2] == (h, w) else cv2.resize(images[k], (w, h), interpolation=cv2.INTER_AREA)
+        )
         idx = np.flatnonzero(valid)
         idx = idx[:: max(1, len(idx) // options.max_points_per_frame)]
         xyz_all.append(prediction.world_points(k).reshape(-1, 3)[idx])
@@ -74,5 +78,11 @@ def write_depth_maps(folder: Path, prediction: Prediction) -> Path:
     """Per frame: ``<name>.npz`` with ``depth``, ``depth_conf``, ``K`` (for the depth grid) and ``cam_from_world``."""
     folder.mkdir(parents=True, exist_ok=True)
     for k, name in enumerate(prediction.names):
-        np.savez_compressed(folder / f"{Path(name).stem}.npz", depth=prediction.depth[k], depth_conf=prediction.depth_conf[k], K=prediction.depth_camera(k).K, cam_from_world=prediction.cam_from_world[k])
+        np.savez_compressed(
+            folder / f"{Path(name).stem}.npz",
+            depth=prediction.depth[k],
+            depth_conf=prediction.depth_conf[k],
+            K=prediction.depth_camera(k).K,
+            cam_from_world=prediction.cam_from_world[k],
+        )
     return folder

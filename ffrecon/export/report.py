@@ -117,22 +117,37 @@ def _img(png: bytes, alt: str) -> str:
 
 def _feedforward_rows(ff: dict) -> list[dict]:
     """What the model's cameras mean: world frame, decoding assumptions, changes made at export."""
-    rows = [("world frame", ff.get("world_frame")), ("assumptions", ff.get("assumptions")), ("model notes", ff.get("model", {}).get("notes")), ("model", ff.get("model", {}).get("description"))]
+    rows = [
+        ("world frame", ff.get("world_frame")),
+        ("assumptions", ff.get("assumptions")),
+        ("model notes", ff.get("model", {}).get("notes")),
+        ("model", ff.get("model", {}).get("description")),
+    ]
     return [{"item": k, "value": v} for k, v in rows if v]
 
 
 def render_html(data: dict, figures: dict[str, list[Figure]], galleries: dict[str, list[tuple[str, bytes]]]) -> str:
     """The whole page: verdict banner, summary, then one section per stage with figures and tables."""
-    parts = [f"<!doctype html><html><head><meta charset='utf-8'><title>ffrecon report</title><style>{_CSS}</style></head><body>"]
-    parts.append(f"<h1>ffrecon report</h1><p class='muted'>{_fmt(data.get('created'))} · ffrecon {_fmt(data.get('ffrecon_version'))} · input {_fmt(data.get('inputs', {}).get('source'))}</p>")
+    parts = [
+        f"<!doctype html><html><head><meta charset='utf-8'><title>ffrecon report</title><style>{_CSS}</style></head><body>"
+    ]
+    parts.append(
+        f"<h1>ffrecon report</h1><p class='muted'>{_fmt(data.get('created'))} · ffrecon {_fmt(data.get('ffrecon_version'))} · input {_fmt(data.get('inputs', {}).get('source'))}</p>"
+    )
     verdict = data.get("verdict", {})
     ok = verdict.get("status") == "ok"
-    parts.append(f"<div class='banner {'ok' if ok else 'bad'}'><b>{html.escape(verdict.get('status', '?').upper())}</b> — {html.escape(verdict.get('message', ''))}</div>")
+    parts.append(
+        f"<div class='banner {'ok' if ok else 'bad'}'><b>{html.escape(verdict.get('status', '?').upper())}</b> — {html.escape(verdict.get('message', ''))}</div>"
+    )
     model = data.get("feedforward", {}).get("model", {})
     if model.get("simulated"):
-        parts.append("<div class='banner warn'><b>Simulated model.</b> The feed-forward cameras and depth come from ffrecon's simulated model (ground truth plus injected error), not a trained network. Numbers show the pipeline working, not a model's accuracy.</div>")
+        parts.append(
+            "<div class='banner warn'><b>Simulated model.</b> The feed-forward cameras and depth come from ffrecon's simulated model (ground truth plus injected error), not a trained network. Numbers show the pipeline working, not a model's accuracy.</div>"
+        )
     for item in data.get("skipped_stages", []):
-        parts.append(f"<div class='banner warn'>Skipped <b>{html.escape(item['stage'])}</b>: {html.escape(item['reason'])}</div>")
+        parts.append(
+            f"<div class='banner warn'>Skipped <b>{html.escape(item['stage'])}</b>: {html.escape(item['reason'])}</div>"
+        )
     summary = data.get("summary_rows", [])
     if summary:
         parts.append("<h2>Summary</h2>" + _table(summary))
@@ -152,9 +167,18 @@ def render_html(data: dict, figures: dict[str, list[Figure]], galleries: dict[st
         parts.append(f"<h2>{html.escape(title)}</h2>")
         parts.append(_table(rows))
         for fig in figs:
-            parts.append(f"<figure>{_img(fig.png, fig.title)}<figcaption class='muted'>{html.escape(fig.caption or fig.title)}</figcaption></figure>")
+            parts.append(
+                f"<figure>{_img(fig.png, fig.title)}<figcaption class='muted'>{html.escape(fig.caption or fig.title)}</figcaption></figure>"
+            )
         if gallery:
-            parts.append(f"<div class='gallery{' g3' if key == 'splat' else ''}'>" + "".join(f"<figure>{_img(png, cap)}<figcaption>{html.escape(cap)}</figcaption></figure>" for cap, png in gallery) + "</div>")
+            parts.append(
+                f"<div class='gallery{' g3' if key == 'splat' else ''}'>"
+                + "".join(
+                    f"<figure>{_img(png, cap)}<figcaption>{html.escape(cap)}</figcaption></figure>"
+                    for cap, png in gallery
+                )
+                + "</div>"
+            )
     parts.append("<h2>Files</h2>" + _table([{"file": k, "path": v} for k, v in data.get("outputs", {}).items()]))
     parts.append("<p class='muted'>Full machine-readable record: report.json</p></body></html>")
     return "".join(parts)
@@ -173,7 +197,9 @@ def timings_png(timings: dict[str, float]) -> bytes:
     ax = fig.add_subplot()
     ax.barh(names[::-1], [timings[n] for n in names][::-1], color="#1f77b4")
     for y, n in enumerate(names[::-1]):
-        ax.annotate(f"{timings[n]:.1f} s", (timings[n], y), xytext=(4, 0), textcoords="offset points", va="center", fontsize=8)
+        ax.annotate(
+            f"{timings[n]:.1f} s", (timings[n], y), xytext=(4, 0), textcoords="offset points", va="center", fontsize=8
+        )
     ax.set_xlabel("seconds")
     ax.set_title("Time per stage", fontsize=10)
     ax.margins(x=0.15)

@@ -100,16 +100,24 @@ def read_splat_ply(path: Path) -> Gaussians:
                 fmt = parts[1]
             elif parts[0] == "element":
                 if parts[1] != "vertex" or count is not None:
-                    raise InputError(f"{path}: unexpected element '{parts[1]}'", "a 3DGS splat PLY has one vertex element")
+                    raise InputError(
+                        f"{path}: unexpected element '{parts[1]}'", "a 3DGS splat PLY has one vertex element"
+                    )
                 count = int(parts[2])
             elif parts[0] == "property":
                 if parts[1] not in ("float", "float32"):
-                    raise InputError(f"{path}: property {parts[-1]} is {parts[1]}, expected float", "write the splat with float properties")
+                    raise InputError(
+                        f"{path}: property {parts[-1]} is {parts[1]}, expected float",
+                        "write the splat with float properties",
+                    )
                 names.append(parts[2])
             elif parts[0] == "end_header":
                 break
         if fmt != "binary_little_endian" or count is None:
-            raise InputError(f"{path}: format {fmt}, expected binary_little_endian with a vertex element", "re-export the splat in the 3DGS layout")
+            raise InputError(
+                f"{path}: format {fmt}, expected binary_little_endian with a vertex element",
+                "re-export the splat in the 3DGS layout",
+            )
         data = np.frombuffer(f.read(count * len(names) * 4), dtype="<f4").reshape(count, len(names))
     col = {name: i for i, name in enumerate(names)}
 
@@ -122,7 +130,9 @@ def read_splat_ply(path: Path) -> Gaussians:
     num_rest = sum(1 for name in names if name.startswith("f_rest_"))
     bases = num_rest // 3 + 1
     if num_rest % 3 or bases not in (1, 4, 9, 16):
-        raise InputError(f"{path}: {num_rest} f_rest properties do not match an SH degree 0..3", "write 0, 9, 24 or 45 f_rest values")
+        raise InputError(
+            f"{path}: {num_rest} f_rest properties do not match an SH degree 0..3", "write 0, 9, 24 or 45 f_rest values"
+        )
     dc = take(["f_dc_0", "f_dc_1", "f_dc_2"])[:, None, :]
     rest = take([f"f_rest_{i}" for i in range(num_rest)]).reshape(count, 3, bases - 1).transpose(1, 2)
     return Gaussians(

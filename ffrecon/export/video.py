@@ -68,13 +68,25 @@ def smooth_camera_path(cam_from_world: np.ndarray, num_frames: int, *, smoothing
     p = np.concatenate([centers[:1] * 2 - centers[1:2], centers, centers[-1:] * 2 - centers[-2:-1]])  # end tangents
     p0, p1, p2, p3 = p[i0], p[i0 + 1], p[i0 + 2], p[i0 + 3]
     tt = t[:, None]
-    pos = 0.5 * (2 * p1 + (p2 - p0) * tt + (2 * p0 - 5 * p1 + 4 * p2 - p3) * tt**2 + (3 * p1 - p0 - 3 * p2 + p3) * tt**3)
+    pos = 0.5 * (
+        2 * p1 + (p2 - p0) * tt + (2 * p0 - 5 * p1 + 4 * p2 - p3) * tt**2 + (3 * p1 - p0 - 3 * p2 + p3) * tt**3
+    )
     rot = quat_xyzw_to_matrix(_slerp(quats[i0], quats[i0 + 1], t))
     trans = -np.einsum("fij,fj->fi", rot, pos)
     return np.concatenate([rot, trans[..., None]], axis=2)
 
 
-def write_flythrough(path: Path, gaussians: Gaussians, cam_from_world: np.ndarray, camera: PinholeCamera, *, num_frames: int = 90, fps: float = 30.0, background: tuple[float, float, float] = (0.0, 0.0, 0.0), raster: RasterOptions | None = None) -> Path | None:
+def write_flythrough(
+    path: Path,
+    gaussians: Gaussians,
+    cam_from_world: np.ndarray,
+    camera: PinholeCamera,
+    *,
+    num_frames: int = 90,
+    fps: float = 30.0,
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    raster: RasterOptions | None = None,
+) -> Path | None:
     """Render ``gaussians`` along :func:`smooth_camera_path` and write an ``mp4v`` video.
 
     Frames use ``camera``'s intrinsics (cropped to even sizes for the codec). Returns the path, or
@@ -94,8 +106,20 @@ def write_flythrough(path: Path, gaussians: Gaussians, cam_from_world: np.ndarra
     try:
         with torch.no_grad():
             for pose in smooth_camera_path(cam_from_world, num_frames):
-                out = render(g.means, g.quats_wxyz, g.log_scales, g.opacity_logits, g.sh, torch.tensor(pose, dtype=torch.float32), K, width, height,
-                             background=bg, sh_degree=g.sh_degree, options=raster)
+                out = render(
+                    g.means,
+                    g.quats_wxyz,
+                    g.log_scales,
+                    g.opacity_logits,
+                    g.sh,
+                    torch.tensor(pose, dtype=torch.float32),
+                    K,
+                    width,
+                    height,
+                    background=bg,
+                    sh_degree=g.sh_degree,
+                    options=raster,
+                )
                 frame = (out.rgb.clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
                 writer.write(cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
     finally:

@@ -20,7 +20,9 @@ THRESHOLDS_DEG = (5, 15, 30)
 FAILED_DEG = 180.0
 
 
-def relative_pose_errors(est_cam_from_world: np.ndarray, ref_cam_from_world: np.ndarray, registered: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def relative_pose_errors(
+    est_cam_from_world: np.ndarray, ref_cam_from_world: np.ndarray, registered: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Relative rotation and translation-direction errors over all pairs i < j.
 
     Args:
@@ -85,11 +87,20 @@ class PoseErrors:
             "median_rotation_deg": self.median_rotation_deg,
             "per_image_rotation_deg": [None if not np.isfinite(x) else float(x) for x in self.per_image_rotation_deg],
             "per_image_center_error": [None if not np.isfinite(x) else float(x) for x in self.per_image_center_error],
-            "sim3_ref_from_est": {"scale": self.est_to_ref.scale, "rotation": self.est_to_ref.rotation.tolist(), "translation": self.est_to_ref.translation.tolist()},
+            "sim3_ref_from_est": {
+                "scale": self.est_to_ref.scale,
+                "rotation": self.est_to_ref.rotation.tolist(),
+                "translation": self.est_to_ref.translation.tolist(),
+            },
         }
 
 
-def pose_errors(est_cam_from_world: np.ndarray, ref_cam_from_world: np.ndarray, registered: np.ndarray | None = None, thresholds: tuple[int, ...] = THRESHOLDS_DEG) -> PoseErrors:
+def pose_errors(
+    est_cam_from_world: np.ndarray,
+    ref_cam_from_world: np.ndarray,
+    registered: np.ndarray | None = None,
+    thresholds: tuple[int, ...] = THRESHOLDS_DEG,
+) -> PoseErrors:
     """All metrics of CONTRACTS.md section 5 for ``[N, 3, 4]`` estimate vs reference.
 
     ``registered`` marks estimated frames that exist; unregistered ones fail every pair and are left

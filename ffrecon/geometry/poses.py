@@ -42,7 +42,9 @@ def to_homogeneous(pose: np.ndarray) -> np.ndarray:
     return np.concatenate([pose, bottom], axis=-2)
 
 
-def look_at_cam_from_world(center: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> np.ndarray:
+def look_at_cam_from_world(
+    center: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0, 0.0, 1.0])
+) -> np.ndarray:
     """OpenCV camera at ``center`` looking at ``target`` (y down, so ``up`` points image-up)."""
     z = target - center
     z = z / np.linalg.norm(z)

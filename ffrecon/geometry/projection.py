@@ -38,7 +38,9 @@ def unproject_depth(depth: np.ndarray, K: np.ndarray, cam_from_world: np.ndarray
     return (pts - trans) @ rot  # R^T (p - t), row-vector form
 
 
-def project_points(points_world: np.ndarray, K: np.ndarray, cam_from_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def project_points(
+    points_world: np.ndarray, K: np.ndarray, cam_from_world: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Project ``[N, 3]`` world points; returns ``(uv [N, 2] COLMAP convention, depth [N])``."""
     pc = points_world @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
     z = pc[:, 2]

@@ -29,7 +29,9 @@ class PreprocessMode(enum.Enum):
 # preprocess(images [H, W, 3] uint8 RGB, mode) -> (model input batch, one transform per image)
 Preprocess = Callable[[Sequence[np.ndarray], PreprocessMode], tuple[np.ndarray, tuple[ResizeTransform, ...]]]
 # decode(outputs by name, transforms, frame names, model info, max_depth_side) -> Prediction
-Decode = Callable[[Mapping[str, np.ndarray], Sequence[ResizeTransform], Sequence[str], ModelInfo, "int | None"], Prediction]
+Decode = Callable[
+    [Mapping[str, np.ndarray], Sequence[ResizeTransform], Sequence[str], ModelInfo, "int | None"], Prediction
+]
 
 
 @dataclass(frozen=True)

@@ -75,7 +75,9 @@ def _check_method(method: str) -> None:
         raise InputError(f"unknown Depth Anything 3 processing method '{method}'", f"use one of: {', '.join(METHODS)}")
 
 
-def network_size_hw(height: int, width: int, method: str = DEFAULT_METHOD, process_res: int = PROCESS_RES) -> tuple[int, int]:
+def network_size_hw(
+    height: int, width: int, method: str = DEFAULT_METHOD, process_res: int = PROCESS_RES
+) -> tuple[int, int]:
     """Network input ``(H, W)`` DA3's processing gives one ``height`` x ``width`` photo.
 
     >>> network_size_hw(480, 640), network_size_hw(700, 1000), network_size_hw(700, 1000, "upper_bound_crop")
@@ -91,7 +93,9 @@ def _resize(image: np.ndarray, height: int, width: int, enlarge: bool) -> np.nda
     return cv2.resize(image, (width, height), interpolation=cv2.INTER_CUBIC if enlarge else cv2.INTER_AREA)
 
 
-def preprocess_da3(images: Sequence[np.ndarray], method: str = DEFAULT_METHOD, process_res: int = PROCESS_RES) -> tuple[np.ndarray, tuple[ResizeTransform, ...]]:
+def preprocess_da3(
+    images: Sequence[np.ndarray], method: str = DEFAULT_METHOD, process_res: int = PROCESS_RES
+) -> tuple[np.ndarray, tuple[ResizeTransform, ...]]:
     """DA3's reference preprocessing (module docstring), with the bookkeeping to undo it.
 
     Args:
@@ -126,16 +130,30 @@ def preprocess_da3(images: Sequence[np.ndarray], method: str = DEFAULT_METHOD, p
             top, left = int(round((arr.shape[0] - min_h) / 2.0)), int(round((arr.shape[1] - min_w) / 2.0))
             arrays[k] = arr[top : top + min_h, left : left + min_w]
             t = transforms[k]
-            transforms[k] = ResizeTransform(t.orig_size_wh, (min_w, min_h), t.scale_x, t.scale_y, t.offset_x - left, t.offset_y - top)
+            transforms[k] = ResizeTransform(
+                t.orig_size_wh, (min_w, min_h), t.scale_x, t.scale_y, t.offset_x - left, t.offset_y - top
+            )
     batch = np.stack(arrays).astype(np.float32).transpose(0, 3, 1, 2) / np.float32(255.0)
     return np.ascontiguousarray(batch, dtype=np.float32), tuple(transforms)
 
 
 def _squeeze_batch(name: str, array: np.ndarray, rank: int) -> np.ndarray:
-    return strip_batch_axis(name, array, (None,) * rank, fix="export the model with `ffrecon export-model da3` (outputs depth, depth_conf [1,S,H,W], extrinsics [1,S,3,4], intrinsics [1,S,3,3])")
+    return strip_batch_axis(
+        name,
+        array,
+        (None,) * rank,
+        fix="export the model with `ffrecon export-model da3` (outputs depth, depth_conf [1,S,H,W], extrinsics [1,S,3,4], intrinsics [1,S,3,3])",
+    )
 
 
-def decode_da3_outputs(outputs: Mapping[str, np.ndarray], transforms: Sequence[ResizeTransform], names: Sequence[str], model: ModelInfo, *, max_depth_side: int | None = None) -> Prediction:
+def decode_da3_outputs(
+    outputs: Mapping[str, np.ndarray],
+    transforms: Sequence[ResizeTransform],
+    names: Sequence[str],
+    model: ModelInfo,
+    *,
+    max_depth_side: int | None = None,
+) -> Prediction:
     """DA3 outputs for S frames to a :class:`Prediction` in original-photo pixels, world = frame 0.
 
     Args:
@@ -145,22 +163,42 @@ def decode_da3_outputs(outputs: Mapping[str, np.ndarray], transforms: Sequence[R
         transforms: the S transforms from :func:`preprocess_da3`; names: S frame names.
         max_depth_side: cap on the long side of the returned depth grids (None: original size).
     """
-    require_outputs(outputs, OUTPUT_NAMES, fix="a Depth Anything 3 model must output depth, depth_conf, extrinsics and intrinsics (export it with `ffrecon export-model da3`)")
+    require_outputs(
+        outputs,
+        OUTPUT_NAMES,
+        fix="a Depth Anything 3 model must output depth, depth_conf, extrinsics and intrinsics (export it with `ffrecon export-model da3`)",
+    )
     for key in OUTPUT_NAMES:
         check_finite(key, np.asarray(outputs[key]), model=model.path)
     depth = _squeeze_batch("depth", np.asarray(outputs["depth"]), 3)
     conf = _squeeze_batch("depth_conf", np.asarray(outputs["depth_conf"]), 3)
-    cam_from_ref = _squeeze_batch("extrinsics", np.asarray(outputs["extrinsics"], dtype=np.float64), 3)  # DA3's reference view
+    cam_from_ref = _squeeze_batch(
+        "extrinsics", np.asarray(outputs["extrinsics"], dtype=np.float64), 3
+    )  # DA3's reference view
     K_net = _squeeze_batch("intrinsics", np.asarray(outputs["intrinsics"], dtype=np.float64), 3)
     s = len(transforms)
-    if depth.shape[0] != s or conf.shape != depth.shape or cam_from_ref.shape[0] != s or cam_from_ref.shape[1:] not in ((3, 4), (4, 4)) or K_net.shape != (s, 3, 3):
-        raise ModelError(f"model outputs disagree with the {s} input frames: depth {depth.shape}, depth_conf {conf.shape}, extrinsics {cam_from_ref.shape}, intrinsics {K_net.shape}", "check that the model follows the da3 contract (`ffrecon inspect-model`)")
+    if (
+        depth.shape[0] != s
+        or conf.shape != depth.shape
+        or cam_from_ref.shape[0] != s
+        or cam_from_ref.shape[1:] not in ((3, 4), (4, 4))
+        or K_net.shape != (s, 3, 3)
+    ):
+        raise ModelError(
+            f"model outputs disagree with the {s} input frames: depth {depth.shape}, depth_conf {conf.shape}, extrinsics {cam_from_ref.shape}, intrinsics {K_net.shape}",
+            "check that the model follows the da3 contract (`ffrecon inspect-model`)",
+        )
     focal = K_net[:, [0, 1], [0, 1]]
     if not (focal > 0).all():
-        raise ModelError(f"model output 'intrinsics' has non-positive focal lengths {focal.min():.3g}", "the camera decoder is broken or untrained; re-export (random weights: without --keep-untrained-heads)")
+        raise ModelError(
+            f"model output 'intrinsics' has non-positive focal lengths {focal.min():.3g}",
+            "the camera decoder is broken or untrained; re-export (random weights: without --keep-untrained-heads)",
+        )
     # DA3's world is its reference view's camera: re-express every pose relative to frame 0.
     cam_from_world = compose_poses(cam_from_ref[:, :3], invert_pose(cam_from_ref[0, :3])[None])
-    return prediction_in_original_pixels(names, cam_from_world, K_net, depth, conf, transforms, model, max_depth_side=max_depth_side)
+    return prediction_in_original_pixels(
+        names, cam_from_world, K_net, depth, conf, transforms, model, max_depth_side=max_depth_side
+    )
 
 
 ADAPTER = MultiviewAdapter(
@@ -168,7 +206,9 @@ ADAPTER = MultiviewAdapter(
     input_name=INPUT_NAME,
     output_names=OUTPUT_NAMES,
     preprocess=lambda images, mode: preprocess_da3(images, MODE_METHODS[mode]),
-    decode=lambda outputs, transforms, names, model, max_side: decode_da3_outputs(outputs, transforms, names, model, max_depth_side=max_side),
+    decode=lambda outputs, transforms, names, model, max_side: decode_da3_outputs(
+        outputs, transforms, names, model, max_depth_side=max_side
+    ),
     modes=tuple(MODE_METHODS),
     world_frame="the first frame's camera (DA3's poses, relative to the reference view it picks, re-expressed)",
     description="Depth Anything 3: depth, depth_conf (1 + exp), extrinsics (cam_from_world), intrinsics; 504-px processing",

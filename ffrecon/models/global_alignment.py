@@ -82,7 +82,9 @@ class AlignmentOptions:
 
     def __post_init__(self) -> None:
         if self.iterations < 0 or self.lr <= 0 or self.depth_downsample < 1:
-            raise FFReconError(f"unusable alignment options {self}", "use iterations >= 0, lr > 0 and depth_downsample >= 1")
+            raise FFReconError(
+                f"unusable alignment options {self}", "use iterations >= 0, lr > 0 and depth_downsample >= 1"
+            )
 
 
 @dataclass(frozen=True)
@@ -113,7 +115,9 @@ class AlignmentResult:
         return np.array([[self.focal[i], 0.0, w / 2], [0.0, self.focal[i], h / 2], [0.0, 0.0, 1.0]])
 
 
-def estimate_focal(points_cam: np.ndarray, weights: np.ndarray, size_hw: tuple[int, int], *, iterations: int = 10) -> float:
+def estimate_focal(
+    points_cam: np.ndarray, weights: np.ndarray, size_hw: tuple[int, int], *, iterations: int = 10
+) -> float:
     """Focal length (pixels) that best maps camera-frame points to their pixels.
 
     Minimises ``sum w * ||(x, y) - f * (X/Z, Y/Z)||`` (robust L1 via Weiszfeld reweighting, starting
@@ -128,7 +132,10 @@ def estimate_focal(points_cam: np.ndarray, weights: np.ndarray, size_hw: tuple[i
     z = pts[:, 2]
     valid = (z > 1e-6 * max(np.abs(z).max(), 1e-30)) & (w > 0)
     if valid.sum() < 2:
-        raise ModelError("cannot estimate a focal length: no predicted point lies in front of the camera", "check the pairwise model's outputs (point maps in the camera frame, z > 0)")
+        raise ModelError(
+            "cannot estimate a focal length: no predicted point lies in front of the camera",
+            "check the pairwise model's outputs (point maps in the camera frame, z > 0)",
+        )
     step = max(1, int(valid.sum()) // MAX_FIT_POINTS)
     xy, ab, w = xy[valid][::step], (pts[valid, :2] / z[valid, None])[::step], w[valid][::step]
     focal = float((w * (xy * ab).sum(1)).sum() / max((w * (ab**2).sum(1)).sum(), 1e-30))
@@ -185,7 +192,9 @@ def _fit_sim3(src: np.ndarray, dst: np.ndarray, weights: np.ndarray) -> Sim3:
     """Weighted Umeyama ``dst_from_src`` on up to MAX_FIT_POINTS evenly strided points."""
     src, dst, weights = src.reshape(-1, 3), dst.reshape(-1, 3), weights.reshape(-1)
     step = max(1, len(src) // MAX_FIT_POINTS)
-    return umeyama(src[::step].astype(np.float64), dst[::step].astype(np.float64), weights[::step].astype(np.float64) + 1e-12)
+    return umeyama(
+        src[::step].astype(np.float64), dst[::step].astype(np.float64), weights[::step].astype(np.float64) + 1e-12
+    )
 
 
 def _weights(conf: np.ndarray, kind: ConfidenceWeight) -> np.ndarray:
@@ -216,7 +225,10 @@ def maximum_spanning_tree(num_views: int, pairs: Sequence[PairPrediction]) -> li
             parent[ra] = rb
             tree.append(e)
     if len(tree) != num_views - 1:
-        raise FFReconError(f"the {len(pairs)} pairs do not connect all {num_views} views", "use a connected pair graph (complete, sliding window or one-reference)")
+        raise FFReconError(
+            f"the {len(pairs)} pairs do not connect all {num_views} views",
+            "use a connected pair graph (complete, sliding window or one-reference)",
+        )
     return tree
 
 
@@ -228,7 +240,9 @@ class _Init:
     world_from_pair: list[Sim3]  # [E]
 
 
-def initialise(pairs: Sequence[PairPrediction], num_views: int, size_hw: tuple[int, int], kind: ConfidenceWeight) -> _Init:
+def initialise(
+    pairs: Sequence[PairPrediction], num_views: int, size_hw: tuple[int, int], kind: ConfidenceWeight
+) -> _Init:
     """Spanning-tree initialisation (see the module docstring); world = view 0's camera frame."""
     scores = [float(p.conf_i.mean() * p.conf_j.mean()) for p in pairs]
     # Each view's points in its own camera frame, from its most confident pair as view i.
@@ -282,30 +296,53 @@ def initialise(pairs: Sequence[PairPrediction], num_views: int, size_hw: tuple[i
         if e not in sims:
             src = np.concatenate([p.pts_i_in_i.reshape(-1, 3), p.pts_j_in_i.reshape(-1, 3)])
             dst = np.concatenate([world_pts[p.i].reshape(-1, 3), world_pts[p.j].reshape(-1, 3)])
-            wts = np.concatenate([(_weights(p.conf_i, kind) * world_w[p.i]).reshape(-1), (_weights(p.conf_j, kind) * world_w[p.j]).reshape(-1)])
+            wts = np.concatenate(
+                [
+                    (_weights(p.conf_i, kind) * world_w[p.i]).reshape(-1),
+                    (_weights(p.conf_j, kind) * world_w[p.j]).reshape(-1),
+                ]
+            )
             sims[e] = _fit_sim3(src, dst, wts)
     return _Init(world_from_cam, focal, depth, [sims[e] for e in range(len(pairs))])
 
 
 def _check_pairs(pairs: Sequence[PairPrediction], size_hw: tuple[int, int]) -> int:
     if not pairs:
-        raise FFReconError("global alignment needs at least one pair", "pass the pairs of a pair graph over two or more views")
+        raise FFReconError(
+            "global alignment needs at least one pair", "pass the pairs of a pair graph over two or more views"
+        )
     h, w = size_hw
     for p in pairs:
         shapes = (p.pts_i_in_i.shape, p.conf_i.shape, p.pts_j_in_i.shape, p.conf_j.shape)
         if shapes != ((h, w, 3), (h, w), (h, w, 3), (h, w)):
-            raise FFReconError(f"pair ({p.i}, {p.j}) has shapes {shapes}; expected points [{h}, {w}, 3] and confidences [{h}, {w}]", "pass pairs predicted at image_size_hw")
-        require_finite(f"global alignment, pair ({p.i}, {p.j})", pts3d=p.pts_i_in_i, conf=p.conf_i, pts3d_in_other_view=p.pts_j_in_i, conf_in_other_view=p.conf_j)
+            raise FFReconError(
+                f"pair ({p.i}, {p.j}) has shapes {shapes}; expected points [{h}, {w}, 3] and confidences [{h}, {w}]",
+                "pass pairs predicted at image_size_hw",
+            )
+        require_finite(
+            f"global alignment, pair ({p.i}, {p.j})",
+            pts3d=p.pts_i_in_i,
+            conf=p.conf_i,
+            pts3d_in_other_view=p.pts_j_in_i,
+            conf_in_other_view=p.conf_j,
+        )
         if p.i == p.j or min(p.i, p.j) < 0:
-            raise FFReconError(f"pair ({p.i}, {p.j}) is not a pair of two views", "use make_pairs to build the pair graph")
+            raise FFReconError(
+                f"pair ({p.i}, {p.j}) is not a pair of two views", "use make_pairs to build the pair graph"
+            )
     num_views = max(max(p.i, p.j) for p in pairs) + 1
     seen = {p.i for p in pairs} | {p.j for p in pairs}
     if len(seen) != num_views:
-        raise FFReconError(f"views {sorted(set(range(num_views)) - seen)} are in no pair", "every view 0..N-1 must be in at least one pair")
+        raise FFReconError(
+            f"views {sorted(set(range(num_views)) - seen)} are in no pair",
+            "every view 0..N-1 must be in at least one pair",
+        )
     return num_views
 
 
-def global_align(pairs: Sequence[PairPrediction], image_size_hw: tuple[int, int], options: AlignmentOptions = AlignmentOptions()) -> AlignmentResult:
+def global_align(
+    pairs: Sequence[PairPrediction], image_size_hw: tuple[int, int], options: AlignmentOptions = AlignmentOptions()
+) -> AlignmentResult:
     """One pose, focal and depth map per view from all pairs (spanning-tree init, then Adam).
 
     Args:
@@ -323,7 +360,9 @@ def global_align(pairs: Sequence[PairPrediction], image_size_hw: tuple[int, int]
         initial_loss = problem.loss().item() * unit
     initial_cam_from_world, initial_focal = problem.export()[:2]
     optimiser = torch.optim.Adam(problem.parameters(), lr=options.lr)
-    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimiser, T_max=max(options.iterations, 1), eta_min=options.lr_min)
+    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(
+        optimiser, T_max=max(options.iterations, 1), eta_min=options.lr_min
+    )
     # Adam takes steps of about lr whatever the gradient's size, so from a very good start it can
     # wander along weak directions (near-planar views): by default keep the lowest-loss iterate.
     best_loss, best_step, best_state = math.inf, 0, None
@@ -344,24 +383,54 @@ def global_align(pairs: Sequence[PairPrediction], image_size_hw: tuple[int, int]
         if step % 100 == 0:
             log.debug("global alignment step %d: loss %.6g", step, loss.item() * unit)
     if best_state is None:
-        raise ModelError("global alignment failed: the initial alignment of the pairs is not finite", "check the pairwise model's outputs (they must be finite point maps with z > 0)")
+        raise ModelError(
+            "global alignment failed: the initial alignment of the pairs is not finite",
+            "check the pairwise model's outputs (they must be finite point maps with z > 0)",
+        )
     with torch.no_grad():
         for name, value in problem.named_parameters():
             value.copy_(best_state[name])
     cam_from_world, focal, depth = problem.export()
     final_loss = best_loss * unit
-    log.info("global alignment of %d views, %d pairs: loss %.4g -> %.4g (best at step %d of %d)", num_views, len(pairs), initial_loss, final_loss, best_step, options.iterations)
+    log.info(
+        "global alignment of %d views, %d pairs: loss %.4g -> %.4g (best at step %d of %d)",
+        num_views,
+        len(pairs),
+        initial_loss,
+        final_loss,
+        best_step,
+        options.iterations,
+    )
     conf = np.zeros((num_views, *size_hw), np.float32)
     for p in pairs:
         conf[p.i] = np.maximum(conf[p.i], p.conf_i)
         conf[p.j] = np.maximum(conf[p.j], p.conf_j)
-    return AlignmentResult(cam_from_world, focal, depth, conf, size_hw, final_loss, initial_loss, options.iterations, best_step, initial_cam_from_world, initial_focal)
+    return AlignmentResult(
+        cam_from_world,
+        focal,
+        depth,
+        conf,
+        size_hw,
+        final_loss,
+        initial_loss,
+        options.iterations,
+        best_step,
+        initial_cam_from_world,
+        initial_focal,
+    )
 
 
 class _Problem(torch.nn.Module):
     """The unknowns and the alignment loss, in lengths divided by ``unit`` (median initial depth)."""
 
-    def __init__(self, pairs: Sequence[PairPrediction], init: _Init, size_hw: tuple[int, int], unit: float, options: AlignmentOptions) -> None:
+    def __init__(
+        self,
+        pairs: Sequence[PairPrediction],
+        init: _Init,
+        size_hw: tuple[int, int],
+        unit: float,
+        options: AlignmentOptions,
+    ) -> None:
         super().__init__()
         f32 = torch.float32
         n, e = len(init.focal), len(pairs)
@@ -370,7 +439,9 @@ class _Problem(torch.nn.Module):
         self.register_buffer("free", (torch.arange(n) > 0).to(f32)[:, None])  # view 0 is the gauge
         self.rot_delta = torch.nn.Parameter(torch.zeros(n, 3))
         self.trans = torch.nn.Parameter(torch.tensor(init.world_from_cam[:, :, 3] / unit, dtype=f32))
-        self.log_focal = torch.nn.Parameter(torch.tensor(np.log(init.focal), dtype=f32), requires_grad=options.optimize_focal)
+        self.log_focal = torch.nn.Parameter(
+            torch.tensor(np.log(init.focal), dtype=f32), requires_grad=options.optimize_focal
+        )
         log_depth = torch.tensor(np.log(np.maximum(init.depth / unit, 1e-4)), dtype=f32)[:, None]
         k = options.depth_downsample
         if k > 1:
@@ -381,15 +452,23 @@ class _Problem(torch.nn.Module):
         # Pairs: the similarity world_from_pair, and the stacked point maps and weights.
         self.register_buffer("pair_rot0", torch.tensor(np.stack([s.rotation for s in init.world_from_pair]), dtype=f32))
         self.pair_rot_delta = torch.nn.Parameter(torch.zeros(e, 3))
-        self.pair_trans = torch.nn.Parameter(torch.tensor(np.stack([s.translation for s in init.world_from_pair]) / unit, dtype=f32))
-        self.register_buffer("pair_log_scale0", torch.tensor([math.log(s.scale / unit) for s in init.world_from_pair], dtype=f32))
+        self.pair_trans = torch.nn.Parameter(
+            torch.tensor(np.stack([s.translation for s in init.world_from_pair]) / unit, dtype=f32)
+        )
+        self.register_buffer(
+            "pair_log_scale0", torch.tensor([math.log(s.scale / unit) for s in init.world_from_pair], dtype=f32)
+        )
         self.pair_log_scale_delta = torch.nn.Parameter(torch.zeros(e))
         self.register_buffer("idx_i", torch.tensor([p.i for p in pairs]))
         self.register_buffer("idx_j", torch.tensor([p.j for p in pairs]))
         self.register_buffer("pts_i", torch.tensor(np.stack([p.pts_i_in_i for p in pairs]), dtype=f32))
         self.register_buffer("pts_j", torch.tensor(np.stack([p.pts_j_in_i for p in pairs]), dtype=f32))
-        self.register_buffer("w_i", torch.tensor(np.stack([_weights(p.conf_i, options.confidence_weight) for p in pairs])))
-        self.register_buffer("w_j", torch.tensor(np.stack([_weights(p.conf_j, options.confidence_weight) for p in pairs])))
+        self.register_buffer(
+            "w_i", torch.tensor(np.stack([_weights(p.conf_i, options.confidence_weight) for p in pairs]))
+        )
+        self.register_buffer(
+            "w_j", torch.tensor(np.stack([_weights(p.conf_j, options.confidence_weight) for p in pairs]))
+        )
 
     def depth(self) -> torch.Tensor:
         """``[N, H, W]`` depth, normalised units."""

@@ -52,8 +52,16 @@ OUTPUT_NAMES = ("ray_directions", "depth_along_ray", "cam_trans", "cam_quats", "
 OPTIONAL_OUTPUTS = ("pts3d", "pts3d_cam", "metric_scaling_factor")
 # mapanything.utils.image.RESOLUTION_MAPPINGS[518]: aspect ratio (W / H) -> (width, height)
 RESOLUTION_518 = {
-    1.000: (518, 518), 1.321: (518, 392), 1.542: (518, 336), 1.762: (518, 294), 2.056: (518, 252),
-    3.083: (518, 168), 0.757: (392, 518), 0.649: (336, 518), 0.567: (294, 518), 0.486: (252, 518),
+    1.000: (518, 518),
+    1.321: (518, 392),
+    1.542: (518, 336),
+    1.762: (518, 294),
+    2.056: (518, 252),
+    3.083: (518, 168),
+    0.757: (392, 518),
+    0.649: (336, 518),
+    0.567: (294, 518),
+    0.486: (252, 518),
 }
 INTRINSICS_SAMPLES = 50  # upstream samples every (side // 50)-th row and column for the focal fit
 
@@ -70,7 +78,9 @@ def network_size_hw(aspect_ratios: Sequence[float]) -> tuple[int, int]:
     return height, width
 
 
-def preprocess_mapanything(images: Sequence[np.ndarray], mode: PreprocessMode = PreprocessMode.CROP) -> tuple[np.ndarray, tuple[ResizeTransform, ...]]:
+def preprocess_mapanything(
+    images: Sequence[np.ndarray], mode: PreprocessMode = PreprocessMode.CROP
+) -> tuple[np.ndarray, tuple[ResizeTransform, ...]]:
     """MapAnything's ``load_images(resize_mode="fixed_mapping")`` with the bookkeeping to undo it.
 
     Args:
@@ -81,7 +91,10 @@ def preprocess_mapanything(images: Sequence[np.ndarray], mode: PreprocessMode = 
         normalisation is part of the exported model.
     """
     if mode is not PreprocessMode.CROP:
-        raise ModelError(f"MapAnything has no '{mode.value}' preprocessing", "use --preprocess crop (MapAnything's fixed-mapping resize and centre crop)")
+        raise ModelError(
+            f"MapAnything has no '{mode.value}' preprocessing",
+            "use --preprocess crop (MapAnything's fixed-mapping resize and centre crop)",
+        )
     if not images:
         raise ModelError("no images to preprocess", "pass at least one image")
     hn, wn = network_size_hw([im.shape[1] / im.shape[0] for im in images])
@@ -91,7 +104,9 @@ def preprocess_mapanything(images: Sequence[np.ndarray], mode: PreprocessMode = 
         scale = max(wn / w, hn / h) + 1e-8  # upstream's rescale_image_and_other_optional_info
         new_w, new_h = math.floor(w * scale), math.floor(h * scale)
         resample = Image.Resampling.LANCZOS if scale < 1 else Image.Resampling.BICUBIC
-        resized = np.asarray(Image.fromarray(image).resize((new_w, new_h), resample), dtype=np.float32) / np.float32(255.0)
+        resized = np.asarray(Image.fromarray(image).resize((new_w, new_h), resample), dtype=np.float32) / np.float32(
+            255.0
+        )
         left, top = (new_w - wn) // 2, (new_h - hn) // 2
         batch.append(resized[top : top + hn, left : left + wn])
         transforms.append(ResizeTransform((w, h), (wn, hn), new_w / w, new_h / h, -float(left), -float(top)))
@@ -132,10 +147,22 @@ def _line_fit(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _without_batch(name: str, array: np.ndarray, shape: tuple[int | None, ...]) -> np.ndarray:
-    return strip_batch_axis(name, array, shape, fix="export the model with ffrecon's MapAnything contract (docs/models.md): per-view outputs stacked over views")
+    return strip_batch_axis(
+        name,
+        array,
+        shape,
+        fix="export the model with ffrecon's MapAnything contract (docs/models.md): per-view outputs stacked over views",
+    )
 
 
-def decode_mapanything_outputs(outputs: Mapping[str, np.ndarray], transforms: Sequence[ResizeTransform], names: Sequence[str], model: ModelInfo, *, max_depth_side: int | None = None) -> Prediction:
+def decode_mapanything_outputs(
+    outputs: Mapping[str, np.ndarray],
+    transforms: Sequence[ResizeTransform],
+    names: Sequence[str],
+    model: ModelInfo,
+    *,
+    max_depth_side: int | None = None,
+) -> Prediction:
     """MapAnything outputs for S views to a :class:`Prediction` in original-photo pixels.
 
     Args:
@@ -147,21 +174,36 @@ def decode_mapanything_outputs(outputs: Mapping[str, np.ndarray], transforms: Se
     Returns:
         cam_from_world with frame 0 as the world; K from the rays, z-depth and conf per frame.
     """
-    require_outputs(outputs, OUTPUT_NAMES, fix=f"a MapAnything-contract model must output {', '.join(OUTPUT_NAMES)} (docs/models.md)")
+    require_outputs(
+        outputs,
+        OUTPUT_NAMES,
+        fix=f"a MapAnything-contract model must output {', '.join(OUTPUT_NAMES)} (docs/models.md)",
+    )
     s = len(transforms)
     wn, hn = transforms[0].net_size_wh
     rays = _without_batch("ray_directions", outputs["ray_directions"], (s, hn, wn, 3))
     dist = np.asarray(outputs["depth_along_ray"])
-    dist = _without_batch("depth_along_ray", dist[..., 0] if dist.ndim >= 4 and dist.shape[-1] == 1 else dist, (s, hn, wn))
+    dist = _without_batch(
+        "depth_along_ray", dist[..., 0] if dist.ndim >= 4 and dist.shape[-1] == 1 else dist, (s, hn, wn)
+    )
     trans = _without_batch("cam_trans", outputs["cam_trans"], (s, 3))
     quats = _without_batch("cam_quats", outputs["cam_quats"], (s, 4))
     conf = np.asarray(outputs["conf"])
     conf = _without_batch("conf", conf[..., 0] if conf.ndim >= 4 and conf.shape[-1] == 1 else conf, (s, hn, wn))
-    for key, value in (("ray_directions", rays), ("depth_along_ray", dist), ("cam_trans", trans), ("cam_quats", quats), ("conf", conf)):
+    for key, value in (
+        ("ray_directions", rays),
+        ("depth_along_ray", dist),
+        ("cam_trans", trans),
+        ("cam_quats", quats),
+        ("conf", conf),
+    ):
         check_finite(key, value, model=model.path)
     norms = np.linalg.norm(quats.astype(np.float64), axis=-1)
     if not (norms > 1e-6).all():
-        raise ModelError(f"model output 'cam_quats' has a zero quaternion for {int((norms <= 1e-6).sum())} of {s} views", "the export is broken or the model untrained: re-export it from a trained checkpoint")
+        raise ModelError(
+            f"model output 'cam_quats' has a zero quaternion for {int((norms <= 1e-6).sum())} of {s} views",
+            "the export is broken or the model untrained: re-export it from a trained checkpoint",
+        )
     world_from_cam = np.concatenate([quat_xyzw_to_matrix(quats), trans.astype(np.float64)[:, :, None]], axis=2)
     cam_from_world = compose_poses(invert_pose(world_from_cam), world_from_cam[0])  # frame 0 is the world
     K_net = intrinsics_from_rays(rays)
@@ -170,7 +212,9 @@ def decode_mapanything_outputs(outputs: Mapping[str, np.ndarray], transforms: Se
         depth = np.where(length > 0, dist * rays[..., 2] / length, 0.0).astype(np.float32)
     depth_conf = np.where(depth > 0, conf, 0.0).astype(np.float32)
     depth = np.maximum(depth, np.float32(0.0))
-    return prediction_in_original_pixels(names, cam_from_world, K_net, depth, depth_conf, transforms, model, max_depth_side=max_depth_side)
+    return prediction_in_original_pixels(
+        names, cam_from_world, K_net, depth, depth_conf, transforms, model, max_depth_side=max_depth_side
+    )
 
 
 ADAPTER = MultiviewAdapter(
@@ -178,7 +222,9 @@ ADAPTER = MultiviewAdapter(
     input_name=INPUT_NAME,
     output_names=OUTPUT_NAMES,
     preprocess=lambda images, mode: preprocess_mapanything(images, mode),
-    decode=lambda outputs, transforms, names, model, max_side: decode_mapanything_outputs(outputs, transforms, names, model, max_depth_side=max_side),
+    decode=lambda outputs, transforms, names, model, max_side: decode_mapanything_outputs(
+        outputs, transforms, names, model, max_depth_side=max_side
+    ),
     modes=(PreprocessMode.CROP,),
     world_frame="the first frame of each model call (MapAnything's reference view 0; its world_from_cam poses are re-expressed relative to it)",
     camera_outputs="cam_trans/cam_quats (poses) and ray_directions (intrinsics)",

@@ -68,10 +68,14 @@ class CallMemory:
         return s
 
 
-def call_memory(model_bytes: int, size_hw: tuple[int, int], *, heads: int = DEFAULT_HEADS, patch: int = 14) -> CallMemory:
+def call_memory(
+    model_bytes: int, size_hw: tuple[int, int], *, heads: int = DEFAULT_HEADS, patch: int = 14
+) -> CallMemory:
     """The memory model above for a model file of ``model_bytes`` at network input ``size_hw``."""
     tokens = (size_hw[0] // patch) * (size_hw[1] // patch) + SPECIAL_TOKENS
-    return CallMemory(WEIGHT_FACTOR * model_bytes, LINEAR_BYTES_PER_TOKEN * tokens, SCORE_COPIES * 4.0 * max(heads, 1) * tokens**2)
+    return CallMemory(
+        WEIGHT_FACTOR * model_bytes, LINEAR_BYTES_PER_TOKEN * tokens, SCORE_COPIES * 4.0 * max(heads, 1) * tokens**2
+    )
 
 
 def model_file_bytes(path: Path) -> int:
@@ -80,11 +84,18 @@ def model_file_bytes(path: Path) -> int:
     return sum(p.stat().st_size for p in path.parent.glob(path.name + "*") if p.is_file())
 
 
-def default_chunk_size(path: Path, size_hw: tuple[int, int], metadata: dict[str, str], *, available: int | None = None) -> int:
+def default_chunk_size(
+    path: Path, size_hw: tuple[int, int], metadata: dict[str, str], *, available: int | None = None
+) -> int:
     """Frames per call for the model at ``path`` so one call fits in the memory available now."""
     heads = int(metadata.get("ffrecon.attention_heads") or DEFAULT_HEADS) or DEFAULT_HEADS
     memory = call_memory(model_file_bytes(path), size_hw, heads=heads)
     budget = MEMORY_FRACTION * (available if available is not None else available_memory_bytes())
     frames = min(MAX_CHUNK, max(MIN_CHUNK, memory.max_frames(budget)))
-    log.info("chunk size %d frames per call (%.1f GB estimated peak of %.1f GB budget; --chunk-size overrides)", frames, memory.peak_bytes(frames) / 2**30, budget / 2**30)
+    log.info(
+        "chunk size %d frames per call (%.1f GB estimated peak of %.1f GB budget; --chunk-size overrides)",
+        frames,
+        memory.peak_bytes(frames) / 2**30,
+        budget / 2**30,
+    )
     return frames

@@ -62,9 +62,17 @@ class ProcessorSettings:
             given = json.loads(metadata.get("ffrecon.monodepth.processor") or "{}")
             size = given.get("size", {})
             size_hw = (int(size["height"]), int(size["width"])) if "height" in size else ProcessorSettings.size_hw
-            return ProcessorSettings(size_hw, bool(given.get("keep_aspect_ratio", True)), int(given.get("ensure_multiple_of", PATCH_SIZE)), int(given.get("resample", 3)))
+            return ProcessorSettings(
+                size_hw,
+                bool(given.get("keep_aspect_ratio", True)),
+                int(given.get("ensure_multiple_of", PATCH_SIZE)),
+                int(given.get("resample", 3)),
+            )
         except (ValueError, TypeError, KeyError, AttributeError) as exc:
-            raise ModelError(f"{model.path}: unreadable ffrecon.monodepth.processor metadata ({exc})", "re-export the model with `ffrecon export-model monodepth`") from exc
+            raise ModelError(
+                f"{model.path}: unreadable ffrecon.monodepth.processor metadata ({exc})",
+                "re-export the model with `ffrecon export-model monodepth`",
+            ) from exc
 
 
 def network_size_hw(height: int, width: int, settings: ProcessorSettings = ProcessorSettings()) -> tuple[int, int]:
@@ -83,7 +91,11 @@ def network_size_hw(height: int, width: int, settings: ProcessorSettings = Proce
     return round(scale_h * height / m) * m, round(scale_w * width / m) * m
 
 
-def preprocess_monodepth(images: Sequence[np.ndarray], mode: PreprocessMode = REFERENCE_MODE, settings: ProcessorSettings = ProcessorSettings()) -> tuple[np.ndarray, tuple[ResizeTransform, ...]]:
+def preprocess_monodepth(
+    images: Sequence[np.ndarray],
+    mode: PreprocessMode = REFERENCE_MODE,
+    settings: ProcessorSettings = ProcessorSettings(),
+) -> tuple[np.ndarray, tuple[ResizeTransform, ...]]:
     """The processor's resize (module docstring), with the bookkeeping to undo it.
 
     Args:
@@ -106,7 +118,9 @@ def preprocess_monodepth(images: Sequence[np.ndarray], mode: PreprocessMode = RE
             top, left = (arr.shape[0] - min_h) // 2, (arr.shape[1] - min_w) // 2
             arrays[k] = arr[top : top + min_h, left : left + min_w]
             t = transforms[k]
-            transforms[k] = ResizeTransform(t.orig_size_wh, (min_w, min_h), t.scale_x, t.scale_y, t.offset_x - left, t.offset_y - top)
+            transforms[k] = ResizeTransform(
+                t.orig_size_wh, (min_w, min_h), t.scale_x, t.scale_y, t.offset_x - left, t.offset_y - top
+            )
     batch = np.stack(arrays).astype(np.float32).transpose(0, 3, 1, 2) / np.float32(255.0)
     return np.ascontiguousarray(batch, dtype=np.float32), tuple(transforms)
 
@@ -141,7 +155,11 @@ def depth_from_inverse(inverse: np.ndarray) -> np.ndarray:
 
 def describe_assumptions(depth_kind: str, focal_px: float | None) -> str:
     """One sentence for the report: what the decoded geometry assumed."""
-    camera = "the photo's EXIF focal length" if focal_px else f"a guessed {DEFAULT_HFOV_DEG:.0f}-degree horizontal field of view (no EXIF focal length)"
+    camera = (
+        "the photo's EXIF focal length"
+        if focal_px
+        else f"a guessed {DEFAULT_HFOV_DEG:.0f}-degree horizontal field of view (no EXIF focal length)"
+    )
     depth = "metric depth used as predicted" if depth_kind == "metric" else RELATIVE_DEPTH_ASSUMPTION
     return f"monocular depth: {depth}; camera from {camera}; pose identity"
 
@@ -151,7 +169,16 @@ def _model_depth_kind(model: ModelInfo) -> str:
     return metadata.get("ffrecon.depth_kind", DEPTH_KINDS[0])
 
 
-def decode_monodepth(outputs: Mapping[str, np.ndarray], transforms: Sequence[ResizeTransform], names: Sequence[str], model: ModelInfo, max_depth_side: int | None = None, *, focal_px: float | None = None, depth_kind: str | None = None) -> Prediction:
+def decode_monodepth(
+    outputs: Mapping[str, np.ndarray],
+    transforms: Sequence[ResizeTransform],
+    names: Sequence[str],
+    model: ModelInfo,
+    max_depth_side: int | None = None,
+    *,
+    focal_px: float | None = None,
+    depth_kind: str | None = None,
+) -> Prediction:
     """One photo's ``predicted_depth`` to a :class:`Prediction` in original-photo pixels.
 
     Args:
@@ -165,28 +192,50 @@ def decode_monodepth(outputs: Mapping[str, np.ndarray], transforms: Sequence[Res
         is valid, 0 elsewhere.
     """
     if len(transforms) != 1 or len(names) != 1:
-        raise InputError(f"a monocular depth model reconstructs one photo, got {len(names)}", "pass a single photo, or use a multi-view model (VGGT, Depth Anything 3) for several")
+        raise InputError(
+            f"a monocular depth model reconstructs one photo, got {len(names)}",
+            "pass a single photo, or use a multi-view model (VGGT, Depth Anything 3) for several",
+        )
     kind = depth_kind or _model_depth_kind(model)
     if kind not in DEPTH_KINDS:
-        raise ModelError(f"unknown depth kind '{kind}'", f"the model's ffrecon.depth_kind must be one of {', '.join(DEPTH_KINDS)}; re-export with `ffrecon export-model monodepth`")
+        raise ModelError(
+            f"unknown depth kind '{kind}'",
+            f"the model's ffrecon.depth_kind must be one of {', '.join(DEPTH_KINDS)}; re-export with `ffrecon export-model monodepth`",
+        )
     if OUTPUT_NAMES[0] not in outputs:
-        raise ModelError(f"model outputs lack 'predicted_depth'; got {sorted(outputs)}", "a monocular depth model must output predicted_depth [B, H, W] (export it with `ffrecon export-model monodepth`)")
+        raise ModelError(
+            f"model outputs lack 'predicted_depth'; got {sorted(outputs)}",
+            "a monocular depth model must output predicted_depth [B, H, W] (export it with `ffrecon export-model monodepth`)",
+        )
     raw = np.asarray(outputs[OUTPUT_NAMES[0]], dtype=np.float32)
     check_finite(OUTPUT_NAMES[0], raw, model=model.path)
     net = raw[:, 0] if raw.ndim == 4 and raw.shape[1] == 1 else raw
     if net.ndim != 3 or net.shape[0] != 1:
-        raise ModelError(f"model output 'predicted_depth' has shape {raw.shape}; expected [1, H, W] for one photo", "export the model with `ffrecon export-model monodepth`")
+        raise ModelError(
+            f"model output 'predicted_depth' has shape {raw.shape}; expected [1, H, W] for one photo",
+            "export the model with `ffrecon export-model monodepth`",
+        )
     t = transforms[0]
     # Bicubic at the original pixel centres: F.interpolate(mode="bicubic", align_corners=False).
     value = t.map_to_original(net[0], max_side=max_depth_side, interpolation=cv2.INTER_CUBIC)
-    depth = depth_from_inverse(value) if kind == "relative_inverse" else np.where(value > 0, value, 0.0).astype(np.float32)
+    depth = (
+        depth_from_inverse(value) if kind == "relative_inverse" else np.where(value > 0, value, 0.0).astype(np.float32)
+    )
     conf = (depth > 0).astype(np.float32)
     camera = guessed_camera(*t.orig_size_wh, focal_px=focal_px)
     cam_from_world = np.concatenate([np.eye(3), np.zeros((3, 1))], axis=1)[None]
     return Prediction(tuple(names), cam_from_world, (camera,), (depth,), (conf,), model)
 
 
-def predict_monodepth(image: np.ndarray, name: str, infer: Callable[[np.ndarray], Mapping[str, np.ndarray]], model: ModelInfo, *, focal_px: float | None = None, options: object | None = None) -> Prediction:
+def predict_monodepth(
+    image: np.ndarray,
+    name: str,
+    infer: Callable[[np.ndarray], Mapping[str, np.ndarray]],
+    model: ModelInfo,
+    *,
+    focal_px: float | None = None,
+    options: object | None = None,
+) -> Prediction:
     """Preprocess one photo, run the model (``infer``: ``pixel_values`` batch to outputs), decode.
 
     Args:
@@ -205,7 +254,9 @@ ADAPTER = MultiviewAdapter(
     input_name=INPUT_NAME,
     output_names=OUTPUT_NAMES,
     preprocess=lambda images, mode: preprocess_monodepth(images, mode),
-    decode=lambda outputs, transforms, names, model, max_side: decode_monodepth(outputs, transforms, names, model, max_side),
+    decode=lambda outputs, transforms, names, model, max_side: decode_monodepth(
+        outputs, transforms, names, model, max_side
+    ),
     modes=(REFERENCE_MODE,),
     world_frame="the photo's camera (one photo; identity pose)",
     description=f"monocular depth: predicted_depth (relative inverse or metric); camera from EXIF or a {DEFAULT_HFOV_DEG:.0f}-degree guess",

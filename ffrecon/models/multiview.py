@@ -37,7 +37,10 @@ class MultiviewOptions:
 
     def __post_init__(self) -> None:
         if self.chunk_size is not None and (self.chunk_size < 2 or not 0 < self.chunk_overlap < self.chunk_size):
-            raise FFReconError(f"chunk size {self.chunk_size} with overlap {self.chunk_overlap} is not usable", "use chunk_size >= 2 and 0 < chunk_overlap < chunk_size")
+            raise FFReconError(
+                f"chunk size {self.chunk_size} with overlap {self.chunk_overlap} is not usable",
+                "use chunk_size >= 2 and 0 < chunk_overlap < chunk_size",
+            )
 
 
 def plan_chunks(num_frames: int, chunk_size: int, overlap: int) -> list[list[int]]:
@@ -59,7 +62,14 @@ def plan_chunks(num_frames: int, chunk_size: int, overlap: int) -> list[list[int
         start = end - overlap
 
 
-def predict_multiview(images: Sequence[np.ndarray], names: Sequence[str], infer: Callable[[np.ndarray], dict[str, np.ndarray]], model: ModelInfo, options: MultiviewOptions = MultiviewOptions(), adapter: MultiviewAdapter | None = None) -> Prediction:
+def predict_multiview(
+    images: Sequence[np.ndarray],
+    names: Sequence[str],
+    infer: Callable[[np.ndarray], dict[str, np.ndarray]],
+    model: ModelInfo,
+    options: MultiviewOptions = MultiviewOptions(),
+    adapter: MultiviewAdapter | None = None,
+) -> Prediction:
     """Run a multi-view model on all frames (chunked) and return one :class:`Prediction`.
 
     Args:
@@ -71,7 +81,10 @@ def predict_multiview(images: Sequence[np.ndarray], names: Sequence[str], infer:
         from ffrecon.models.vggt import ADAPTER as adapter
     mode = options.mode or adapter.modes[0]
     if mode not in adapter.modes:
-        raise ModelError(f"{adapter.family.value} models have no '{mode.value}' preprocessing", f"use --preprocess {' or '.join(m.value for m in adapter.modes)}")
+        raise ModelError(
+            f"{adapter.family.value} models have no '{mode.value}' preprocessing",
+            f"use --preprocess {' or '.join(m.value for m in adapter.modes)}",
+        )
     chunk_size = options.chunk_size or FALLBACK_CHUNK_SIZE
     chunks = plan_chunks(len(images), chunk_size, min(options.chunk_overlap, chunk_size - 1))
     parts = []
@@ -79,7 +92,9 @@ def predict_multiview(images: Sequence[np.ndarray], names: Sequence[str], infer:
         batch, transforms = adapter.preprocess([images[k] for k in chunk], mode)
         outputs = infer(batch)
         part = adapter.decode(outputs, transforms, [names[k] for k in chunk], model, options.max_depth_side)
-        validate_prediction(part, camera_outputs=adapter.camera_outputs)  # before merging: bad cameras poison the chunk Sim(3)
+        validate_prediction(
+            part, camera_outputs=adapter.camera_outputs
+        )  # before merging: bad cameras poison the chunk Sim(3)
         parts.append(part)
     return merge_chunks(parts, chunks, options.align_points_per_frame)
 
@@ -92,7 +107,9 @@ def _sample_points(pred: Prediction, k: int, mask: np.ndarray, max_points: int) 
     return pts, pred.depth_conf[k].reshape(-1)[idx]
 
 
-def chunk_alignment(ref: Prediction, ref_idx: Sequence[int], new: Prediction, new_idx: Sequence[int], max_points: int) -> Sim3:
+def chunk_alignment(
+    ref: Prediction, ref_idx: Sequence[int], new: Prediction, new_idx: Sequence[int], max_points: int
+) -> Sim3:
     """Sim(3) ``ref_world_from_new_world`` from frames present in both predictions."""
     src, dst, weights = [], [], []
     for a, b in zip(ref_idx, new_idx):
@@ -105,7 +122,10 @@ def chunk_alignment(ref: Prediction, ref_idx: Sequence[int], new: Prediction, ne
         dst.append(p_dst)
         weights.append(np.sqrt(c_src * c_dst))
     if not src:
-        raise ModelError("chunks share no frame with valid depth, so they cannot be put in one frame", "increase --chunk-overlap or --chunk-size")
+        raise ModelError(
+            "chunks share no frame with valid depth, so they cannot be put in one frame",
+            "increase --chunk-overlap or --chunk-size",
+        )
     src_a, dst_a, w = np.concatenate(src), np.concatenate(dst), np.concatenate(weights)
     sim = umeyama(src_a, dst_a, w)
     # One reweighting pass: drop the worst 10% of residuals (depth edges, sky) and refit.
@@ -140,5 +160,12 @@ def merge_chunks(parts: Sequence[Prediction], chunks: Sequence[Sequence[int]], m
             conf[k] = part.depth_conf[local]
         done = [k for k in range(n) if poses[k] is not None]
         merged_index = {k: i for i, k in enumerate(done)}
-        merged_so_far = Prediction(tuple(names[k] for k in done), np.stack([poses[k] for k in done]), tuple(cameras[k] for k in done), tuple(depth[k] for k in done), tuple(conf[k] for k in done), parts[0].model)
+        merged_so_far = Prediction(
+            tuple(names[k] for k in done),
+            np.stack([poses[k] for k in done]),
+            tuple(cameras[k] for k in done),
+            tuple(depth[k] for k in done),
+            tuple(conf[k] for k in done),
+            parts[0].model,
+        )
     return merged_so_far

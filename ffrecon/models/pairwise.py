@@ -44,7 +44,15 @@ class PairGraph(enum.Enum):
     ONE_REFERENCE = "one_reference"  # every view with the reference view
 
 
-def make_pairs(num_views: int, graph: PairGraph, *, window: int = 3, reference: int = 0, symmetric: bool = True, cyclic: bool = False) -> list[tuple[int, int]]:
+def make_pairs(
+    num_views: int,
+    graph: PairGraph,
+    *,
+    window: int = 3,
+    reference: int = 0,
+    symmetric: bool = True,
+    cyclic: bool = False,
+) -> list[tuple[int, int]]:
     """Ordered view pairs ``(i, j)`` to run the model on.
 
     Args:
@@ -66,7 +74,9 @@ def make_pairs(num_views: int, graph: PairGraph, *, window: int = 3, reference: 
     if window < 1:
         raise FFReconError(f"sliding window must be >= 1, got {window}", "use window >= 1")
     if not 0 <= reference < num_views:
-        raise FFReconError(f"reference view {reference} is not one of the {num_views} views", f"use a reference in 0..{num_views - 1}")
+        raise FFReconError(
+            f"reference view {reference} is not one of the {num_views} views", f"use a reference in 0..{num_views - 1}"
+        )
     if graph is PairGraph.COMPLETE:
         base = [(i, j) for i in range(num_views) for j in range(i + 1, num_views)]
     elif graph is PairGraph.SLIDING_WINDOW:
@@ -115,7 +125,9 @@ def _reference_resize_wh(width: int, height: int, long_side: int) -> tuple[int, 
     return round(width * edge / side), round(height * edge / side)
 
 
-def preprocess_pairwise(images: Sequence[np.ndarray], long_side: int = LONG_SIDE, *, size_hw: tuple[int, int] | None = None) -> tuple[np.ndarray, tuple[ResizeTransform, ...]]:
+def preprocess_pairwise(
+    images: Sequence[np.ndarray], long_side: int = LONG_SIDE, *, size_hw: tuple[int, int] | None = None
+) -> tuple[np.ndarray, tuple[ResizeTransform, ...]]:
     """Resize and centre-crop photos for a DUSt3R-style model, recording the pixel mapping.
 
     Upstream's reference (``dust3r.utils.image.load_images``): each photo's long side is resized to
@@ -138,14 +150,20 @@ def preprocess_pairwise(images: Sequence[np.ndarray], long_side: int = LONG_SIDE
         raise InputError("no images to preprocess", "pass at least two images")
     for k, image in enumerate(images):
         if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
-            raise InputError(f"image {k} has shape {image.shape} and dtype {image.dtype}; expected [H, W, 3] uint8 RGB", "load images as 8-bit RGB")
+            raise InputError(
+                f"image {k} has shape {image.shape} and dtype {image.dtype}; expected [H, W, 3] uint8 RGB",
+                "load images as 8-bit RGB",
+            )
     if size_hw is None:
         size_hw = network_size_hw(*images[0].shape[:2], long_side)
     else:
         long_side = max(size_hw)
     net_h, net_w = size_hw
     if net_h < PATCH_SIZE or net_w < PATCH_SIZE or net_h % PATCH_SIZE or net_w % PATCH_SIZE:
-        raise InputError(f"network size {net_w}x{net_h} is not a positive multiple of {PATCH_SIZE}", f"use a size whose sides are multiples of {PATCH_SIZE}")
+        raise InputError(
+            f"network size {net_w}x{net_h} is not a positive multiple of {PATCH_SIZE}",
+            f"use a size whose sides are multiples of {PATCH_SIZE}",
+        )
     out = np.empty((len(images), 3, net_h, net_w), np.float32)
     transforms = []
     for k, image in enumerate(images):
@@ -153,19 +171,32 @@ def preprocess_pairwise(images: Sequence[np.ndarray], long_side: int = LONG_SIDE
         new_w, new_h = _reference_resize_wh(w, h, long_side)
         if new_w < net_w or new_h < net_h:  # not the reference: scale to cover the network size
             if abs(w / h - net_w / net_h) > 0.1 * net_w / net_h:
-                log.warning("image %d (%dx%d) has another aspect ratio than the network input %dx%d: its margins are cropped away", k, w, h, net_w, net_h)
+                log.warning(
+                    "image %d (%dx%d) has another aspect ratio than the network input %dx%d: its margins are cropped away",
+                    k,
+                    w,
+                    h,
+                    net_w,
+                    net_h,
+                )
             s = max(net_w / w, net_h / h)
             new_w, new_h = max(net_w, round(w * s)), max(net_h, round(h * s))
-        resample = Image.Resampling.LANCZOS if max(new_w, new_h) < max(w, h) else Image.Resampling.BICUBIC  # upstream: Lanczos when shrinking
+        resample = (
+            Image.Resampling.LANCZOS if max(new_w, new_h) < max(w, h) else Image.Resampling.BICUBIC
+        )  # upstream: Lanczos when shrinking
         resized = np.asarray(Image.fromarray(image).resize((new_w, new_h), resample), dtype=np.float32)
         left, top = new_w // 2 - net_w // 2, new_h // 2 - net_h // 2  # upstream's box: centre at size // 2
         crop = resized[top : top + net_h, left : left + net_w]
-        out[k] = ((crop / np.float32(255) - np.float32(0.5)) / np.float32(0.5)).transpose(2, 0, 1)  # torchvision ToTensor + Normalize
+        out[k] = ((crop / np.float32(255) - np.float32(0.5)) / np.float32(0.5)).transpose(
+            2, 0, 1
+        )  # torchvision ToTensor + Normalize
         transforms.append(ResizeTransform((w, h), (net_w, net_h), new_w / w, new_h / h, -float(left), -float(top)))
     return out, tuple(transforms)
 
 
-def run_pairs(batch: np.ndarray, pairs: Sequence[tuple[int, int]], infer: PairInfer, batch_size: int = 4, *, model_name: str = "") -> list[PairPrediction]:
+def run_pairs(
+    batch: np.ndarray, pairs: Sequence[tuple[int, int]], infer: PairInfer, batch_size: int = 4, *, model_name: str = ""
+) -> list[PairPrediction]:
     """Run a pairwise model over ``pairs`` of ``batch`` images, ``batch_size`` pairs per call.
 
     Args:
@@ -186,28 +217,52 @@ def run_pairs(batch: np.ndarray, pairs: Sequence[tuple[int, int]], infer: PairIn
             view2 = np.ascontiguousarray(batch[[j for _, j in chunk]])
             outputs = _check_outputs(infer(view1, view2), len(chunk), (h, w), model_name)
             for k, (i, j) in enumerate(chunk):
-                results.append(PairPrediction(i, j, outputs["pts3d"][k], outputs["conf"][k], outputs["pts3d_in_other_view"][k], outputs["conf_in_other_view"][k]))
+                results.append(
+                    PairPrediction(
+                        i,
+                        j,
+                        outputs["pts3d"][k],
+                        outputs["conf"][k],
+                        outputs["pts3d_in_other_view"][k],
+                        outputs["conf_in_other_view"][k],
+                    )
+                )
             bar.update(len(chunk))
     return results
 
 
-def _check_outputs(outputs: Mapping[str, np.ndarray], b: int, size_hw: tuple[int, int], model_name: str) -> dict[str, np.ndarray]:
-    require_outputs(outputs, OUTPUT_NAMES, fix=f"a DUSt3R-contract model must output {', '.join(OUTPUT_NAMES)} (CONTRACTS.md section 2)")
+def _check_outputs(
+    outputs: Mapping[str, np.ndarray], b: int, size_hw: tuple[int, int], model_name: str
+) -> dict[str, np.ndarray]:
+    require_outputs(
+        outputs,
+        OUTPUT_NAMES,
+        fix=f"a DUSt3R-contract model must output {', '.join(OUTPUT_NAMES)} (CONTRACTS.md section 2)",
+    )
     checked = {}
     for name in OUTPUT_NAMES:
         value = np.asarray(outputs[name], dtype=np.float32)
         expected = (b, *size_hw, 3) if name.startswith("pts3d") else (b, *size_hw)
         if value.shape != expected:
-            raise ModelError(f"pairwise model output '{name}' has shape {value.shape}; expected {expected}", "outputs must have the input's resolution (CONTRACTS.md section 2)")
+            raise ModelError(
+                f"pairwise model output '{name}' has shape {value.shape}; expected {expected}",
+                "outputs must have the input's resolution (CONTRACTS.md section 2)",
+            )
         check_finite(name, value, model=model_name)
         if name.startswith("conf") and value.min() < 1.0 - 1e-3:
-            raise ModelError(f"pairwise model output '{name}' has values down to {value.min():.3g}; confidences must be >= 1", "export the model with its confidence activation (1 + exp(x)), not raw logits")
+            raise ModelError(
+                f"pairwise model output '{name}' has values down to {value.min():.3g}; confidences must be >= 1",
+                "export the model with its confidence activation (1 + exp(x)), not raw logits",
+            )
         checked[name] = value
     for name in (n for n in DESCRIPTOR_NAMES if n in outputs):  # MASt3R: checked and passed on, not used yet
         value = np.asarray(outputs[name], dtype=np.float32)
         is_desc = name in ("desc", "desc_in_other_view")
         if value.shape[:3] != (b, *size_hw) or value.ndim != (4 if is_desc else 3):
-            raise ModelError(f"pairwise model output '{name}' has shape {value.shape}; expected {(b, *size_hw, 'D') if is_desc else (b, *size_hw)}", "export MASt3R with `ffrecon export-model mast3r`")
+            raise ModelError(
+                f"pairwise model output '{name}' has shape {value.shape}; expected {(b, *size_hw, 'D') if is_desc else (b, *size_hw)}",
+                "export MASt3R with `ffrecon export-model mast3r`",
+            )
         check_finite(name, value, model=model_name)
         checked[name] = value
     return checked
@@ -222,12 +277,17 @@ def downsample_pair(pair: PairPrediction, stride: int) -> PairPrediction:
     """
     h, w = pair.conf_i.shape
     if h % stride or w % stride:
-        raise FFReconError(f"alignment stride {stride} does not divide the {w}x{h} maps", "use a stride that divides 16 (1, 2, 4, 8 or 16)")
+        raise FFReconError(
+            f"alignment stride {stride} does not divide the {w}x{h} maps",
+            "use a stride that divides 16 (1, 2, 4, 8 or 16)",
+        )
 
     def pool(a: np.ndarray) -> np.ndarray:
         return a.reshape(h // stride, stride, w // stride, stride, *a.shape[2:]).mean(axis=(1, 3)).astype(np.float32)
 
-    return PairPrediction(pair.i, pair.j, pool(pair.pts_i_in_i), pool(pair.conf_i), pool(pair.pts_j_in_i), pool(pair.conf_j))
+    return PairPrediction(
+        pair.i, pair.j, pool(pair.pts_i_in_i), pool(pair.conf_i), pool(pair.pts_j_in_i), pool(pair.conf_j)
+    )
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -245,11 +305,25 @@ class PairwiseOptions:
     max_depth_side: int | None = 1024  # cap on stored depth grids (None: original resolution)
 
     def __post_init__(self) -> None:
-        if self.batch_size < 1 or self.align_stride < 1 or PATCH_SIZE % self.align_stride or self.long_side < PATCH_SIZE:
-            raise FFReconError(f"unusable pairwise options: batch_size {self.batch_size}, align_stride {self.align_stride}, long_side {self.long_side}", f"use batch_size >= 1, an align_stride dividing {PATCH_SIZE} and long_side >= {PATCH_SIZE}")
+        if (
+            self.batch_size < 1
+            or self.align_stride < 1
+            or PATCH_SIZE % self.align_stride
+            or self.long_side < PATCH_SIZE
+        ):
+            raise FFReconError(
+                f"unusable pairwise options: batch_size {self.batch_size}, align_stride {self.align_stride}, long_side {self.long_side}",
+                f"use batch_size >= 1, an align_stride dividing {PATCH_SIZE} and long_side >= {PATCH_SIZE}",
+            )
 
 
-def predict_pairwise(images: Sequence[np.ndarray], names: Sequence[str], infer: PairInfer, model: ModelInfo, options: PairwiseOptions = PairwiseOptions()) -> Prediction:
+def predict_pairwise(
+    images: Sequence[np.ndarray],
+    names: Sequence[str],
+    infer: PairInfer,
+    model: ModelInfo,
+    options: PairwiseOptions = PairwiseOptions(),
+) -> Prediction:
     """Run a pairwise model over a pair graph and globally align the pairs into one :class:`Prediction`.
 
     Args:
@@ -262,10 +336,27 @@ def predict_pairwise(images: Sequence[np.ndarray], names: Sequence[str], infer: 
     if len(images) != len(names):
         raise InputError(f"{len(images)} images but {len(names)} names", "pass one name per image")
     if model.family is not ModelFamily.PAIRWISE:
-        raise ModelError(f"{model.path} is a {model.family.value} model, not a pairwise one", "use predict_multiview for VGGT-contract models")
-    pairs = make_pairs(len(images), options.graph, window=options.window, reference=options.reference, symmetric=options.symmetric, cyclic=options.cyclic)
+        raise ModelError(
+            f"{model.path} is a {model.family.value} model, not a pairwise one",
+            "use predict_multiview for VGGT-contract models",
+        )
+    pairs = make_pairs(
+        len(images),
+        options.graph,
+        window=options.window,
+        reference=options.reference,
+        symmetric=options.symmetric,
+        cyclic=options.cyclic,
+    )
     batch, transforms = preprocess_pairwise(images, options.long_side, size_hw=options.size_hw)
-    log.info("pairwise model on %d images at %dx%d: %d pairs (%s)", len(images), batch.shape[3], batch.shape[2], len(pairs), options.graph.value)
+    log.info(
+        "pairwise model on %d images at %dx%d: %d pairs (%s)",
+        len(images),
+        batch.shape[3],
+        batch.shape[2],
+        len(pairs),
+        options.graph.value,
+    )
     predictions = run_pairs(batch, pairs, infer, options.batch_size, model_name=model.path)
     stride = options.align_stride
     if stride > 1:
@@ -275,7 +366,14 @@ def predict_pairwise(images: Sequence[np.ndarray], names: Sequence[str], infer: 
     cameras, depths, confs = [], [], []
     for k, t in enumerate(transforms):
         # The alignment grid is the network grid scaled by 1 / stride (no half-pixel terms).
-        grid = ResizeTransform(t.orig_size_wh, (size_hw[1], size_hw[0]), t.scale_x / stride, t.scale_y / stride, t.offset_x / stride, t.offset_y / stride)
+        grid = ResizeTransform(
+            t.orig_size_wh,
+            (size_hw[1], size_hw[0]),
+            t.scale_x / stride,
+            t.scale_y / stride,
+            t.offset_x / stride,
+            t.offset_y / stride,
+        )
         cameras.append(grid.camera_to_original(result.K(k)))
         depths.append(grid.map_to_original(result.depth[k], max_side=options.max_depth_side))
         confs.append(grid.map_to_original(result.conf[k], max_side=options.max_depth_side))

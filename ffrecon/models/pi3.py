@@ -64,7 +64,9 @@ def network_size_hw(height: int, width: int, pixel_limit: int = PIXEL_LIMIT) -> 
     return max(1, m) * PATCH_SIZE, max(1, k) * PATCH_SIZE
 
 
-def preprocess_pi3(images: Sequence[np.ndarray], mode: PreprocessMode = PreprocessMode.CROP) -> tuple[np.ndarray, tuple[ResizeTransform, ...]]:
+def preprocess_pi3(
+    images: Sequence[np.ndarray], mode: PreprocessMode = PreprocessMode.CROP
+) -> tuple[np.ndarray, tuple[ResizeTransform, ...]]:
     """Pi3's reference preprocessing (``pi3.utils.basic.load_images_as_tensor``) with its bookkeeping.
 
     Every image is resized (PIL Lanczos, no crop, no padding) to the size the *first* image gets
@@ -128,7 +130,14 @@ def _without_batch(name: str, array: np.ndarray, shape: tuple[int | None, ...]) 
     return strip_batch_axis(name, array, shape, fix="export the model with `ffrecon export-model pi3` (docs/models.md)")
 
 
-def decode_pi3_outputs(outputs: Mapping[str, np.ndarray], transforms: Sequence[ResizeTransform], names: Sequence[str], model: ModelInfo, *, max_depth_side: int | None = None) -> Prediction:
+def decode_pi3_outputs(
+    outputs: Mapping[str, np.ndarray],
+    transforms: Sequence[ResizeTransform],
+    names: Sequence[str],
+    model: ModelInfo,
+    *,
+    max_depth_side: int | None = None,
+) -> Prediction:
     """Pi3 outputs for N frames to a :class:`Prediction` in original-photo pixels.
 
     Args:
@@ -140,7 +149,11 @@ def decode_pi3_outputs(outputs: Mapping[str, np.ndarray], transforms: Sequence[R
     Returns:
         cam_from_world with frame 0 as the world; K, depth (local z) and ``1 + exp(conf)`` per frame.
     """
-    require_outputs(outputs, OUTPUT_NAMES, fix="a Pi3-contract model must output local_points, conf and camera_poses (docs/models.md)")
+    require_outputs(
+        outputs,
+        OUTPUT_NAMES,
+        fix="a Pi3-contract model must output local_points, conf and camera_poses (docs/models.md)",
+    )
     n = len(transforms)
     wn, hn = transforms[0].net_size_wh
     local_points = _without_batch("local_points", outputs["local_points"], (n, hn, wn, 3))
@@ -158,7 +171,9 @@ def decode_pi3_outputs(outputs: Mapping[str, np.ndarray], transforms: Sequence[R
     K_net = np.zeros((len(transforms), 3, 3))
     K_net[:, 0, 0], K_net[:, 1, 1] = focal[:, 0], focal[:, 1]
     K_net[:, 0, 2], K_net[:, 1, 2], K_net[:, 2, 2] = wn / 2, hn / 2, 1.0
-    return prediction_in_original_pixels(names, cam_from_world, K_net, depth, depth_conf, transforms, model, max_depth_side=max_depth_side)
+    return prediction_in_original_pixels(
+        names, cam_from_world, K_net, depth, depth_conf, transforms, model, max_depth_side=max_depth_side
+    )
 
 
 ADAPTER = MultiviewAdapter(
@@ -166,7 +181,9 @@ ADAPTER = MultiviewAdapter(
     input_name=INPUT_NAME,
     output_names=OUTPUT_NAMES,
     preprocess=lambda images, mode: preprocess_pi3(images, mode),
-    decode=lambda outputs, transforms, names, model, max_side: decode_pi3_outputs(outputs, transforms, names, model, max_depth_side=max_side),
+    decode=lambda outputs, transforms, names, model, max_side: decode_pi3_outputs(
+        outputs, transforms, names, model, max_depth_side=max_side
+    ),
     modes=(PreprocessMode.CROP,),
     world_frame="the first frame of each model call (Pi3 has no reference frame; its world_from_cam poses are re-expressed relative to frame 0)",
     camera_outputs="camera_poses (poses) and local_points (focal, fitted as upstream's recover_intrinsic_from_rays_d)",

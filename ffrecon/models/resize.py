@@ -48,7 +48,9 @@ class ResizeTransform:
     def camera_to_original(self, K_net: np.ndarray) -> PinholeCamera:
         return PinholeCamera.from_K(self.K_to_original(K_net), *self.orig_size_wh)
 
-    def map_to_original(self, net_map: np.ndarray, *, max_side: int | None = None, interpolation: int = cv2.INTER_LINEAR) -> np.ndarray:
+    def map_to_original(
+        self, net_map: np.ndarray, *, max_side: int | None = None, interpolation: int = cv2.INTER_LINEAR
+    ) -> np.ndarray:
         """Resample a ``[Hn, Wn]`` network-resolution map at the original pixel centres.
 
         With ``max_side``, the original grid is first scaled down uniformly so that its long side is
@@ -63,7 +65,13 @@ class ResizeTransform:
         ys = (np.arange(h) + 0.5) * (oh / h) * self.scale_y + self.offset_y - 0.5
         map_x = np.broadcast_to(xs[None, :], (h, w)).astype(np.float32)
         map_y = np.broadcast_to(ys[:, None], (h, w)).astype(np.float32)
-        out = cv2.remap(np.ascontiguousarray(net_map, dtype=np.float32), map_x, map_y, interpolation, borderMode=cv2.BORDER_REPLICATE)
+        out = cv2.remap(
+            np.ascontiguousarray(net_map, dtype=np.float32),
+            map_x,
+            map_y,
+            interpolation,
+            borderMode=cv2.BORDER_REPLICATE,
+        )
         # Samples within half a pixel of the border take the edge value; anything beyond was cropped away.
         wn, hn = self.net_size_wh
         outside = (map_x < -0.5) | (map_x > wn - 0.5) | (map_y < -0.5) | (map_y > hn - 0.5)
@@ -71,7 +79,17 @@ class ResizeTransform:
         return out
 
 
-def prediction_in_original_pixels(names, cam_from_world: np.ndarray, K_net: np.ndarray, depth: np.ndarray, conf: np.ndarray, transforms, model: ModelInfo, *, max_depth_side: int | None = None) -> Prediction:
+def prediction_in_original_pixels(
+    names,
+    cam_from_world: np.ndarray,
+    K_net: np.ndarray,
+    depth: np.ndarray,
+    conf: np.ndarray,
+    transforms,
+    model: ModelInfo,
+    *,
+    max_depth_side: int | None = None,
+) -> Prediction:
     """A :class:`Prediction` from network-resolution outputs: intrinsics, depth and confidence of each
     frame mapped back to its original photo through its transform (every family ends its decoding here).
 

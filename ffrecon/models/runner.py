@@ -59,7 +59,9 @@ class OnnxModel:
     def __init__(self, path: Path | str, *, threads: int = 0, use_cuda: bool = True) -> None:
         self.path = Path(path)
         if not self.path.is_file():
-            raise InputError(f"model file not found: {self.path}", "pass the path of an .onnx file (see docs/models.md to make one)")
+            raise InputError(
+                f"model file not found: {self.path}", "pass the path of an .onnx file (see docs/models.md to make one)"
+            )
         options = ort.SessionOptions()
         options.intra_op_num_threads = threads or (os.cpu_count() or 1)
         options.log_severity_level = 3
@@ -69,7 +71,10 @@ class OnnxModel:
         try:
             self.session = ort.InferenceSession(str(self.path), options, providers=providers)
         except Exception as exc:  # onnxruntime raises several unrelated types for unreadable files
-            raise ModelError(f"onnxruntime cannot load {self.path}: {str(exc).splitlines()[0]}", "check that the file is a complete ONNX model (re-export or re-download it)") from exc
+            raise ModelError(
+                f"onnxruntime cannot load {self.path}: {str(exc).splitlines()[0]}",
+                "check that the file is a complete ONNX model (re-export or re-download it)",
+            ) from exc
         self.providers = tuple(self.session.get_providers())
         self.inputs = tuple(TensorSpec(i.name, tuple(i.shape), i.type) for i in self.session.get_inputs())
         self.outputs = tuple(TensorSpec(o.name, tuple(o.shape), o.type) for o in self.session.get_outputs())
@@ -100,7 +105,10 @@ class OnnxModel:
             values = self.session.run(names, feeds)
         except Exception as exc:
             shapes = {k: v.shape for k, v in feeds.items()}
-            raise ModelError(f"{self.path.name} failed on inputs {shapes}: {str(exc).splitlines()[0]}", "check the input sizes the model accepts with `ffrecon inspect-model`") from exc
+            raise ModelError(
+                f"{self.path.name} failed on inputs {shapes}: {str(exc).splitlines()[0]}",
+                "check the input sizes the model accepts with `ffrecon inspect-model`",
+            ) from exc
         return dict(zip(names, values))
 
 
@@ -109,7 +117,12 @@ def _matches(family: ModelFamily, in_names: set[str], out_names: set[str]) -> bo
     return set(inputs) <= in_names and set(outputs) <= out_names
 
 
-def detect_family(inputs: tuple[TensorSpec, ...], outputs: tuple[TensorSpec, ...], path: Path | str = "model", metadata: dict[str, str] | None = None) -> ModelFamily:
+def detect_family(
+    inputs: tuple[TensorSpec, ...],
+    outputs: tuple[TensorSpec, ...],
+    path: Path | str = "model",
+    metadata: dict[str, str] | None = None,
+) -> ModelFamily:
     """Model family from the ``ffrecon.contract`` metadata and the declared names.
 
     The metadata picks the family when present; the declared names must still match it (a file
@@ -124,15 +137,23 @@ def detect_family(inputs: tuple[TensorSpec, ...], outputs: tuple[TensorSpec, ...
     if claimed:
         family = next((f for f in ModelFamily if f.value == claimed), None)
         if family is None:
-            raise ModelError(f"{Path(path).name} says it follows the '{claimed}' contract, which this ffrecon does not know. Found: {found}.", f"supported contracts: {', '.join(f.value for f in ModelFamily)}; update ffrecon or re-export the model")
+            raise ModelError(
+                f"{Path(path).name} says it follows the '{claimed}' contract, which this ffrecon does not know. Found: {found}.",
+                f"supported contracts: {', '.join(f.value for f in ModelFamily)}; update ffrecon or re-export the model",
+            )
         if _matches(family, in_names, out_names):
             return family
         want_in, want_out = SIGNATURES[family]
-        raise ModelError(f"{Path(path).name} says it follows the {FAMILY_NAMES[family]} contract but declares other names. Found: {found}.", f"{FAMILY_NAMES[family]} needs inputs {', '.join(want_in)} and outputs {', '.join(want_out)}; re-export with `ffrecon export-model`")
+        raise ModelError(
+            f"{Path(path).name} says it follows the {FAMILY_NAMES[family]} contract but declares other names. Found: {found}.",
+            f"{FAMILY_NAMES[family]} needs inputs {', '.join(want_in)} and outputs {', '.join(want_out)}; re-export with `ffrecon export-model`",
+        )
     for family in SIGNATURES:
         if _matches(family, in_names, out_names):
             return family
-    expected = "; ".join(f"{FAMILY_NAMES[f]}: inputs {', '.join(i)} -> outputs {', '.join(o)}" for f, (i, o) in SIGNATURES.items())
+    expected = "; ".join(
+        f"{FAMILY_NAMES[f]}: inputs {', '.join(i)} -> outputs {', '.join(o)}" for f, (i, o) in SIGNATURES.items()
+    )
     raise ModelError(
         f"{Path(path).name} matches no supported model contract. Found: {found}.",
         f"supported families and the names they declare: {expected}. Export models with `ffrecon export-model FAMILY` (docs/models.md)",

@@ -16,8 +16,8 @@ from ffrecon.export.pointcloud import FuseOptions, fuse_prediction, write_depth_
 from ffrecon.models.adapters import adapter_for
 from ffrecon.models.memory import default_chunk_size
 from ffrecon.models.multiview import MultiviewOptions, predict_multiview
-from ffrecon.models.validate import validate_prediction
 from ffrecon.models.runner import OnnxModel
+from ffrecon.models.validate import validate_prediction
 from ffrecon.sfm.colmap_io import reconstruction_from_cameras, write_reconstruction
 from ffrecon.types import ModelFamily, ModelInfo, Prediction
 
@@ -45,13 +45,23 @@ class FeedForwardResult:
     def to_report(self) -> dict:
         m = self.prediction.model
         return {
-            "model": {"path": m.path, "family": m.family.value, "simulated": m.simulated, "description": m.description, "providers": list(self.providers), "notes": m.metadata.get("ffrecon.notes", "")},
+            "model": {
+                "path": m.path,
+                "family": m.family.value,
+                "simulated": m.simulated,
+                "description": m.description,
+                "providers": list(self.providers),
+                "notes": m.metadata.get("ffrecon.notes", ""),
+            },
             "world_frame": _world_frame(m),
             "assumptions": self.assumptions,
             "num_frames": len(self.prediction),
             "num_points": int(len(self.points_xyz)),
             "seconds": self.seconds,
-            "cameras": [{"name": n, "fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy, "width": c.width, "height": c.height} for n, c in zip(self.prediction.names, self.prediction.cameras)],
+            "cameras": [
+                {"name": n, "fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy, "width": c.width, "height": c.height}
+                for n, c in zip(self.prediction.names, self.prediction.cameras)
+            ],
         }
 
 
@@ -69,7 +79,9 @@ def _assumptions(model: ModelInfo, capture: Capture) -> str:
         return ""
     from ffrecon.models import monodepth
 
-    return monodepth.describe_assumptions(model.metadata.get("ffrecon.depth_kind", "relative_inverse"), capture.frames[0].focal_prior_px)
+    return monodepth.describe_assumptions(
+        model.metadata.get("ffrecon.depth_kind", "relative_inverse"), capture.frames[0].focal_prior_px
+    )
 
 
 def predict(model: OnnxModel, capture: Capture, options: FeedForwardOptions) -> Prediction:
@@ -78,17 +90,31 @@ def predict(model: OnnxModel, capture: Capture, options: FeedForwardOptions) -> 
     names = list(capture.names)
     if model.family is ModelFamily.PAIRWISE:
         prediction = _predict_pairwise(model, images, names, options)
-        validate_prediction(prediction, camera_outputs="pts3d/pts3d_in_other_view (after global alignment)", depth_outputs="pts3d")
+        validate_prediction(
+            prediction, camera_outputs="pts3d/pts3d_in_other_view (after global alignment)", depth_outputs="pts3d"
+        )
         return prediction
     if model.family is ModelFamily.MONODEPTH:
         from ffrecon.models import monodepth
 
         if len(images) != 1:
-            raise InputError(f"{model.path.name} is a monocular depth model (one image in, depth out), but the input has {len(images)} images", "pass one photo, or use a multi-view model (VGGT, Depth Anything 3, Pi3) or a pairwise one (DUSt3R, MASt3R) for several")
+            raise InputError(
+                f"{model.path.name} is a monocular depth model (one image in, depth out), but the input has {len(images)} images",
+                "pass one photo, or use a multi-view model (VGGT, Depth Anything 3, Pi3) or a pairwise one (DUSt3R, MASt3R) for several",
+            )
         adapter = monodepth.ADAPTER
         infer = lambda batch: _run_checked(model, adapter.input_name, {adapter.input_name: batch})  # noqa: E731
-        prediction = monodepth.predict_monodepth(images[0], names[0], infer, model.info(), focal_px=capture.frames[0].focal_prior_px, options=options.multiview)
-        validate_prediction(prediction, camera_outputs="(EXIF focal or the stated guess)", depth_outputs="predicted_depth")
+        prediction = monodepth.predict_monodepth(
+            images[0],
+            names[0],
+            infer,
+            model.info(),
+            focal_px=capture.frames[0].focal_prior_px,
+            options=options.multiview,
+        )
+        validate_prediction(
+            prediction, camera_outputs="(EXIF focal or the stated guess)", depth_outputs="predicted_depth"
+        )
         return prediction
     adapter = adapter_for(model.family)
     infer = lambda batch: _run_checked(model, adapter.input_name, {adapter.input_name: batch})  # noqa: E731
@@ -96,7 +122,9 @@ def predict(model: OnnxModel, capture: Capture, options: FeedForwardOptions) -> 
     if mv_options.chunk_size is None:
         size_hw = tuple(adapter.preprocess(images[:1], mv_options.mode or adapter.modes[0])[0].shape[-2:])
         chunk = default_chunk_size(model.path, size_hw, model.metadata)
-        mv_options = dataclasses.replace(mv_options, chunk_size=chunk, chunk_overlap=min(mv_options.chunk_overlap, chunk - 1))
+        mv_options = dataclasses.replace(
+            mv_options, chunk_size=chunk, chunk_overlap=min(mv_options.chunk_overlap, chunk - 1)
+        )
     return predict_multiview(images, names, infer, model.info(), mv_options, adapter)
 
 
@@ -113,7 +141,9 @@ def _predict_pairwise(model: OnnxModel, images: list, names: list, options: Feed
     # One photo: pair it with itself (what DUSt3R's own demo does) and keep the first view.
     log.info("one photo with a pairwise model: pairing it with itself")
     both = pairwise.predict_pairwise(images * 2, [names[0], names[0] + "#self"], infer, model.info(), pw_options)
-    return Prediction(both.names[:1], both.cam_from_world[:1], both.cameras[:1], both.depth[:1], both.depth_conf[:1], both.model)
+    return Prediction(
+        both.names[:1], both.cam_from_world[:1], both.cameras[:1], both.depth[:1], both.depth_conf[:1], both.model
+    )
 
 
 def _run_checked(model: OnnxModel, image_input: str, feeds: dict) -> dict:
@@ -128,15 +158,31 @@ def _run_checked(model: OnnxModel, image_input: str, feeds: dict) -> dict:
     return model.run(feeds)
 
 
-def run_feedforward(capture: Capture, model_path: Path, options: FeedForwardOptions, out_dir: Path) -> FeedForwardResult:
+def run_feedforward(
+    capture: Capture, model_path: Path, options: FeedForwardOptions, out_dir: Path
+) -> FeedForwardResult:
     """Predict, then write ``out_dir/feedforward/{sparse,depth}`` and return the prediction."""
     start = time.perf_counter()
     model = OnnxModel(model_path, threads=options.threads)
-    log.info("feed-forward model %s (%s%s) on %d frames", Path(model_path).name, model.family.value, ", SIMULATED" if model.simulated else "", len(capture.frames))
+    log.info(
+        "feed-forward model %s (%s%s) on %d frames",
+        Path(model_path).name,
+        model.family.value,
+        ", SIMULATED" if model.simulated else "",
+        len(capture.frames),
+    )
     prediction = predict(model, capture, options)
     xyz, rgb = fuse_prediction(prediction, [f.image for f in capture.frames], options.fuse)
     ff_dir = Path(out_dir) / "feedforward"
     rec = reconstruction_from_cameras(prediction.names, prediction.cam_from_world, prediction.cameras, xyz, rgb)
     sparse_dir = write_reconstruction(rec, ff_dir / "sparse")
     write_depth_maps(ff_dir / "depth", prediction)
-    return FeedForwardResult(prediction, xyz, rgb, sparse_dir, time.perf_counter() - start, model.providers, _assumptions(model.info(), capture))
+    return FeedForwardResult(
+        prediction,
+        xyz,
+        rgb,
+        sparse_dir,
+        time.perf_counter() - start,
+        model.providers,
+        _assumptions(model.info(), capture),
+    )

@@ -42,11 +42,21 @@ def camera_problems(prediction: Prediction) -> list[FrameProblem]:
         values = np.array([cam.fx, cam.fy, cam.cx, cam.cy], dtype=np.float64)
         if not np.isfinite(values).all() or cam.fx <= 0 or cam.fy <= 0:
             fov = 2 * np.degrees(np.arctan2(cam.width / 2, cam.fx)) if np.isfinite(cam.fx) else 0.0
-            problems.append(FrameProblem(name, f"focal length fx = {cam.fx:.4g} px, fy = {cam.fy:.4g} px (horizontal field of view {fov:.1f} deg)"))
+            problems.append(
+                FrameProblem(
+                    name,
+                    f"focal length fx = {cam.fx:.4g} px, fy = {cam.fy:.4g} px (horizontal field of view {fov:.1f} deg)",
+                )
+            )
             continue
         fov_w, fov_h = cam.fov_deg()
         if not (MIN_FOV_DEG <= fov_w <= MAX_FOV_DEG and MIN_FOV_DEG <= fov_h <= MAX_FOV_DEG):
-            problems.append(FrameProblem(name, f"focal length fx = {cam.fx:.4g} px gives a field of view of {fov_w:.2f} x {fov_h:.2f} deg, outside {MIN_FOV_DEG:g}-{MAX_FOV_DEG:g} deg"))
+            problems.append(
+                FrameProblem(
+                    name,
+                    f"focal length fx = {cam.fx:.4g} px gives a field of view of {fov_w:.2f} x {fov_h:.2f} deg, outside {MIN_FOV_DEG:g}-{MAX_FOV_DEG:g} deg",
+                )
+            )
     return problems
 
 
@@ -60,7 +70,9 @@ def pose_problems(prediction: Prediction) -> list[FrameProblem]:
         rot = pose[:3, :3]
         err = max(float(np.abs(rot.T @ rot - np.eye(3)).max()), abs(float(np.linalg.det(rot)) - 1.0))
         if err > ROTATION_TOLERANCE:
-            problems.append(FrameProblem(name, f"rotation is not orthonormal (error {err:.2g}; a zero or non-unit quaternion?)"))
+            problems.append(
+                FrameProblem(name, f"rotation is not orthonormal (error {err:.2g}; a zero or non-unit quaternion?)")
+            )
     return problems
 
 
@@ -76,7 +88,12 @@ def depth_problems(prediction: Prediction) -> list[FrameProblem]:
             problems.append(FrameProblem(name, "depth is zero or negative everywhere"))
             continue
         if float(conf.min()) < 0:
-            problems.append(FrameProblem(name, f"confidence down to {float(conf.min()):.3g} (expected >= 0; a logit exported without its activation?)"))
+            problems.append(
+                FrameProblem(
+                    name,
+                    f"confidence down to {float(conf.min()):.3g} (expected >= 0; a logit exported without its activation?)",
+                )
+            )
             continue
         ratio = float(positive.max() / max(np.median(positive), 1e-30))
         if ratio > MAX_DEPTH_RATIO:
@@ -84,7 +101,9 @@ def depth_problems(prediction: Prediction) -> list[FrameProblem]:
     return problems
 
 
-def validate_prediction(prediction: Prediction, *, camera_outputs: str = "the camera outputs", depth_outputs: str = "depth") -> None:
+def validate_prediction(
+    prediction: Prediction, *, camera_outputs: str = "the camera outputs", depth_outputs: str = "depth"
+) -> None:
     """Raise :class:`ModelError` unless every frame has a plausible camera, a rigid pose and usable depth.
 
     Args:

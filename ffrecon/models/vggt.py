@@ -27,7 +27,9 @@ def _round14(x: float) -> int:
     return int(round(x / PATCH_SIZE)) * PATCH_SIZE
 
 
-def network_size_hw(height: int, width: int, mode: PreprocessMode = PreprocessMode.CROP, target_size: int = TARGET_SIZE) -> tuple[int, int]:
+def network_size_hw(
+    height: int, width: int, mode: PreprocessMode = PreprocessMode.CROP, target_size: int = TARGET_SIZE
+) -> tuple[int, int]:
     """Network input ``(H, W)`` that :func:`preprocess_vggt` gives a ``height`` x ``width`` photo.
 
     >>> network_size_hw(480, 640), network_size_hw(640, 480), network_size_hw(480, 640, PreprocessMode.PAD)
@@ -38,7 +40,9 @@ def network_size_hw(height: int, width: int, mode: PreprocessMode = PreprocessMo
     return (min(_round14(height * target_size / width), target_size), target_size)
 
 
-def preprocess_vggt(images: Sequence[np.ndarray], mode: PreprocessMode = PreprocessMode.CROP, target_size: int = TARGET_SIZE) -> tuple[np.ndarray, tuple[ResizeTransform, ...]]:
+def preprocess_vggt(
+    images: Sequence[np.ndarray], mode: PreprocessMode = PreprocessMode.CROP, target_size: int = TARGET_SIZE
+) -> tuple[np.ndarray, tuple[ResizeTransform, ...]]:
     """The reference preprocessing, with the coordinate bookkeeping to undo it.
 
     Args:
@@ -50,7 +54,9 @@ def preprocess_vggt(images: Sequence[np.ndarray], mode: PreprocessMode = Preproc
         reference code does.
     """
     if mode not in (PreprocessMode.CROP, PreprocessMode.PAD):
-        raise ModelError(f"VGGT has no '{mode.value}' preprocessing", "use --preprocess crop (the reference default) or pad")
+        raise ModelError(
+            f"VGGT has no '{mode.value}' preprocessing", "use --preprocess crop (the reference default) or pad"
+        )
     resized: list[np.ndarray] = []
     transforms: list[ResizeTransform] = []
     for image in images:
@@ -62,7 +68,10 @@ def preprocess_vggt(images: Sequence[np.ndarray], mode: PreprocessMode = Preproc
         else:
             new_w, new_h = _round14(w * target_size / h), target_size
         # PIL bicubic, as the reference does (through torchvision's ToTensor afterwards).
-        arr = np.asarray(Image.fromarray(image).resize((new_w, new_h), Image.Resampling.BICUBIC), dtype=np.float32) / 255.0
+        arr = (
+            np.asarray(Image.fromarray(image).resize((new_w, new_h), Image.Resampling.BICUBIC), dtype=np.float32)
+            / 255.0
+        )
         off_x = off_y = 0.0
         if mode is PreprocessMode.CROP and new_h > target_size:
             start = (new_h - target_size) // 2
@@ -81,7 +90,9 @@ def preprocess_vggt(images: Sequence[np.ndarray], mode: PreprocessMode = Preproc
             pad_t, pad_l = (max_h - arr.shape[0]) // 2, (max_w - arr.shape[1]) // 2
             resized[k] = _pad_white(arr, max_h, max_w, pad_t, pad_l)
             t = transforms[k]
-            transforms[k] = ResizeTransform(t.orig_size_wh, (max_w, max_h), t.scale_x, t.scale_y, t.offset_x + pad_l, t.offset_y + pad_t)
+            transforms[k] = ResizeTransform(
+                t.orig_size_wh, (max_w, max_h), t.scale_x, t.scale_y, t.offset_x + pad_l, t.offset_y + pad_t
+            )
     batch = np.stack(resized).transpose(0, 3, 1, 2)
     return np.ascontiguousarray(batch, dtype=np.float32), tuple(transforms)
 
@@ -120,10 +131,22 @@ def encode_pose_enc(cam_from_world: np.ndarray, K: np.ndarray, size_hw: tuple[in
 
 def _squeeze_batch(name: str, array: np.ndarray, rank_without_batch: int) -> np.ndarray:
     """Accept outputs with or without the leading batch axis of size 1."""
-    return strip_batch_axis(name, array, (None,) * rank_without_batch, fix="export the model with the VGGT output contract (`ffrecon export-model vggt`; docs/models.md)")
+    return strip_batch_axis(
+        name,
+        array,
+        (None,) * rank_without_batch,
+        fix="export the model with the VGGT output contract (`ffrecon export-model vggt`; docs/models.md)",
+    )
 
 
-def decode_vggt_outputs(outputs: Mapping[str, np.ndarray], transforms: Sequence[ResizeTransform], names: Sequence[str], model: ModelInfo, *, max_depth_side: int | None = None) -> Prediction:
+def decode_vggt_outputs(
+    outputs: Mapping[str, np.ndarray],
+    transforms: Sequence[ResizeTransform],
+    names: Sequence[str],
+    model: ModelInfo,
+    *,
+    max_depth_side: int | None = None,
+) -> Prediction:
     """VGGT outputs for S frames to a :class:`Prediction` in original-photo pixels.
 
     Args:
@@ -133,7 +156,11 @@ def decode_vggt_outputs(outputs: Mapping[str, np.ndarray], transforms: Sequence[
         names: S frame names.
         max_depth_side: cap on the long side of the returned depth grids (None: original size).
     """
-    require_outputs(outputs, OUTPUT_NAMES, fix="a VGGT-contract model must output pose_enc, depth and depth_conf (CONTRACTS.md section 1)")
+    require_outputs(
+        outputs,
+        OUTPUT_NAMES,
+        fix="a VGGT-contract model must output pose_enc, depth and depth_conf (CONTRACTS.md section 1)",
+    )
     for key in OUTPUT_NAMES:
         check_finite(key, np.asarray(outputs[key]), model=model.path)
     pose_enc = _squeeze_batch("pose_enc", np.asarray(outputs["pose_enc"]), 2)
@@ -142,10 +169,15 @@ def decode_vggt_outputs(outputs: Mapping[str, np.ndarray], transforms: Sequence[
     conf = _squeeze_batch("depth_conf", np.asarray(outputs["depth_conf"]), 3)
     s = len(transforms)
     if pose_enc.shape != (s, 9) or depth.shape[0] != s or conf.shape != depth.shape:
-        raise ModelError(f"model outputs disagree with the {s} input frames: pose_enc {pose_enc.shape}, depth {depth.shape}, depth_conf {conf.shape}", "check that the model follows the VGGT contract")
+        raise ModelError(
+            f"model outputs disagree with the {s} input frames: pose_enc {pose_enc.shape}, depth {depth.shape}, depth_conf {conf.shape}",
+            "check that the model follows the VGGT contract",
+        )
     size_hw = depth.shape[1:3]
     cam_from_world, K_net = decode_pose_enc(pose_enc, size_hw)
-    return prediction_in_original_pixels(names, cam_from_world, K_net, depth, conf, transforms, model, max_depth_side=max_depth_side)
+    return prediction_in_original_pixels(
+        names, cam_from_world, K_net, depth, conf, transforms, model, max_depth_side=max_depth_side
+    )
 
 
 ADAPTER = MultiviewAdapter(
@@ -153,7 +185,9 @@ ADAPTER = MultiviewAdapter(
     input_name=INPUT_NAME,
     output_names=OUTPUT_NAMES,
     preprocess=lambda images, mode: preprocess_vggt(images, mode),
-    decode=lambda outputs, transforms, names, model, max_side: decode_vggt_outputs(outputs, transforms, names, model, max_depth_side=max_side),
+    decode=lambda outputs, transforms, names, model, max_side: decode_vggt_outputs(
+        outputs, transforms, names, model, max_depth_side=max_side
+    ),
     modes=(PreprocessMode.CROP, PreprocessMode.PAD),
     world_frame="the first frame's camera (VGGT's convention)",
     camera_outputs="pose_enc",

@@ -56,8 +56,12 @@ class BundleSummary:
 
     def to_report(self) -> dict:
         return {
-            "termination": self.termination, "usable": self.usable, "num_residuals": self.num_residuals,
-            "num_iterations": self.num_iterations, "initial_cost": self.initial_cost, "final_cost": self.final_cost,
+            "termination": self.termination,
+            "usable": self.usable,
+            "num_residuals": self.num_residuals,
+            "num_iterations": self.num_iterations,
+            "initial_cost": self.initial_cost,
+            "final_cost": self.final_cost,
             "num_adjustments": self.num_adjustments,
         }
 
@@ -69,14 +73,17 @@ def _summary(solver_summary: pycolmap.BundleAdjustmentSummary, count: int) -> Bu
         termination=str(solver_summary.termination_type.name),
         usable=bool(solver_summary.is_solution_usable()),
         num_residuals=int(solver_summary.num_residuals),
-        num_iterations=int(getattr(ceres, "num_successful_steps", 0) + getattr(ceres, "num_unsuccessful_steps", 0)) or iterations,
+        num_iterations=int(getattr(ceres, "num_successful_steps", 0) + getattr(ceres, "num_unsuccessful_steps", 0))
+        or iterations,
         initial_cost=float(getattr(ceres, "initial_cost", np.nan)),
         final_cost=float(getattr(ceres, "final_cost", np.nan)),
         num_adjustments=count,
     )
 
 
-def _pose_priors(rec: pycolmap.Reconstruction, prior_centers: dict[int, np.ndarray], std: float) -> list[pycolmap.PosePrior]:
+def _pose_priors(
+    rec: pycolmap.Reconstruction, prior_centers: dict[int, np.ndarray], std: float
+) -> list[pycolmap.PosePrior]:
     priors = []
     for image_id, center in prior_centers.items():
         if not rec.exists_image(image_id) or not rec.image(image_id).has_pose:
@@ -102,7 +109,12 @@ class _Adjuster:
         self.last: pycolmap.BundleAdjustmentSummary | None = None
 
     def __call__(
-        self, rec: pycolmap.Reconstruction, loss: pycolmap.LossFunctionType, *, function_tolerance: float = 0.0, max_iterations: int | None = None
+        self,
+        rec: pycolmap.Reconstruction,
+        loss: pycolmap.LossFunctionType,
+        *,
+        function_tolerance: float = 0.0,
+        max_iterations: int | None = None,
     ) -> bool:
         ba = pycolmap.BundleAdjustmentOptions()
         ba.refine_focal_length = self.options.refine_focal_length
@@ -156,9 +168,16 @@ def _mapper_options(filter_px: float, options: BundleOptions) -> pycolmap.Increm
 
 
 def _rounds(
-    mapper: pycolmap.IncrementalMapper, rec: pycolmap.Reconstruction, adjust: _Adjuster, options: BundleOptions,
-    tri: pycolmap.IncrementalTriangulatorOptions, mapper_options: pycolmap.IncrementalMapperOptions,
-    loss: pycolmap.LossFunctionType, max_refinements: int, function_tolerance: float, max_iterations: int | None = None,
+    mapper: pycolmap.IncrementalMapper,
+    rec: pycolmap.Reconstruction,
+    adjust: _Adjuster,
+    options: BundleOptions,
+    tri: pycolmap.IncrementalTriangulatorOptions,
+    mapper_options: pycolmap.IncrementalMapperOptions,
+    loss: pycolmap.LossFunctionType,
+    max_refinements: int,
+    function_tolerance: float,
+    max_iterations: int | None = None,
     end_adjusted: bool = True,
 ) -> None:
     """Rounds of (bundle adjustment, track completion and merging, filtering), ending adjusted if asked."""
@@ -178,9 +197,19 @@ def _rounds(
 
 
 def _pass(
-    cache: pycolmap.DatabaseCache, rec: pycolmap.Reconstruction, adjust: _Adjuster, options: BundleOptions,
-    *, angle_deg: float, reproj_px: float, loss: pycolmap.LossFunctionType, max_refinements: int, function_tolerance: float,
-    max_iterations: int | None = None, register: Collection[int] = (), end_adjusted: bool = True,
+    cache: pycolmap.DatabaseCache,
+    rec: pycolmap.Reconstruction,
+    adjust: _Adjuster,
+    options: BundleOptions,
+    *,
+    angle_deg: float,
+    reproj_px: float,
+    loss: pycolmap.LossFunctionType,
+    max_refinements: int,
+    function_tolerance: float,
+    max_iterations: int | None = None,
+    register: Collection[int] = (),
+    end_adjusted: bool = True,
 ) -> tuple[pycolmap.IncrementalMapper, list[int]]:
     """Triangulate every registered image from scratch, refine; then try to register ``register``.
 
@@ -194,7 +223,19 @@ def _pass(
     mapper_options = _mapper_options(reproj_px, options)
     for image_id in sorted(rec.reg_image_ids()):
         mapper.triangulate_image(tri, image_id)
-    _rounds(mapper, rec, adjust, options, tri, mapper_options, loss, max_refinements, function_tolerance, max_iterations, end_adjusted)
+    _rounds(
+        mapper,
+        rec,
+        adjust,
+        options,
+        tri,
+        mapper_options,
+        loss,
+        max_refinements,
+        function_tolerance,
+        max_iterations,
+        end_adjusted,
+    )
     added = []
     for image_id in sorted(register):
         if rec.num_reg_images() >= 2 and mapper.register_next_image(mapper_options, image_id):
@@ -243,20 +284,42 @@ def refine_tracks(
     focal = float(np.mean([rec.camera(rec.image(i).camera_id).mean_focal_length() for i in centers]))
     coarse_px = focal * np.tan(np.radians(options.coarse_error_deg))
     # Coarse: tolerances wide enough for the feed-forward errors, a robust loss, loose convergence.
-    mapper, _ = _pass(cache, rec, adjust, options, angle_deg=options.coarse_error_deg, reproj_px=coarse_px,
-                      loss=pycolmap.LossFunctionType.CAUCHY, max_refinements=options.coarse_refinements,
-                      function_tolerance=options.coarse_function_tolerance, max_iterations=options.coarse_max_iterations,
-                      end_adjusted=False)  # the fine pass triangulates afresh anyway
+    mapper, _ = _pass(
+        cache,
+        rec,
+        adjust,
+        options,
+        angle_deg=options.coarse_error_deg,
+        reproj_px=coarse_px,
+        loss=pycolmap.LossFunctionType.CAUCHY,
+        max_refinements=options.coarse_refinements,
+        function_tolerance=options.coarse_function_tolerance,
+        max_iterations=options.coarse_max_iterations,
+        end_adjusted=False,
+    )  # the fine pass triangulates afresh anyway
     retry = [i for i in rec.reg_image_ids() if rec.image(i).num_points3D < min_observations]
     for image_id in retry:
         mapper.observation_manager.deregister_frame(rec.image(image_id).frame_id)
     mapper.end_reconstruction(False)
-    logger.debug("coarse pass: %d points, %d observations, %d frames to register again", rec.num_points3D(),
-                 rec.compute_num_observations(), len(retry))
+    logger.debug(
+        "coarse pass: %d points, %d observations, %d frames to register again",
+        rec.num_points3D(),
+        rec.compute_num_observations(),
+        len(retry),
+    )
     # Fine: fresh tracks from the coarse cameras, COLMAP's tolerances, converged to the end.
-    mapper, added = _pass(cache, rec, adjust, options, angle_deg=0.0, reproj_px=options.max_reproj_error_px,
-                          loss=pycolmap.LossFunctionType.TRIVIAL, max_refinements=options.max_refinements,
-                          function_tolerance=0.0, register=retry)
+    mapper, added = _pass(
+        cache,
+        rec,
+        adjust,
+        options,
+        angle_deg=0.0,
+        reproj_px=options.max_reproj_error_px,
+        loss=pycolmap.LossFunctionType.TRIVIAL,
+        max_refinements=options.max_refinements,
+        function_tolerance=0.0,
+        register=retry,
+    )
     if added:
         logger.info("registered %d frames again whose feed-forward pose was far off", len(added))
     weak = [(rec.image(i).name, 0) for i in retry if i not in added]

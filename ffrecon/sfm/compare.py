@@ -74,10 +74,17 @@ class PoseComparison:
             "not_in_reference": [n for n, r in zip(self.names, self.in_reference) if not r],
             "per_image": {
                 n: {"rotation_deg": num(r), "center_error": num(c), "registered": bool(g)}
-                for n, r, c, g in zip(self.names, self.per_image_rotation_deg, self.per_image_center_error, self.registered)
+                for n, r, c, g in zip(
+                    self.names, self.per_image_rotation_deg, self.per_image_center_error, self.registered
+                )
             },
             "disagreeing": [
-                {"name": d.name, "rotation_deg": num(d.rotation_deg), "center_error": num(d.center_error), "reason": d.reason}
+                {
+                    "name": d.name,
+                    "rotation_deg": num(d.rotation_deg),
+                    "center_error": num(d.center_error),
+                    "reason": d.reason,
+                }
                 for d in self.disagreements
             ],
         }
@@ -130,12 +137,16 @@ def compare_poses(
         if rot[k] > options.max_rotation_deg:
             reasons.append(f"rotation off by {rot[k]:.1f} deg (> {options.max_rotation_deg:g})")
         if center[k] > max_center:
-            reasons.append(f"centre off by {center[k] / extent:.1%} of the camera extent (> {options.max_center_error:.0%})")
+            reasons.append(
+                f"centre off by {center[k] / extent:.1%} of the camera extent (> {options.max_center_error:.0%})"
+            )
         if reasons:
             found.append(Disagreement(names[k], float(rot[k]), float(center[k]), "; ".join(reasons)))
     if found:
         logger.info("%s vs %s: %d images disagree", estimate, reference, len(found))
-    return PoseComparison(estimate, reference, names, errors, in_ref, reg, rot, center, aligned, ref_centers, tuple(found))
+    return PoseComparison(
+        estimate, reference, names, errors, in_ref, reg, rot, center, aligned, ref_centers, tuple(found)
+    )
 
 
 def compare_models(
@@ -152,4 +163,13 @@ def compare_models(
     ref = ref_model if isinstance(ref_model, pycolmap.Reconstruction) else pycolmap.Reconstruction(str(ref_model))
     est_poses, est_reg = cam_from_world_by_name(est, names)
     ref_poses, ref_reg = cam_from_world_by_name(ref, names)
-    return compare_poses(est_poses, ref_poses, names, est_reg, ref_registered=ref_reg, estimate=estimate, reference=reference, options=options)
+    return compare_poses(
+        est_poses,
+        ref_poses,
+        names,
+        est_reg,
+        ref_registered=ref_reg,
+        estimate=estimate,
+        reference=reference,
+        options=options,
+    )

@@ -104,7 +104,9 @@ class ColmapResult:
             "registration_ratio": self.registration_ratio,
             "unregistered": [n for n, r in zip(self.names, self.registered) if not r],
             "num_points": self.num_points,
-            "mean_reprojection_error_px": None if not np.isfinite(self.mean_reprojection_error_px) else self.mean_reprojection_error_px,
+            "mean_reprojection_error_px": None
+            if not np.isfinite(self.mean_reprojection_error_px)
+            else self.mean_reprojection_error_px,
             "num_models": self.num_models,
             "pairing": self.pairing.value,
             "mapper": self.mapper.value,
@@ -137,7 +139,10 @@ def _match(db_path: Path, mode: PairingMode, options: ColmapOptions) -> None:
         has_priors = db.num_pose_priors() > 0
         db.close()
         if not has_priors:
-            raise InputError("spatial pairing needs GPS positions, and these images carry none", "use --pairing sequential or exhaustive")
+            raise InputError(
+                "spatial pairing needs GPS positions, and these images carry none",
+                "use --pairing sequential or exhaustive",
+            )
         pairing = pycolmap.SpatialPairingOptions()
         pairing.num_threads = options.num_threads
         pycolmap.match_spatial(str(db_path), pairing_options=pairing, **common)
@@ -155,7 +160,9 @@ def _match(db_path: Path, mode: PairingMode, options: ColmapOptions) -> None:
         raise ValueError(f"unresolved pairing mode {mode}")
 
 
-def _map(db_path: Path, image_dir: Path, work_dir: Path, options: ColmapOptions, num_images: int) -> dict[int, pycolmap.Reconstruction]:
+def _map(
+    db_path: Path, image_dir: Path, work_dir: Path, options: ColmapOptions, num_images: int
+) -> dict[int, pycolmap.Reconstruction]:
     if options.mapper is MapperKind.INCREMENTAL:
         mapping = pycolmap.IncrementalPipelineOptions()
         mapping.num_threads = options.num_threads
@@ -205,11 +212,16 @@ def run_colmap(
     pairing = resolve_pairing(options, len(names))
     pycolmap.set_random_seed(options.seed)
     create_database(
-        db_path, image_dir, names,
-        camera_model=options.camera_model, single_camera=options.single_camera,
+        db_path,
+        image_dir,
+        names,
+        camera_model=options.camera_model,
+        single_camera=options.single_camera,
         focal_prior_px=_as_priors(focal_prior_px, len(names)),
     )
-    logger.info("COLMAP cross-check: %d images, %s pairing, %s mapping", len(names), pairing.value, options.mapper.value)
+    logger.info(
+        "COLMAP cross-check: %d images, %s pairing, %s mapping", len(names), pairing.value, options.mapper.value
+    )
     with timer.stage("feature_extraction"):
         extract_sift(db_path, image_dir, names, options.sift)
     with timer.stage("matching"), colmap_log_level():
@@ -227,20 +239,49 @@ def run_colmap(
         logger.warning("COLMAP built no model from %d images (%d verified pairs)", len(names), stats.num_pairs_verified)
         n = len(names)
         return ColmapResult(
-            ColmapStatus.NO_MODEL, names, np.tile(np.eye(3, 4), (n, 1, 1)), np.zeros(n, bool), (None,) * n, 0, float("nan"),
-            len(models), pairing, options.mapper, stats, timer.freeze(), db_path, None, None,
+            ColmapStatus.NO_MODEL,
+            names,
+            np.tile(np.eye(3, 4), (n, 1, 1)),
+            np.zeros(n, bool),
+            (None,) * n,
+            0,
+            float("nan"),
+            len(models),
+            pairing,
+            options.mapper,
+            stats,
+            timer.freeze(),
+            db_path,
+            None,
+            None,
         )
     write_reconstruction(best, model_dir)
     cam_from_world, registered = cam_from_world_by_name(best, names)
     cameras = tuple(c if r else None for c, r in zip(cameras_by_name(best, names), registered))
     best.update_point_3d_errors()
     result = ColmapResult(
-        ColmapStatus.SUCCESS, names, cam_from_world, registered, cameras, best.num_points3D(),
-        float(best.compute_mean_reprojection_error()), len(models), pairing, options.mapper, stats,
-        timer.freeze(), db_path, model_dir, best,
+        ColmapStatus.SUCCESS,
+        names,
+        cam_from_world,
+        registered,
+        cameras,
+        best.num_points3D(),
+        float(best.compute_mean_reprojection_error()),
+        len(models),
+        pairing,
+        options.mapper,
+        stats,
+        timer.freeze(),
+        db_path,
+        model_dir,
+        best,
     )
     logger.info(
         "COLMAP registered %d/%d images, %d points, %.2f px reprojection error (%.1f s)",
-        result.num_registered, len(names), result.num_points, result.mean_reprojection_error_px, result.timings.total_s,
+        result.num_registered,
+        len(names),
+        result.num_points,
+        result.mean_reprojection_error_px,
+        result.timings.total_s,
     )
     return result

@@ -62,7 +62,9 @@ class FeatureStats:
             "num_pairs_verified": self.num_pairs_verified,
             "per_image": {
                 name: {"keypoints": int(k), "verified_pairs": int(p), "inlier_matches": int(m)}
-                for name, k, p, m in zip(self.names, self.num_keypoints, self.num_verified_pairs, self.num_inlier_matches)
+                for name, k, p, m in zip(
+                    self.names, self.num_keypoints, self.num_verified_pairs, self.num_inlier_matches
+                )
             },
         }
 
@@ -132,7 +134,9 @@ def create_database(
         ids = {image.name: image.image_id for image in db.read_all_images()}
         missing = [n for n in names if n not in ids]
         if missing:
-            raise InputError(f"COLMAP could not read {len(missing)} images, e.g. {missing[0]}", f"check the files in {image_dir}")
+            raise InputError(
+                f"COLMAP could not read {len(missing)} images, e.g. {missing[0]}", f"check the files in {image_dir}"
+            )
         camera_of = {image.name: image.camera_id for image in db.read_all_images()}
         by_camera: dict[int, list[float]] = {}
         for name, prior in zip(names, priors):
@@ -171,7 +175,11 @@ def extract_sift(db_path: Path, image_dir: Path, names: Sequence[str], options: 
     extraction.use_gpu = False
     with colmap_log_level():
         pycolmap.extract_features(
-            str(db_path), str(image_dir), image_names=list(names), extraction_options=extraction, device=pycolmap.Device.cpu
+            str(db_path),
+            str(image_dir),
+            image_names=list(names),
+            extraction_options=extraction,
+            device=pycolmap.Device.cpu,
         )
 
 
@@ -224,7 +232,9 @@ def write_pairs(pairs_path: Path, pairs: Sequence[tuple[str, str]]) -> Path:
     return pairs_path
 
 
-def match_pairs(db_path: Path, pairs: Sequence[tuple[str, str]], options: SiftOptions, pairs_path: Path, *, verify: bool = True) -> None:
+def match_pairs(
+    db_path: Path, pairs: Sequence[tuple[str, str]], options: SiftOptions, pairs_path: Path, *, verify: bool = True
+) -> None:
     """Match exactly the given image pairs (listed in ``pairs_path``), verified unless ``verify=False``."""
     write_pairs(pairs_path, pairs)
     matching, verification = matching_options(options)
@@ -233,7 +243,11 @@ def match_pairs(db_path: Path, pairs: Sequence[tuple[str, str]], options: SiftOp
     pairing.match_list_path = str(pairs_path)
     with colmap_log_level():
         pycolmap.match_image_pairs(
-            str(db_path), matching_options=matching, pairing_options=pairing, verification_options=verification, device=pycolmap.Device.cpu
+            str(db_path),
+            matching_options=matching,
+            pairing_options=pairing,
+            verification_options=verification,
+            device=pycolmap.Device.cpu,
         )
 
 

@@ -52,8 +52,13 @@ class GateVerdict:
 
     def to_report(self) -> dict:
         return {
-            "name": self.name, "status": self.status.value, "value": self.value, "threshold": self.threshold,
-            "reason": self.reason, "fix": self.fix, "causes": [c.value for c in self.causes],
+            "name": self.name,
+            "status": self.status.value,
+            "value": self.value,
+            "threshold": self.threshold,
+            "reason": self.reason,
+            "fix": self.fix,
+            "causes": [c.value for c in self.causes],
         }
 
 
@@ -112,7 +117,9 @@ _FIXES = {
 }
 
 
-def diagnose_registration(quality: ImageQuality | None, median_keypoints: int, options: GateOptions) -> tuple[FailureCause, ...]:
+def diagnose_registration(
+    quality: ImageQuality | None, median_keypoints: int, options: GateOptions
+) -> tuple[FailureCause, ...]:
     """Likely causes of poor registration, most likely first; OVERLAP when the images look fine.
 
     Blur lowers the Laplacian relative to the gradient (edges get wide); a textureless image has
@@ -133,21 +140,40 @@ def diagnose_registration(quality: ImageQuality | None, median_keypoints: int, o
 def registration_gate(colmap: ColmapResult, options: GateOptions, *, image_dir: Path | None = None) -> GateVerdict:
     ratio = colmap.registration_ratio
     if ratio >= options.min_registration_ratio:
-        return GateVerdict("registration", GateStatus.PASS, ratio, options.min_registration_ratio,
-                           f"COLMAP registered {colmap.num_registered} of {len(colmap.names)} images")
+        return GateVerdict(
+            "registration",
+            GateStatus.PASS,
+            ratio,
+            options.min_registration_ratio,
+            f"COLMAP registered {colmap.num_registered} of {len(colmap.names)} images",
+        )
     quality = None
     if image_dir is not None:
         quality = measure_image_quality(image_dir, colmap.names, max_side=options.quality_max_side)
     kps = int(np.median(colmap.features.num_keypoints)) if len(colmap.names) else 0
     causes = diagnose_registration(quality, kps, options)
-    likely = " or ".join({FailureCause.BLUR: "blur", FailureCause.TEXTURE: "lack of texture", FailureCause.OVERLAP: "too little overlap"}[c] for c in causes)
+    likely = " or ".join(
+        {
+            FailureCause.BLUR: "blur",
+            FailureCause.TEXTURE: "lack of texture",
+            FailureCause.OVERLAP: "too little overlap",
+        }[c]
+        for c in causes
+    )
     reason = (
         f"COLMAP registered only {colmap.num_registered} of {len(colmap.names)} images ({ratio:.0%} < "
         f"{options.min_registration_ratio:.0%}); median {kps} SIFT features per image, "
         f"{colmap.features.num_pairs_verified} verified image pairs; likely cause: {likely}"
     )
-    return GateVerdict("registration", GateStatus.FAIL, ratio, options.min_registration_ratio, reason,
-                       "; ".join(_FIXES[c] for c in causes), causes)
+    return GateVerdict(
+        "registration",
+        GateStatus.FAIL,
+        ratio,
+        options.min_registration_ratio,
+        reason,
+        "; ".join(_FIXES[c] for c in causes),
+        causes,
+    )
 
 
 def _cloud_checks(rec: pycolmap.Reconstruction, options: GateOptions) -> tuple[float, list[str]]:
@@ -161,10 +187,14 @@ def _cloud_checks(rec: pycolmap.Reconstruction, options: GateOptions) -> tuple[f
         dist = np.linalg.norm(xyz - np.median(xyz, axis=0), axis=1)
         cam_extent = float(np.linalg.norm(np.ptp(centers, axis=0))) if len(centers) >= 2 else 0.0
         if cam_extent > 0 and np.percentile(dist, 90) / cam_extent < options.min_cloud_spread:
-            problems.append(f"the cloud is degenerate: 90% of points lie within {np.percentile(dist, 90) / cam_extent:.2%} of the camera extent")
+            problems.append(
+                f"the cloud is degenerate: 90% of points lie within {np.percentile(dist, 90) / cam_extent:.2%} of the camera extent"
+            )
         p50 = np.percentile(dist, 50)
         if p50 > 0 and np.percentile(dist, 99) / p50 > options.max_cloud_tail:
-            problems.append(f"the cloud explodes: the farthest 1% of points are {np.percentile(dist, 99) / p50:.0f}x the median distance away")
+            problems.append(
+                f"the cloud explodes: the farthest 1% of points are {np.percentile(dist, 99) / p50:.0f}x the median distance away"
+            )
     in_front = total = 0
     for image_id in rec.reg_image_ids():
         image = rec.image(image_id)
@@ -182,32 +212,56 @@ def _cloud_checks(rec: pycolmap.Reconstruction, options: GateOptions) -> tuple[f
     return ratio, problems
 
 
-def sparse_cloud_gate(rec: pycolmap.Reconstruction | None, options: GateOptions, *, label: str = "COLMAP") -> GateVerdict:
+def sparse_cloud_gate(
+    rec: pycolmap.Reconstruction | None, options: GateOptions, *, label: str = "COLMAP"
+) -> GateVerdict:
     if rec is None or rec.num_reg_images() == 0:
-        return GateVerdict("sparse_cloud", GateStatus.SKIPPED, None, options.min_in_front_ratio, f"no {label} model to check")
+        return GateVerdict(
+            "sparse_cloud", GateStatus.SKIPPED, None, options.min_in_front_ratio, f"no {label} model to check"
+        )
     ratio, problems = _cloud_checks(rec, options)
     if problems:
-        return GateVerdict("sparse_cloud", GateStatus.FAIL, ratio, options.min_in_front_ratio,
-                           f"the {label} sparse cloud looks wrong: " + "; ".join(problems),
-                           "the reconstruction is unreliable: check the images for moving objects, reflections "
-                           "or repeated patterns, or run with --force to continue anyway")
-    return GateVerdict("sparse_cloud", GateStatus.PASS, ratio, options.min_in_front_ratio,
-                       f"{rec.num_points3D()} points, {ratio:.1%} of observations in front of their camera, extent plausible")
+        return GateVerdict(
+            "sparse_cloud",
+            GateStatus.FAIL,
+            ratio,
+            options.min_in_front_ratio,
+            f"the {label} sparse cloud looks wrong: " + "; ".join(problems),
+            "the reconstruction is unreliable: check the images for moving objects, reflections "
+            "or repeated patterns, or run with --force to continue anyway",
+        )
+    return GateVerdict(
+        "sparse_cloud",
+        GateStatus.PASS,
+        ratio,
+        options.min_in_front_ratio,
+        f"{rec.num_points3D()} points, {ratio:.1%} of observations in front of their camera, extent plausible",
+    )
 
 
 def depth_coverage_gate(prediction: Prediction | None, options: GateOptions) -> GateVerdict:
     if prediction is None or len(prediction) == 0:
-        return GateVerdict("depth_coverage", GateStatus.SKIPPED, None, options.min_depth_coverage, "no feed-forward prediction")
+        return GateVerdict(
+            "depth_coverage", GateStatus.SKIPPED, None, options.min_depth_coverage, "no feed-forward prediction"
+        )
     shares = np.array([prediction.valid_mask(i, options.min_depth_conf).mean() for i in range(len(prediction))])
     coverage = float(shares.mean())
     worst = prediction.names[int(np.argmin(shares))]
-    reason = (f"{coverage:.0%} of pixels have feed-forward depth with confidence >= {options.min_depth_conf:g} "
-              f"(lowest: {worst}, {shares.min():.0%})")
+    reason = (
+        f"{coverage:.0%} of pixels have feed-forward depth with confidence >= {options.min_depth_conf:g} "
+        f"(lowest: {worst}, {shares.min():.0%})"
+    )
     if coverage >= options.min_depth_coverage:
         return GateVerdict("depth_coverage", GateStatus.PASS, coverage, options.min_depth_coverage, reason)
-    return GateVerdict("depth_coverage", GateStatus.FAIL, coverage, options.min_depth_coverage, reason,
-                       "the model is unsure of most of the scene: check that the images show one static scene, "
-                       "try another model, or run with --force")
+    return GateVerdict(
+        "depth_coverage",
+        GateStatus.FAIL,
+        coverage,
+        options.min_depth_coverage,
+        reason,
+        "the model is unsure of most of the scene: check that the images show one static scene, "
+        "try another model, or run with --force",
+    )
 
 
 def evaluate_gates(
@@ -223,7 +277,11 @@ def evaluate_gates(
     """
     verdicts = []
     if colmap is None:
-        verdicts.append(GateVerdict("registration", GateStatus.SKIPPED, None, options.min_registration_ratio, "COLMAP cross-check not run"))
+        verdicts.append(
+            GateVerdict(
+                "registration", GateStatus.SKIPPED, None, options.min_registration_ratio, "COLMAP cross-check not run"
+            )
+        )
     else:
         verdicts.append(registration_gate(colmap, options, image_dir=image_dir))
     verdicts.append(sparse_cloud_gate(None if colmap is None else colmap.reconstruction, options))
@@ -239,7 +297,11 @@ def check_gates(verdicts: Sequence[GateVerdict], *, force: bool = False) -> None
     if not failed:
         return
     if force:
-        logger.warning("continuing despite %d failed gates (forced): %s", len(failed), ", ".join(v.name for v in failed))
+        logger.warning(
+            "continuing despite %d failed gates (forced): %s", len(failed), ", ".join(v.name for v in failed)
+        )
         return
-    raise GateFailed("; ".join(f"gate '{v.name}' failed: {v.reason}" for v in failed),
-                     "; ".join(v.fix for v in failed if v.fix) + " (or pass --force to continue anyway)")
+    raise GateFailed(
+        "; ".join(f"gate '{v.name}' failed: {v.reason}" for v in failed),
+        "; ".join(v.fix for v in failed if v.fix) + " (or pass --force to continue anyway)",
+    )

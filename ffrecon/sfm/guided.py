@@ -65,11 +65,18 @@ class GuidanceStats:
         return 1.0 - self.matches_after / self.matches_before if self.matches_before else 0.0
 
     def to_report(self) -> dict:
-        return {"mode": self.mode.value, "num_pairs": self.num_pairs, "matches_before": self.matches_before,
-                "matches_after": self.matches_after, "num_unchecked": self.num_unchecked}
+        return {
+            "mode": self.mode.value,
+            "num_pairs": self.num_pairs,
+            "matches_before": self.matches_before,
+            "matches_after": self.matches_after,
+            "num_unchecked": self.num_unchecked,
+        }
 
 
-def predict_positions(prediction: Prediction, i: int, j: int, xy_i: np.ndarray, min_conf: float) -> tuple[np.ndarray, np.ndarray]:
+def predict_positions(
+    prediction: Prediction, i: int, j: int, xy_i: np.ndarray, min_conf: float
+) -> tuple[np.ndarray, np.ndarray]:
     """Where ``[M, 2]`` pixels of image i should appear in image j (COLMAP pixel convention).
 
     Returns ``(xy_j [M, 2], valid [M] bool)``; invalid where i has no confident depth or the point
@@ -82,7 +89,9 @@ def predict_positions(prediction: Prediction, i: int, j: int, xy_i: np.ndarray, 
     row = np.clip((xy_i[:, 1] * h / cam_i.height).astype(int), 0, h - 1)
     z = depth[row, col].astype(np.float64)
     ok = (z > 0) & (conf[row, col] >= min_conf)
-    rays = np.stack([(xy_i[:, 0] - cam_i.cx) / cam_i.fx, (xy_i[:, 1] - cam_i.cy) / cam_i.fy, np.ones(len(xy_i))], axis=1)
+    rays = np.stack(
+        [(xy_i[:, 0] - cam_i.cx) / cam_i.fx, (xy_i[:, 1] - cam_i.cy) / cam_i.fy, np.ones(len(xy_i))], axis=1
+    )
     pose_i, pose_j = prediction.cam_from_world[i], prediction.cam_from_world[j]
     world = (rays * z[:, None] - pose_i[:, 3]) @ pose_i[:, :3]
     pc = world @ pose_j[:, :3].T + pose_j[:, 3]
@@ -133,8 +142,12 @@ def _check_pair(
 
 
 def filter_matches(
-    db_path: Path, prediction: Prediction, pairs: Sequence[tuple[str, str]], options: GuidanceOptions = GuidanceOptions(),
-    *, min_inliers: int = 15,
+    db_path: Path,
+    prediction: Prediction,
+    pairs: Sequence[tuple[str, str]],
+    options: GuidanceOptions = GuidanceOptions(),
+    *,
+    min_inliers: int = 15,
 ) -> GuidanceStats:
     """Drop verified matches of ``pairs`` that disagree with the feed-forward geometry (database rewritten).
 
@@ -163,7 +176,9 @@ def filter_matches(
             matches = np.asarray(geometry.inlier_matches)
             if len(matches) == 0:
                 continue
-            keep, checked = _check_pair(prediction, index[name_a], index[name_b], xy(id_a)[matches[:, 0]], xy(id_b)[matches[:, 1]], options)
+            keep, checked = _check_pair(
+                prediction, index[name_a], index[name_b], xy(id_a)[matches[:, 0]], xy(id_b)[matches[:, 1]], options
+            )
             kept = int(keep.sum()) if keep.sum() >= min_inliers else 0
             before += len(matches)
             after += kept
@@ -184,7 +199,9 @@ def _unit_descriptors(desc: np.ndarray) -> np.ndarray:
     return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-6)
 
 
-def _window_candidates(pred: np.ndarray, rows: np.ndarray, xy_j: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+def _window_candidates(
+    pred: np.ndarray, rows: np.ndarray, xy_j: np.ndarray, radius: float
+) -> tuple[np.ndarray, np.ndarray]:
     """All ``(i, j)`` with ``|pred[i] - xy_j[j]| <= radius`` for i in ``rows`` (grid hashing, no N x M matrix)."""
     big = np.int64(1 << 24)
     cell_j = np.floor(xy_j / radius).astype(np.int64)
@@ -225,7 +242,13 @@ def _first_per_group(group: np.ndarray, value: np.ndarray) -> tuple[np.ndarray, 
 
 
 def _match_in_windows(
-    desc_i: np.ndarray, desc_j: np.ndarray, pred: np.ndarray, rows: np.ndarray, xy_j: np.ndarray, radius: float, options: GuidanceOptions
+    desc_i: np.ndarray,
+    desc_j: np.ndarray,
+    pred: np.ndarray,
+    rows: np.ndarray,
+    xy_j: np.ndarray,
+    radius: float,
+    options: GuidanceOptions,
 ) -> np.ndarray:
     """``[K, 2]`` mutual best descriptor matches within ``radius`` px of the predictions of ``rows``.
 
@@ -252,7 +275,13 @@ def _match_in_windows(
 
 
 def _guided_pair(
-    prediction: Prediction, i: int, j: int, xy_i: np.ndarray, xy_j: np.ndarray, desc_i: np.ndarray, desc_j: np.ndarray,
+    prediction: Prediction,
+    i: int,
+    j: int,
+    xy_i: np.ndarray,
+    xy_j: np.ndarray,
+    desc_i: np.ndarray,
+    desc_j: np.ndarray,
     options: GuidanceOptions,
 ) -> tuple[np.ndarray, int]:
     """Guided matches ``[K, 2]`` of one pair, and the number found in the wide first search."""
@@ -279,7 +308,10 @@ def _guided_pair(
 
 
 def guided_matches(
-    db_path: Path, prediction: Prediction, pairs: Sequence[tuple[str, str]], options: GuidanceOptions = GuidanceOptions()
+    db_path: Path,
+    prediction: Prediction,
+    pairs: Sequence[tuple[str, str]],
+    options: GuidanceOptions = GuidanceOptions(),
 ) -> GuidanceStats:
     """Match ``pairs`` near their feed-forward predictions and write the raw matches to the database.
 

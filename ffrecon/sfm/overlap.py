@@ -49,7 +49,11 @@ def _sample_points(prediction: Prediction, i: int, options: OverlapOptions, rng:
     valid = np.flatnonzero(prediction.valid_mask(i, options.min_depth_conf).ravel())
     if len(valid) == 0:
         return np.zeros((0, 3))
-    pick = valid if len(valid) <= options.samples_per_image else rng.choice(valid, options.samples_per_image, replace=False)
+    pick = (
+        valid
+        if len(valid) <= options.samples_per_image
+        else rng.choice(valid, options.samples_per_image, replace=False)
+    )
     cam = prediction.depth_camera(i)
     depth = prediction.depth[i].ravel()[pick].astype(np.float64)
     uv = pixel_centers(*prediction.depth[i].shape).reshape(-1, 2)[pick]

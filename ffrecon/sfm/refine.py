@@ -21,6 +21,7 @@ import pycolmap
 
 from ffrecon.errors import InputError
 from ffrecon.geometry.alignment import Sim3
+from ffrecon.models.validate import validate_prediction
 from ffrecon.sfm.bundle import BundleOptions, BundleSummary, refine_tracks, sim3_to_ff_frame
 from ffrecon.sfm.colmap_io import (
     cam_from_world_by_name,
@@ -46,7 +47,6 @@ from ffrecon.sfm.features import (
 from ffrecon.sfm.guided import GuidanceOptions, GuidanceStats, MatchGuidance, filter_matches, guided_matches
 from ffrecon.sfm.overlap import OverlapOptions, overlap_graph
 from ffrecon.sfm.timing import StageTimer, Timings
-from ffrecon.models.validate import validate_prediction
 from ffrecon.types import PinholeCamera, Prediction
 
 logger = logging.getLogger("ffrecon.sfm")
@@ -72,8 +72,11 @@ class WeakFrame:
     threshold: int
 
     def describe(self) -> str:
-        what = {WeakReason.FEW_FEATURES: "SIFT keypoints", WeakReason.FEW_MATCHES: "verified matches",
-                WeakReason.FEW_OBSERVATIONS: "triangulated observations"}[self.reason]
+        what = {
+            WeakReason.FEW_FEATURES: "SIFT keypoints",
+            WeakReason.FEW_MATCHES: "verified matches",
+            WeakReason.FEW_OBSERVATIONS: "triangulated observations",
+        }[self.reason]
         return f"{self.name}: {self.value} {what} (< {self.threshold}); kept out of the refinement"
 
 
@@ -120,7 +123,16 @@ class RefineResult:
             "status": self.status.value,
             "num_images": len(self.names),
             "num_refined": int(self.registered.sum()),
-            "flagged": [{"name": w.name, "reason": w.reason.value, "value": w.value, "threshold": w.threshold, "message": w.describe()} for w in self.flagged],
+            "flagged": [
+                {
+                    "name": w.name,
+                    "reason": w.reason.value,
+                    "value": w.value,
+                    "threshold": w.threshold,
+                    "message": w.describe(),
+                }
+                for w in self.flagged
+            ],
             "num_points": int(len(self.points_xyz)),
             "num_pairs_matched": self.num_pairs,
             "mean_reprojection_error_px": float(err) if np.isfinite(err) else None,
@@ -136,7 +148,10 @@ class RefineResult:
 def _check_inputs(image_dir: Path, prediction: Prediction) -> None:
     missing = [n for n in prediction.names if not (Path(image_dir) / n).is_file()]
     if missing:
-        raise InputError(f"{len(missing)} images of the prediction are not in {image_dir}, e.g. {missing[0]}", "pass the folder the model read")
+        raise InputError(
+            f"{len(missing)} images of the prediction are not in {image_dir}, e.g. {missing[0]}",
+            "pass the folder the model read",
+        )
     if len(prediction) < 2:
         raise InputError(f"refinement needs at least two images, got {len(prediction)}", "add images")
     validate_prediction(prediction)
@@ -171,8 +186,13 @@ def _colmap_camera(camera: PinholeCamera, camera_id: int, square_pixels: bool) -
     if not square_pixels:
         return pinhole_to_colmap(camera, camera_id)
     focal = float(np.sqrt(camera.fx * camera.fy))
-    return pycolmap.Camera(model="SIMPLE_PINHOLE", width=camera.width, height=camera.height,
-                           params=[focal, camera.cx, camera.cy], camera_id=camera_id)
+    return pycolmap.Camera(
+        model="SIMPLE_PINHOLE",
+        width=camera.width,
+        height=camera.height,
+        params=[focal, camera.cx, camera.cy],
+        camera_id=camera_id,
+    )
 
 
 def _prepare_database(
@@ -187,13 +207,19 @@ def _prepare_database(
     shared = _shared_camera(prediction) if options.single_camera else None
     cameras = [shared] * len(names) if shared is not None else list(prediction.cameras)
     image_ids = create_database(
-        db_path, image_dir, names, camera_model=CameraModel.PINHOLE, single_camera=shared is not None,
+        db_path,
+        image_dir,
+        names,
+        camera_model=CameraModel.PINHOLE,
+        single_camera=shared is not None,
         focal_prior_px=[c.fx for c in cameras],
     )
     db = pycolmap.Database.open(str(db_path))
     camera_of = {image.name: image.camera_id for image in db.read_all_images()}
     db.close()
-    colmap_cameras = {camera_of[n]: _colmap_camera(c, camera_of[n], options.square_pixels) for n, c in zip(names, cameras)}
+    colmap_cameras = {
+        camera_of[n]: _colmap_camera(c, camera_of[n], options.square_pixels) for n, c in zip(names, cameras)
+    }
     set_database_cameras(db_path, list(colmap_cameras.values()))
     with timer.stage("feature_extraction"):
         copied = copy_features(options.reuse_features_from, db_path, names) if options.reuse_features_from else []
@@ -205,13 +231,20 @@ def _prepare_database(
 
 
 def _initial_model(
-    prediction: Prediction, image_ids: dict[str, int], cameras: list[PinholeCamera], colmap_cameras: dict[str, pycolmap.Camera], shared: bool
+    prediction: Prediction,
+    image_ids: dict[str, int],
+    cameras: list[PinholeCamera],
+    colmap_cameras: dict[str, pycolmap.Camera],
+    shared: bool,
 ) -> pycolmap.Reconstruction:
     """The feed-forward cameras as a model whose image and camera ids equal the database's."""
     names = prediction.names
     order = sorted(range(len(names)), key=lambda k: image_ids[names[k]])
     rec = reconstruction_from_cameras(
-        [names[k] for k in order], prediction.cam_from_world[order], [cameras[k] for k in order], share_identical_cameras=shared
+        [names[k] for k in order],
+        prediction.cam_from_world[order],
+        [cameras[k] for k in order],
+        share_identical_cameras=shared,
     )
     for image in rec.images.values():
         camera = colmap_cameras[image.name]
@@ -221,7 +254,9 @@ def _initial_model(
     return rec
 
 
-def _match(db_path: Path, prediction: Prediction, pairs: list[tuple[str, str]], options: RefineOptions, pairs_path: Path) -> GuidanceStats | None:
+def _match(
+    db_path: Path, prediction: Prediction, pairs: list[tuple[str, str]], options: RefineOptions, pairs_path: Path
+) -> GuidanceStats | None:
     """Match and verify ``pairs``, guided by the prediction as ``options.guidance.mode`` says."""
     mode = options.guidance.mode
     if mode is not MatchGuidance.GUIDED:
@@ -233,7 +268,8 @@ def _match(db_path: Path, prediction: Prediction, pairs: list[tuple[str, str]], 
             return stats
         logger.warning(
             "the feed-forward geometry rejects %.0f%% of the verified SIFT matches: look-alike surfaces (repeated "
-            "texture?); matching again, guided by the feed-forward geometry", 100 * stats.rejected_share,
+            "texture?); matching again, guided by the feed-forward geometry",
+            100 * stats.rejected_share,
         )
     stats = guided_matches(db_path, prediction, pairs, options.guidance)
     verify_pairs(db_path, write_pairs(pairs_path, pairs), options.sift)
@@ -267,21 +303,39 @@ def run_refine(image_dir: Path, prediction: Prediction, options: RefineOptions, 
     stats = feature_stats(db_path, names)
     flagged = _weak_by_features(stats, options)
 
-    rec = _initial_model(prediction, image_ids, cameras, colmap_cameras, len({c.camera_id for c in colmap_cameras.values()}) == 1)
+    rec = _initial_model(
+        prediction, image_ids, cameras, colmap_cameras, len({c.camera_id for c in colmap_cameras.values()}) == 1
+    )
     usable = {n for n in names} - {w.name for w in flagged}
     summary = None
     with timer.stage("triangulation_and_bundle_adjustment"), colmap_log_level():
         if len(usable) >= 2:
-            rec, summary, weak_obs = refine_tracks(rec, db_path, usable, options.bundle, min_observations=options.min_observations)
+            rec, summary, weak_obs = refine_tracks(
+                rec, db_path, usable, options.bundle, min_observations=options.min_observations
+            )
             flagged += [WeakFrame(n, WeakReason.FEW_OBSERVATIONS, k, options.min_observations) for n, k in weak_obs]
     refined_names = {img.name for img in rec.images.values() if img.has_pose} if summary is not None else set()
     if len(refined_names) < 2:
         logger.warning("refinement failed: %d usable frames; keeping the feed-forward cameras", len(refined_names))
         n = len(names)
         return RefineResult(
-            RefineStatus.FAILED, names, prediction.cam_from_world.copy(), np.zeros(n, bool), tuple(prediction.cameras),
-            tuple(flagged), np.zeros((0, 3)), np.zeros((0, 3), np.uint8), len(graph.pairs), stats, guidance, summary,
-            float("nan"), Sim3.identity(), timer.freeze(), None, None,
+            RefineStatus.FAILED,
+            names,
+            prediction.cam_from_world.copy(),
+            np.zeros(n, bool),
+            tuple(prediction.cameras),
+            tuple(flagged),
+            np.zeros((0, 3)),
+            np.zeros((0, 3), np.uint8),
+            len(graph.pairs),
+            stats,
+            guidance,
+            summary,
+            float("nan"),
+            Sim3.identity(),
+            timer.freeze(),
+            None,
+            None,
         )
     with timer.stage("export"):
         ff_from_refined = sim3_to_ff_frame(rec, names, prediction.cam_from_world)
@@ -301,11 +355,30 @@ def run_refine(image_dir: Path, prediction: Prediction, options: RefineOptions, 
     for weak in flagged:
         logger.warning("weak frame %s", weak.describe())
     result = RefineResult(
-        status, names, cam_from_world, registered, refined_cams, tuple(flagged), xyz, rgb, len(graph.pairs), stats, guidance, summary,
-        float(rec.compute_mean_reprojection_error()), ff_from_refined, timer.freeze(), model_dir, rec,
+        status,
+        names,
+        cam_from_world,
+        registered,
+        refined_cams,
+        tuple(flagged),
+        xyz,
+        rgb,
+        len(graph.pairs),
+        stats,
+        guidance,
+        summary,
+        float(rec.compute_mean_reprojection_error()),
+        ff_from_refined,
+        timer.freeze(),
+        model_dir,
+        rec,
     )
     logger.info(
         "refined %d/%d frames, %d points, %.2f px reprojection error (%.1f s)",
-        int(registered.sum()), len(names), len(xyz), result.mean_reprojection_error_px, result.timings.total_s,
+        int(registered.sum()),
+        len(names),
+        len(xyz),
+        result.mean_reprojection_error_px,
+        result.timings.total_s,
     )
     return result

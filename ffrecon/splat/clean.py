@@ -24,7 +24,9 @@ logger = logging.getLogger("ffrecon.splat")
 
 @dataclass(frozen=True, kw_only=True)
 class CleanOptions:
-    crop_box: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None  # (lo, hi) world; None = automatic
+    crop_box: tuple[tuple[float, float, float], tuple[float, float, float]] | None = (
+        None  # (lo, hi) world; None = automatic
+    )
     box_percentile: float = 0.5  # automatic box: per-axis percentiles [p, 100 - p] of the seen Gaussians
     box_margin: float = 0.1  # automatic box: widen each side by this fraction of its size
     min_opacity: float = 0.02  # prune Gaussians less opaque than this
@@ -43,8 +45,12 @@ class CleanReport:
     automatic_box: bool
 
     def to_dict(self) -> dict:
-        return {"count_before": self.count_before, "count_after": self.count_after, "removed": dict(self.removed),
-                "crop_box": {"lo": list(self.crop_box[0]), "hi": list(self.crop_box[1]), "automatic": self.automatic_box}}
+        return {
+            "count_before": self.count_before,
+            "count_after": self.count_after,
+            "removed": dict(self.removed),
+            "crop_box": {"lo": list(self.crop_box[0]), "hi": list(self.crop_box[1]), "automatic": self.automatic_box},
+        }
 
 
 def seen_by_cameras(points: np.ndarray, cam_from_world: np.ndarray, cameras: Sequence[PinholeCamera]) -> np.ndarray:
@@ -60,7 +66,15 @@ def seen_by_cameras(points: np.ndarray, cam_from_world: np.ndarray, cameras: Seq
     return seen
 
 
-def auto_crop_box(points: np.ndarray, opacity: np.ndarray, cam_from_world: np.ndarray, cameras: Sequence[PinholeCamera], *, percentile: float = 0.5, margin: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
+def auto_crop_box(
+    points: np.ndarray,
+    opacity: np.ndarray,
+    cam_from_world: np.ndarray,
+    cameras: Sequence[PinholeCamera],
+    *,
+    percentile: float = 0.5,
+    margin: float = 0.1,
+) -> tuple[np.ndarray, np.ndarray]:
     """``(lo [3], hi [3])``: robust bounds of the seen, reasonably opaque points plus a margin."""
     seen = seen_by_cameras(points, cam_from_world, cameras)
     pick = seen & (opacity >= 0.1)
@@ -82,7 +96,12 @@ def floater_mask(points: np.ndarray, neighbours: int, std_ratio: float) -> np.nd
     return out
 
 
-def clean_gaussians(gaussians: Gaussians, cam_from_world: np.ndarray, cameras: Sequence[PinholeCamera], options: CleanOptions = CleanOptions()) -> tuple[Gaussians, CleanReport]:
+def clean_gaussians(
+    gaussians: Gaussians,
+    cam_from_world: np.ndarray,
+    cameras: Sequence[PinholeCamera],
+    options: CleanOptions = CleanOptions(),
+) -> tuple[Gaussians, CleanReport]:
     """Remove Gaussians outside the crop box, too transparent, too large, far away or isolated.
 
     Args:
@@ -95,7 +114,9 @@ def clean_gaussians(gaussians: Gaussians, cam_from_world: np.ndarray, cameras: S
     opacity = torch.sigmoid(gaussians.opacity_logits.detach()).double().numpy()
     scale = torch.exp(gaussians.log_scales.detach()).amax(1).double().numpy()
     if options.crop_box is None:
-        lo, hi = auto_crop_box(means, opacity, cam_from_world, cameras, percentile=options.box_percentile, margin=options.box_margin)
+        lo, hi = auto_crop_box(
+            means, opacity, cam_from_world, cameras, percentile=options.box_percentile, margin=options.box_margin
+        )
     else:
         lo, hi = (np.asarray(v, np.float64) for v in options.crop_box)
     keep = np.ones(len(means), bool)
@@ -119,6 +140,10 @@ def clean_gaussians(gaussians: Gaussians, cam_from_world: np.ndarray, cameras: S
         bad[idx] = floater_mask(means[idx], options.floater_neighbours, options.floater_std_ratio)
         drop("isolated_floater", bad)
     out = gaussians.subset(torch.from_numpy(keep))
-    report = CleanReport(len(means), len(out), removed, (tuple(map(float, lo)), tuple(map(float, hi))), options.crop_box is None)
-    logger.info("clean: %d -> %d Gaussians (%s)", len(means), len(out), ", ".join(f"{k} {v}" for k, v in removed.items()))
+    report = CleanReport(
+        len(means), len(out), removed, (tuple(map(float, lo)), tuple(map(float, hi))), options.crop_box is None
+    )
+    logger.info(
+        "clean: %d -> %d Gaussians (%s)", len(means), len(out), ", ".join(f"{k} {v}" for k, v in removed.items())
+    )
     return out, report

@@ -22,7 +22,14 @@ logger = logging.getLogger("ffrecon.splat")
 class Adam:
     """Adam over named tensors, each with its own learning rate (changed between steps)."""
 
-    def __init__(self, params: dict[str, torch.Tensor], lrs: dict[str, float], *, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-15) -> None:
+    def __init__(
+        self,
+        params: dict[str, torch.Tensor],
+        lrs: dict[str, float],
+        *,
+        betas: tuple[float, float] = (0.9, 0.999),
+        eps: float = 1e-15,
+    ) -> None:
         self.params = params
         self.lrs = dict(lrs)
         self.betas, self.eps = betas, eps
@@ -73,7 +80,9 @@ class DensifyOptions:
 class Densifier:
     """Accumulates view-space gradients and clones, splits and prunes every ``every`` iterations."""
 
-    def __init__(self, num: int, options: DensifyOptions, scene_scale: float, max_gaussians: int, seed: int, device: str = "cpu") -> None:
+    def __init__(
+        self, num: int, options: DensifyOptions, scene_scale: float, max_gaussians: int, seed: int, device: str = "cpu"
+    ) -> None:
         self.options = options
         self.scene_scale = scene_scale
         self.max_gaussians = max_gaussians
@@ -112,7 +121,9 @@ class Densifier:
         if len(split):
             # Two samples from each Gaussian (local axes scaled, then rotated), each 1.6x smaller.
             scale = torch.exp(g.log_scales[split])
-            r = kornia.geometry.conversions.quaternion_to_rotation_matrix(torch.nn.functional.normalize(g.quats_wxyz[split], dim=1))
+            r = kornia.geometry.conversions.quaternion_to_rotation_matrix(
+                torch.nn.functional.normalize(g.quats_wxyz[split], dim=1)
+            )
             samples = []
             for _ in range(2):
                 local = torch.randn(len(split), 3, generator=self.generator).to(scale.device) * scale
@@ -132,7 +143,13 @@ class Densifier:
             keep &= torch.exp(g.log_scales).amax(1) <= o.max_world_size * self.scene_scale
         num_new = len(new_rows[0])
         out = Gaussians(*[torch.cat([getattr(g, k).detach()[keep], r]) for k, r in zip(Gaussians.PARAMS, new_rows)])
-        logger.debug("densify: %d cloned, %d split, %d pruned -> %d", len(clone), len(split), int((~keep).sum()) - len(split), len(out))
+        logger.debug(
+            "densify: %d cloned, %d split, %d pruned -> %d",
+            len(clone),
+            len(split),
+            int((~keep).sum()) - len(split),
+            len(out),
+        )
         self.grad_sum = torch.zeros(len(out), device=self.device)
         self.count = torch.zeros(len(out), device=self.device)
         self.rounds += 1

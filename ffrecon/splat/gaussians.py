@@ -17,8 +17,13 @@ SH_C0 = 0.28209479177387814  # 1 / (2 sqrt(pi)), the constant band
 SH_C1 = 0.4886025119029199  # sqrt(3 / (4 pi))
 SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
 SH_C3 = (
-    -0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
-    -0.4570457994644658, 1.445305721320277, -0.5900435899266435,
+    -0.5900435899266435,
+    2.890611442640554,
+    -0.4570457994644658,
+    0.3731763325901154,
+    -0.4570457994644658,
+    1.445305721320277,
+    -0.5900435899266435,
 )
 
 
@@ -58,14 +63,21 @@ def sh_basis(dirs: torch.Tensor, degree: int) -> torch.Tensor:
     if degree >= 2:
         xx, yy, zz = x * x, y * y, z * z
         out += [
-            SH_C2[0] * x * y, SH_C2[1] * y * z, SH_C2[2] * (2 * zz - xx - yy),
-            SH_C2[3] * x * z, SH_C2[4] * (xx - yy),
+            SH_C2[0] * x * y,
+            SH_C2[1] * y * z,
+            SH_C2[2] * (2 * zz - xx - yy),
+            SH_C2[3] * x * z,
+            SH_C2[4] * (xx - yy),
         ]
     if degree >= 3:
         out += [
-            SH_C3[0] * y * (3 * xx - yy), SH_C3[1] * x * y * z, SH_C3[2] * y * (4 * zz - xx - yy),
-            SH_C3[3] * z * (2 * zz - 3 * xx - 3 * yy), SH_C3[4] * x * (4 * zz - xx - yy),
-            SH_C3[5] * z * (xx - yy), SH_C3[6] * x * (xx - 3 * yy),
+            SH_C3[0] * y * (3 * xx - yy),
+            SH_C3[1] * x * y * z,
+            SH_C3[2] * y * (4 * zz - xx - yy),
+            SH_C3[3] * z * (2 * zz - 3 * xx - 3 * yy),
+            SH_C3[4] * x * (4 * zz - xx - yy),
+            SH_C3[5] * z * (xx - yy),
+            SH_C3[6] * x * (xx - 3 * yy),
         ]
     return torch.stack(out, dim=-1)
 
@@ -117,14 +129,22 @@ class Gaussians:
         sh = self.sh.detach()
         if n_bases > have:
             sh = torch.cat([sh, sh.new_zeros(len(self), n_bases - have, 3)], dim=1)
-        return Gaussians(self.means.detach(), self.quats_wxyz.detach(), self.log_scales.detach(), self.opacity_logits.detach(), sh[:, :n_bases].clone())
+        return Gaussians(
+            self.means.detach(),
+            self.quats_wxyz.detach(),
+            self.log_scales.detach(),
+            self.opacity_logits.detach(),
+            sh[:, :n_bases].clone(),
+        )
 
     def colors_dc(self) -> torch.Tensor:
         """``[N, 3]`` view-independent colour (band 0 only), clamped to [0, 1]."""
         return (0.5 + SH_C0 * self.sh[:, 0]).clamp(0.0, 1.0)
 
     @staticmethod
-    def from_points(xyz: np.ndarray, rgb: np.ndarray, log_scales: np.ndarray, *, opacity: float = 0.1, sh_degree: int = 0) -> Gaussians:
+    def from_points(
+        xyz: np.ndarray, rgb: np.ndarray, log_scales: np.ndarray, *, opacity: float = 0.1, sh_degree: int = 0
+    ) -> Gaussians:
         """Isotropic, identity-rotation Gaussians at ``xyz [M, 3]`` with colours ``rgb [M, 3]`` in [0, 1].
 
         ``log_scales`` is ``[M]`` (isotropic) or ``[M, 3]``; ``opacity`` is the starting opacity.

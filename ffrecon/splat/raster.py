@@ -84,7 +84,19 @@ def _min_quadratic_over_box(m: torch.Tensor, conic: torch.Tensor, lo: torch.Tens
     return torch.where(inside, torch.zeros_like(best), best)
 
 
-def bin_gaussians(means2d: torch.Tensor, extent: torch.Tensor, depth: torch.Tensor, visible: torch.Tensor, width: int, height: int, *, conics: torch.Tensor | None = None, log_opacity: torch.Tensor | None = None, tile_size: int = 16, chunk_elements: int = 1 << 18) -> TileLayout:
+def bin_gaussians(
+    means2d: torch.Tensor,
+    extent: torch.Tensor,
+    depth: torch.Tensor,
+    visible: torch.Tensor,
+    width: int,
+    height: int,
+    *,
+    conics: torch.Tensor | None = None,
+    log_opacity: torch.Tensor | None = None,
+    tile_size: int = 16,
+    chunk_elements: int = 1 << 18,
+) -> TileLayout:
     """Assign visible Gaussians to the tiles their ``alpha >= 1/255`` region overlaps.
 
     Args:
@@ -119,12 +131,18 @@ def bin_gaussians(means2d: torch.Tensor, extent: torch.Tensor, depth: torch.Tens
         first = torch.repeat_interleave(torch.cumsum(counts, 0) - counts, counts)
         local = torch.arange(total) - first
         nx_rep = torch.repeat_interleave(nx, counts)
-        tile = (torch.repeat_interleave(ty0, counts) + local // nx_rep) * tiles_x + torch.repeat_interleave(tx0, counts) + local % nx_rep
+        tile = (
+            (torch.repeat_interleave(ty0, counts) + local // nx_rep) * tiles_x
+            + torch.repeat_interleave(tx0, counts)
+            + local % nx_rep
+        )
         if conics is not None and log_opacity is not None and total:
             corner = torch.stack([tile % tiles_x, tile // tiles_x], 1) * tile_size
             box_lo = corner + 0.5  # first and last pixel centres of the tile, clipped to the image
             box_hi = torch.minimum(corner + tile_size, torch.tensor([width, height])) - 0.5
-            q = _min_quadratic_over_box(_take(means2d, pair_g), _take(conics, pair_g), box_lo.to(means2d.dtype), box_hi.to(means2d.dtype))
+            q = _min_quadratic_over_box(
+                _take(means2d, pair_g), _take(conics, pair_g), box_lo.to(means2d.dtype), box_hi.to(means2d.dtype)
+            )
             level = _take(log_opacity, pair_g) - math.log(ALPHA_MIN)  # alpha >= 1/255  <=>  q / 2 <= level
             meets = 0.5 * q <= level * (1 + 1e-4) + 1e-4
             meets = torch.nonzero(meets).squeeze(1)
@@ -149,17 +167,26 @@ def bin_gaussians(means2d: torch.Tensor, extent: torch.Tensor, depth: torch.Tens
         sizes = [j - i for i, j, _ in bounds]
         ks = [k for _, _, k in bounds]
         starts = [sum(a * b for a, b in zip(sizes[:c], ks[:c])) for c in range(len(bounds))]
-        padded = torch.repeat_interleave(torch.tensor(ks, dtype=torch.long), torch.tensor(sizes, dtype=torch.long))  # per busy tile
+        padded = torch.repeat_interleave(
+            torch.tensor(ks, dtype=torch.long), torch.tensor(sizes, dtype=torch.long)
+        )  # per busy tile
         row = torch.repeat_interleave(torch.arange(num_busy), padded)
         slot = torch.arange(int(padded.sum())) - torch.repeat_interleave(torch.cumsum(padded, 0) - padded, padded)
-        pad_index = torch.where(slot < _take(_take(per_tile, busy), row), _take(_take(tile_start, busy), row) + slot, total)  # `total` = padding
+        pad_index = torch.where(
+            slot < _take(_take(per_tile, busy), row), _take(_take(tile_start, busy), row) + slot, total
+        )  # `total` = padding
         chunks_tiles = [busy[i:j] for i, j, _ in bounds]
         pair_g_ext = torch.cat([pair_g, torch.tensor([n])])
         tile_ext = torch.cat([tile, torch.tensor([0])])
         pair_gauss = _take(pair_g_ext, pad_index)
         tile_of_pair = _take(tile_ext, pad_index)
-        origin = torch.stack([(tile_of_pair % tiles_x).float(), (tile_of_pair // tiles_x).float()], 1) * tile_size + tile_size / 2
-    return TileLayout(tile_size, tiles_x, tiles_y, pair_gauss, origin, tuple(chunks_tiles), tuple(starts), tuple(ks), total)
+        origin = (
+            torch.stack([(tile_of_pair % tiles_x).float(), (tile_of_pair // tiles_x).float()], 1) * tile_size
+            + tile_size / 2
+        )
+    return TileLayout(
+        tile_size, tiles_x, tiles_y, pair_gauss, origin, tuple(chunks_tiles), tuple(starts), tuple(ks), total
+    )
 
 
 def tile_basis(tile_size: int, dtype: torch.dtype = torch.float32) -> torch.Tensor:
@@ -170,7 +197,9 @@ def tile_basis(tile_size: int, dtype: torch.dtype = torch.float32) -> torch.Tens
     return torch.stack([lx * lx, lx * ly, ly * ly, lx, ly, torch.ones_like(lx)]).to(dtype)
 
 
-def pair_coefficients(means2d: torch.Tensor, conics: torch.Tensor, log_opacity: torch.Tensor, layout: TileLayout) -> torch.Tensor:
+def pair_coefficients(
+    means2d: torch.Tensor, conics: torch.Tensor, log_opacity: torch.Tensor, layout: TileLayout
+) -> torch.Tensor:
     """``[L, 6]`` coefficients of ``sigma - log(o)`` as a quadratic in tile-local pixel coordinates.
 
     Differentiable (autograd) in ``means2d [N, 2]``, ``conics [N, 3]`` (a, b, c of the inverse 2D
@@ -188,7 +217,9 @@ def pair_coefficients(means2d: torch.Tensor, conics: torch.Tensor, log_opacity: 
     return torch.stack([0.5 * a, b, 0.5 * c, -(a * u + b * v), -(b * u + c * v), const], dim=1)
 
 
-def _chunk_forward(coef: torch.Tensor, basis: torch.Tensor, feat: torch.Tensor, background: torch.Tensor) -> tuple[torch.Tensor, tuple]:
+def _chunk_forward(
+    coef: torch.Tensor, basis: torch.Tensor, feat: torch.Tensor, background: torch.Tensor
+) -> tuple[torch.Tensor, tuple]:
     """Composite one chunk.
 
     Args:
@@ -234,7 +265,9 @@ class _Composite(torch.autograd.Function):
         cache = []
         for tiles, start, k in zip(layout.tile_ids, layout.starts, layout.ks):
             b = len(tiles)
-            out[tiles], saved = _chunk_forward(coef[start:start + b * k].view(b, k, 6), basis, feat[start:start + b * k].view(b, k, -1), background)
+            out[tiles], saved = _chunk_forward(
+                coef[start : start + b * k].view(b, k, 6), basis, feat[start : start + b * k].view(b, k, -1), background
+            )
             out_alpha[tiles] = 1.0 - saved[3]
             if keep:
                 cache.append(saved)
@@ -254,19 +287,24 @@ class _Composite(torch.autograd.Function):
         covered = torch.zeros(layout.num_tiles, dtype=torch.bool)
         for c, (tiles, start, k) in enumerate(zip(layout.tile_ids, layout.starts, layout.ks)):
             b = len(tiles)
-            f = feat[start:start + b * k].view(b, k, -1)
+            f = feat[start : start + b * k].view(b, k, -1)
             if ctx.cache is not None:
                 weight, ratio, unclamped, t_final = ctx.cache[c]
             else:
-                _, (weight, ratio, unclamped, t_final) = _chunk_forward(coef[start:start + b * k].view(b, k, 6), basis, f, background)
+                _, (weight, ratio, unclamped, t_final) = _chunk_forward(
+                    coef[start : start + b * k].view(b, k, 6), basis, f, background
+                )
             g_out = grad_out[tiles]  # [b, P, F]
             wg = weight * torch.matmul(f, g_out.transpose(1, 2))  # w_k g_k, [b, K, P]
             # The background enters through T_N, and so does the alpha output 1 - T_N.
-            total = wg.sum(dim=1, keepdim=True) + (t_final * (torch.matmul(g_out, background) - grad_alpha[tiles]))[:, None, :]
+            total = (
+                wg.sum(dim=1, keepdim=True)
+                + (t_final * (torch.matmul(g_out, background) - grad_alpha[tiles]))[:, None, :]
+            )
             suffix = torch.sub(total, torch.cumsum(wg, dim=1))  # S_k
             d_s = torch.addcmul(wg, suffix, ratio, value=-1.0).mul_(unclamped)  # -dL/ds
-            grad_coef[start:start + b * k] = torch.matmul(d_s, basis.T).neg_().reshape(b * k, 6)
-            grad_feat[start:start + b * k] = torch.matmul(weight, g_out).reshape(b * k, -1)
+            grad_coef[start : start + b * k] = torch.matmul(d_s, basis.T).neg_().reshape(b * k, 6)
+            grad_feat[start : start + b * k] = torch.matmul(weight, g_out).reshape(b * k, -1)
             grad_bg += torch.einsum("bp,bpf->f", t_final, g_out)
             covered[tiles] = True
         grad_bg += grad_out[~covered].sum(dim=(0, 1))
@@ -274,7 +312,16 @@ class _Composite(torch.autograd.Function):
         return grad_coef, grad_feat, grad_bg, None, None
 
 
-def composite(coef: torch.Tensor, feat: torch.Tensor, background: torch.Tensor, layout: TileLayout, width: int, height: int, *, cache_elements: int = 1 << 27) -> tuple[torch.Tensor, torch.Tensor]:
+def composite(
+    coef: torch.Tensor,
+    feat: torch.Tensor,
+    background: torch.Tensor,
+    layout: TileLayout,
+    width: int,
+    height: int,
+    *,
+    cache_elements: int = 1 << 27,
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Composite per-pair features into an image.
 
     Args:

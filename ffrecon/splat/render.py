@@ -69,7 +69,19 @@ def quat_scale_to_covariance(quats_wxyz: torch.Tensor, log_scales: torch.Tensor)
     return m @ m.transpose(1, 2)
 
 
-def project_gaussians(means: torch.Tensor, quats_wxyz: torch.Tensor, log_scales: torch.Tensor, opacity_logits: torch.Tensor, cam_from_world: torch.Tensor, K: torch.Tensor, width: int, height: int, *, near: float = 0.01, eps2d: float = 0.3) -> Projected:
+def project_gaussians(
+    means: torch.Tensor,
+    quats_wxyz: torch.Tensor,
+    log_scales: torch.Tensor,
+    opacity_logits: torch.Tensor,
+    cam_from_world: torch.Tensor,
+    K: torch.Tensor,
+    width: int,
+    height: int,
+    *,
+    near: float = 0.01,
+    eps2d: float = 0.3,
+) -> Projected:
     """EWA projection of 3D Gaussians (world frame) into a pinhole camera.
 
     Args:
@@ -92,10 +104,13 @@ def project_gaussians(means: torch.Tensor, quats_wxyz: torch.Tensor, log_scales:
     tx = z_safe * torch.clamp(x / z_safe, -(cx / fx + margin_x), (width - cx) / fx + margin_x)
     ty = z_safe * torch.clamp(y / z_safe, -(cy / fy + margin_y), (height - cy) / fy + margin_y)
     zeros = torch.zeros_like(z)
-    jac = torch.stack([
-        torch.stack([fx / z_safe, zeros, -fx * tx / z_safe**2], dim=1),
-        torch.stack([zeros, fy / z_safe, -fy * ty / z_safe**2], dim=1),
-    ], dim=1)  # [N, 2, 3]
+    jac = torch.stack(
+        [
+            torch.stack([fx / z_safe, zeros, -fx * tx / z_safe**2], dim=1),
+            torch.stack([zeros, fy / z_safe, -fy * ty / z_safe**2], dim=1),
+        ],
+        dim=1,
+    )  # [N, 2, 3]
     jw = jac @ rot
     cov2d = jw @ quat_scale_to_covariance(quats_wxyz, log_scales) @ jw.transpose(1, 2)
     a = cov2d[:, 0, 0] + eps2d
@@ -117,7 +132,22 @@ def project_gaussians(means: torch.Tensor, quats_wxyz: torch.Tensor, log_scales:
     return Projected(means2d, conics, z, log_opacity, extent, ok)
 
 
-def render(means: torch.Tensor, quats_wxyz: torch.Tensor, log_scales: torch.Tensor, opacity_logits: torch.Tensor, colors: torch.Tensor, cam_from_world: torch.Tensor, K: torch.Tensor, width: int, height: int, *, background: torch.Tensor | None = None, sh_degree: int | None = None, with_depth: bool = True, options: RasterOptions = RasterOptions()) -> RenderOutput:
+def render(
+    means: torch.Tensor,
+    quats_wxyz: torch.Tensor,
+    log_scales: torch.Tensor,
+    opacity_logits: torch.Tensor,
+    colors: torch.Tensor,
+    cam_from_world: torch.Tensor,
+    K: torch.Tensor,
+    width: int,
+    height: int,
+    *,
+    background: torch.Tensor | None = None,
+    sh_degree: int | None = None,
+    with_depth: bool = True,
+    options: RasterOptions = RasterOptions(),
+) -> RenderOutput:
     """Render N Gaussians (world frame) into one pinhole camera, differentiably.
 
     Args:
@@ -131,7 +161,18 @@ def render(means: torch.Tensor, quats_wxyz: torch.Tensor, log_scales: torch.Tens
         :class:`RenderOutput` with ``rgb [H, W, 3]``, ``alpha [H, W]``, ``depth [H, W]`` (or None).
     """
     dtype = means.dtype
-    proj = project_gaussians(means, quats_wxyz, log_scales, opacity_logits, cam_from_world, K, width, height, near=options.near, eps2d=options.eps2d)
+    proj = project_gaussians(
+        means,
+        quats_wxyz,
+        log_scales,
+        opacity_logits,
+        cam_from_world,
+        K,
+        width,
+        height,
+        near=options.near,
+        eps2d=options.eps2d,
+    )
     if sh_degree is not None:
         rot, trans = cam_from_world[:3, :3], cam_from_world[:3, 3]
         center = -(rot.T @ trans)
@@ -139,8 +180,18 @@ def render(means: torch.Tensor, quats_wxyz: torch.Tensor, log_scales: torch.Tens
         rgb = sh_to_rgb(colors, dirs, sh_degree)
     else:
         rgb = colors
-    layout = bin_gaussians(proj.means2d.detach(), proj.extent, proj.depths.detach(), proj.visible, width, height, conics=proj.conics.detach(),
-                           log_opacity=proj.log_opacity.detach(), tile_size=options.tile_size, chunk_elements=options.chunk_elements)
+    layout = bin_gaussians(
+        proj.means2d.detach(),
+        proj.extent,
+        proj.depths.detach(),
+        proj.visible,
+        width,
+        height,
+        conics=proj.conics.detach(),
+        log_opacity=proj.log_opacity.detach(),
+        tile_size=options.tile_size,
+        chunk_elements=options.chunk_elements,
+    )
     coef = pair_coefficients(proj.means2d, proj.conics, proj.log_opacity, layout)
     feat = torch.cat([rgb, proj.depths[:, None]], dim=1) if with_depth else rgb
     feat = torch.index_select(torch.cat([feat, feat.new_zeros(1, feat.shape[1])]), 0, layout.pair_gauss)
@@ -150,4 +201,12 @@ def render(means: torch.Tensor, quats_wxyz: torch.Tensor, log_scales: torch.Tens
     img, alpha = composite(coef, feat, bg, layout, width, height)
     visible = torch.zeros(len(means), dtype=torch.bool)
     visible[layout.pair_gauss[layout.pair_gauss < len(means)]] = True
-    return RenderOutput(rgb=img[..., :3], alpha=alpha, depth=img[..., 3] if with_depth else None, means2d=proj.means2d, visible=visible, extent=proj.extent, layout=layout)
+    return RenderOutput(
+        rgb=img[..., :3],
+        alpha=alpha,
+        depth=img[..., 3] if with_depth else None,
+        means2d=proj.means2d,
+        visible=visible,
+        extent=proj.extent,
+        layout=layout,
+    )

@@ -25,7 +25,22 @@ def gsplat_available() -> bool:
     return torch.cuda.is_available() and importlib.util.find_spec("gsplat") is not None
 
 
-def render_gsplat(means: torch.Tensor, quats_wxyz: torch.Tensor, log_scales: torch.Tensor, opacity_logits: torch.Tensor, colors: torch.Tensor, cam_from_world: torch.Tensor, K: torch.Tensor, width: int, height: int, *, background: torch.Tensor | None = None, sh_degree: int | None = None, with_depth: bool = True, options: RasterOptions | None = None) -> RenderOutput:
+def render_gsplat(
+    means: torch.Tensor,
+    quats_wxyz: torch.Tensor,
+    log_scales: torch.Tensor,
+    opacity_logits: torch.Tensor,
+    colors: torch.Tensor,
+    cam_from_world: torch.Tensor,
+    K: torch.Tensor,
+    width: int,
+    height: int,
+    *,
+    background: torch.Tensor | None = None,
+    sh_degree: int | None = None,
+    with_depth: bool = True,
+    options: RasterOptions | None = None,
+) -> RenderOutput:
     """Same inputs and outputs as :func:`ffrecon.splat.render.render`, on CUDA tensors via gsplat.
 
     ``RenderOutput.layout`` is None here (gsplat bins internally) and ``means2d`` is gsplat's
@@ -38,7 +53,9 @@ def render_gsplat(means: torch.Tensor, quats_wxyz: torch.Tensor, log_scales: tor
     dtype = means.dtype
     cam_from_world_4x4 = torch.eye(4, device=device, dtype=dtype)  # what gsplat calls a "viewmat"
     cam_from_world_4x4[:3] = cam_from_world[:3].to(dtype)
-    bg = torch.zeros(3, device=device, dtype=dtype) if background is None else background.to(device=device, dtype=dtype)  # gsplat appends depth's 0
+    bg = (
+        torch.zeros(3, device=device, dtype=dtype) if background is None else background.to(device=device, dtype=dtype)
+    )  # gsplat appends depth's 0
     colors_gs = colors[:, : (sh_degree + 1) ** 2] if sh_degree is not None else colors
     out, alphas, meta = gsplat.rasterization(
         means=means,

@@ -31,7 +31,9 @@ def voxel_downsample(xyz: np.ndarray, rgb: np.ndarray, voxel_size: float) -> tup
     return np.asarray(down.points), np.asarray(down.colors, dtype=np.float32)
 
 
-def reduce_points(xyz: np.ndarray, rgb: np.ndarray, *, voxel_size: float | None, max_points: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+def reduce_points(
+    xyz: np.ndarray, rgb: np.ndarray, *, voxel_size: float | None, max_points: int, seed: int = 0
+) -> tuple[np.ndarray, np.ndarray]:
     """Voxel-downsample (automatic voxel size when None) and cap the count at ``max_points``.
 
     The automatic size starts at 1/500 of the robust extent and is rescaled until 85-100 % of
@@ -59,7 +61,16 @@ def reduce_points(xyz: np.ndarray, rgb: np.ndarray, *, voxel_size: float | None,
     return np.asarray(xyz, np.float64), np.asarray(rgb, np.float32)
 
 
-def seed_from_prediction(prediction: Prediction, images: Sequence[np.ndarray], min_conf: float = 1.0, voxel_size: float | None = None, max_points: int = 60_000, *, frames: Sequence[int] | None = None, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+def seed_from_prediction(
+    prediction: Prediction,
+    images: Sequence[np.ndarray],
+    min_conf: float = 1.0,
+    voxel_size: float | None = None,
+    max_points: int = 60_000,
+    *,
+    frames: Sequence[int] | None = None,
+    seed: int = 0,
+) -> tuple[np.ndarray, np.ndarray]:
     """Fuse the feed-forward depth maps into a coloured seed cloud.
 
     Args:
@@ -73,7 +84,10 @@ def seed_from_prediction(prediction: Prediction, images: Sequence[np.ndarray], m
         ``(xyz [M, 3] float64 world, rgb [M, 3] float32 in [0, 1])``.
     """
     if len(images) != len(prediction):
-        raise InputError(f"seed_from_prediction: {len(images)} images for {len(prediction)} predicted frames", "pass one image per predicted frame")
+        raise InputError(
+            f"seed_from_prediction: {len(images)} images for {len(prediction)} predicted frames",
+            "pass one image per predicted frame",
+        )
     use = list(range(len(prediction))) if frames is None else [int(i) for i in frames]
     per_frame = max(1, 8 * max_points // max(len(use), 1))  # bound memory on large photos
     xyz_parts, rgb_parts = [], []
@@ -84,7 +98,7 @@ def seed_from_prediction(prediction: Prediction, images: Sequence[np.ndarray], m
         stride = max(1, math.ceil(math.sqrt(depth.size / per_frame)))
         mask = prediction.valid_mask(i, min_conf)
         sub = np.zeros_like(mask)
-        sub[stride // 2::stride, stride // 2::stride] = True
+        sub[stride // 2 :: stride, stride // 2 :: stride] = True
         mask &= sub
         xyz_parts.append(prediction.world_points(i)[mask])
         rgb_parts.append(image[mask].astype(np.float32) / 255.0)
@@ -92,7 +106,10 @@ def seed_from_prediction(prediction: Prediction, images: Sequence[np.ndarray], m
     finite = np.isfinite(xyz).all(1)
     xyz, rgb = xyz[finite], rgb[finite]
     if len(xyz) == 0:
-        raise InputError(f"no depth pixels with confidence >= {min_conf} to seed the splat", "lower min_conf, or seed from the refined sparse model")
+        raise InputError(
+            f"no depth pixels with confidence >= {min_conf} to seed the splat",
+            "lower min_conf, or seed from the refined sparse model",
+        )
     logger.info("seed: %d confident pixels from %d frames", len(xyz), len(use))
     return reduce_points(xyz, rgb, voxel_size=voxel_size, max_points=max_points, seed=seed)
 
@@ -101,7 +118,9 @@ def seed_from_reconstruction(rec: pycolmap.Reconstruction) -> tuple[np.ndarray, 
     """The 3D points of a COLMAP model: ``(xyz [M, 3] float64, rgb [M, 3] float32 in [0, 1])``."""
     points = list(rec.points3D.values())
     if not points:
-        raise InputError("the sparse model has no 3D points to seed the splat", "seed from the feed-forward point maps instead")
+        raise InputError(
+            "the sparse model has no 3D points to seed the splat", "seed from the feed-forward point maps instead"
+        )
     xyz = np.array([p.xyz for p in points], dtype=np.float64)
     rgb = np.array([p.color for p in points], dtype=np.float32) / 255.0
     return xyz, rgb
@@ -128,5 +147,9 @@ def initial_gaussians(xyz: np.ndarray, rgb: np.ndarray, *, sh_degree: int, opaci
     check_shape("seed_xyz", xyz, (None, 3))
     check_shape("seed_rgb", rgb, (len(xyz), 3))
     if len(xyz) < 4:
-        raise InputError(f"only {len(xyz)} seed points: a splat needs at least 4", "check the depth confidences or the sparse model")
-    return Gaussians.from_points(xyz, np.clip(rgb, 0.0, 1.0), nearest_neighbour_log_scales(xyz), opacity=opacity, sh_degree=sh_degree)
+        raise InputError(
+            f"only {len(xyz)} seed points: a splat needs at least 4", "check the depth confidences or the sparse model"
+        )
+    return Gaussians.from_points(
+        xyz, np.clip(rgb, 0.0, 1.0), nearest_neighbour_log_scales(xyz), opacity=opacity, sh_degree=sh_degree
+    )

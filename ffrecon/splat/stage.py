@@ -112,8 +112,11 @@ class SplatResult:
         out = []
         for name, truth, seed, splat in self.render_paths:
             m = by_name[name]
-            out += [(f"{name}: ground truth", truth), (f"{name}: seed, PSNR {m.psnr_seed:.1f} dB", seed),
-                    (f"{name}: splat, PSNR {m.psnr_cleaned:.1f} dB", splat)]
+            out += [
+                (f"{name}: ground truth", truth),
+                (f"{name}: seed, PSNR {m.psnr_seed:.1f} dB", seed),
+                (f"{name}: splat, PSNR {m.psnr_cleaned:.1f} dB", splat),
+            ]
         return out
 
     def to_report(self) -> dict:
@@ -126,7 +129,9 @@ class SplatResult:
         return {
             "backend": self.backend,
             "splat_ply": rel(self.ply_path),
-            "renders": [{"view": v, "truth": rel(t), "seed": rel(s), "splat": rel(o)} for v, t, s, o in self.render_paths],
+            "renders": [
+                {"view": v, "truth": rel(t), "seed": rel(s), "splat": rel(o)} for v, t, s, o in self.render_paths
+            ],
             "video": rel(self.video_path),
             "mesh": {"ply": rel(self.mesh_ply_path), "glb": rel(self.mesh_glb_path)} if self.mesh_ply_path else None,
             "heldout_views": [v.name for v in self.heldout],
@@ -153,9 +158,21 @@ def image_metrics(rendered: torch.Tensor, truth: torch.Tensor) -> tuple[float, f
 def render_view(g: Gaussians, cam_from_world: np.ndarray, camera: PinholeCamera, options: SplatOptions) -> torch.Tensor:
     """``[H, W, 3]`` render of ``g`` on the CPU (no gradient)."""
     with torch.no_grad():
-        out = render(g.means, g.quats_wxyz, g.log_scales, g.opacity_logits, g.sh, torch.tensor(cam_from_world, dtype=torch.float32),
-                     torch.tensor(camera.K, dtype=torch.float32), camera.width, camera.height,
-                     background=torch.tensor(options.background, dtype=torch.float32), sh_degree=g.sh_degree, with_depth=False, options=options.raster)
+        out = render(
+            g.means,
+            g.quats_wxyz,
+            g.log_scales,
+            g.opacity_logits,
+            g.sh,
+            torch.tensor(cam_from_world, dtype=torch.float32),
+            torch.tensor(camera.K, dtype=torch.float32),
+            camera.width,
+            camera.height,
+            background=torch.tensor(options.background, dtype=torch.float32),
+            sh_degree=g.sh_degree,
+            with_depth=False,
+            options=options.raster,
+        )
     return out.rgb.clamp(0, 1)
 
 
@@ -168,11 +185,20 @@ def _write_png(path: Path, rgb: torch.Tensor | np.ndarray) -> Path:
 def _validate(images, names, cam_from_world, cameras, seed_xyz, seed_rgb) -> None:
     n = len(images)
     if not (len(names) == n == len(cameras) == len(cam_from_world)):
-        raise InputError(f"run_splat: {n} images, {len(names)} names, {len(cameras)} cameras, {len(cam_from_world)} poses", "pass one of each per frame")
+        raise InputError(
+            f"run_splat: {n} images, {len(names)} names, {len(cameras)} cameras, {len(cam_from_world)} poses",
+            "pass one of each per frame",
+        )
     check_shape("cam_from_world", np.asarray(cam_from_world), (n, 3, 4))
     check_shape("seed_xyz", np.asarray(seed_xyz), (None, 3))
     check_shape("seed_rgb", np.asarray(seed_rgb), (len(seed_xyz), 3))
-    require_finite("splat", cam_from_world=cam_from_world, seed_xyz=seed_xyz, seed_rgb=seed_rgb, intrinsics=np.array([[c.fx, c.fy, c.cx, c.cy] for c in cameras]))
+    require_finite(
+        "splat",
+        cam_from_world=cam_from_world,
+        seed_xyz=seed_xyz,
+        seed_rgb=seed_rgb,
+        intrinsics=np.array([[c.fx, c.fy, c.cx, c.cy] for c in cameras]),
+    )
     for name, image, cam in zip(names, images, cameras):
         check_shape(f"image {name}", image, (cam.height, cam.width, 3))
 
@@ -192,11 +218,22 @@ def split_views(num: int, holdout_every: int) -> tuple[list[int], list[int]]:
 def resolve_device(device: SplatDevice | str) -> str:
     device = SplatDevice(device)
     if device is SplatDevice.CUDA and not gsplat_available():
-        raise InputError("device 'cuda' needs CUDA and gsplat", "install ffrecon[gpu] on a CUDA machine, or use device 'auto'")
+        raise InputError(
+            "device 'cuda' needs CUDA and gsplat", "install ffrecon[gpu] on a CUDA machine, or use device 'auto'"
+        )
     return "cuda" if device is SplatDevice.CUDA or (device is SplatDevice.AUTO and gsplat_available()) else "cpu"
 
 
-def run_splat(images: Sequence[np.ndarray], names: Sequence[str], cam_from_world: np.ndarray, cameras: Sequence[PinholeCamera], seed_xyz: np.ndarray, seed_rgb: np.ndarray, options: SplatOptions, out_dir: Path) -> SplatResult:
+def run_splat(
+    images: Sequence[np.ndarray],
+    names: Sequence[str],
+    cam_from_world: np.ndarray,
+    cameras: Sequence[PinholeCamera],
+    seed_xyz: np.ndarray,
+    seed_rgb: np.ndarray,
+    options: SplatOptions,
+    out_dir: Path,
+) -> SplatResult:
     """Seed, optimise, clean and export a Gaussian splat; measure it on held-out views.
 
     Args:
@@ -209,7 +246,9 @@ def run_splat(images: Sequence[np.ndarray], names: Sequence[str], cam_from_world
         return _run_splat(images, names, cam_from_world, cameras, seed_xyz, seed_rgb, options, out_dir)
 
 
-def _run_splat(images, names, cam_from_world, cameras, seed_xyz, seed_rgb, options: SplatOptions, out_dir: Path) -> SplatResult:
+def _run_splat(
+    images, names, cam_from_world, cameras, seed_xyz, seed_rgb, options: SplatOptions, out_dir: Path
+) -> SplatResult:
     t_start = time.perf_counter()
     _validate(images, names, cam_from_world, cameras, seed_xyz, seed_rgb)
     out_dir = Path(out_dir)
@@ -223,15 +262,32 @@ def _run_splat(images, names, cam_from_world, cameras, seed_xyz, seed_rgb, optio
 
     t = time.perf_counter()
     cap = min(options.max_seed_points, options.max_gaussians)
-    xyz, rgb = reduce_points(np.asarray(seed_xyz, np.float64), np.asarray(seed_rgb, np.float32), voxel_size=None, max_points=cap, seed=options.seed)
+    xyz, rgb = reduce_points(
+        np.asarray(seed_xyz, np.float64),
+        np.asarray(seed_rgb, np.float32),
+        voxel_size=None,
+        max_points=cap,
+        seed=options.seed,
+    )
     seed = initial_gaussians(xyz, rgb, sh_degree=options.sh_degree)
     scale = scene_scale(cam_from_world[train], xyz)
     timings["seed"] = time.perf_counter() - t
 
     targets = [torch.from_numpy(np.ascontiguousarray(im)).float() / 255.0 for im in images]
-    opt = replace(options.optimizer, iterations=options.iterations, max_seconds=options.max_seconds, sh_degree=options.sh_degree,
-                  max_gaussians=options.max_gaussians, refine_poses=options.refine_poses, background=options.background,
-                  raster=options.raster, device=device, seed=options.seed, progress=options.progress, threads=options.threads)
+    opt = replace(
+        options.optimizer,
+        iterations=options.iterations,
+        max_seconds=options.max_seconds,
+        sh_degree=options.sh_degree,
+        max_gaussians=options.max_gaussians,
+        refine_poses=options.refine_poses,
+        background=options.background,
+        raster=options.raster,
+        device=device,
+        seed=options.seed,
+        progress=options.progress,
+        threads=options.threads,
+    )
     Ks = np.stack([c.K for c in cameras])
     result = optimize(seed, targets, cam_from_world, Ks, train, opt, scale=scale)
     poses = result.cam_from_world
@@ -245,12 +301,18 @@ def _run_splat(images, names, cam_from_world, cameras, seed_xyz, seed_rgb, optio
     t = time.perf_counter()
     heldout, render_paths = [], []
     for j, i in enumerate(test):
-        views = {key: render_view(g, poses[i], cameras[i], options) for key, g in (("seed", seed), ("optimized", result.gaussians), ("cleaned", cleaned))}
+        views = {
+            key: render_view(g, poses[i], cameras[i], options)
+            for key, g in (("seed", seed), ("optimized", result.gaussians), ("cleaned", cleaned))
+        }
         m = {key: image_metrics(img, targets[i]) for key, img in views.items()}
         heldout.append(ViewMetrics(names[i], *m["seed"], *m["optimized"], *m["cleaned"]))
         if j < options.report_views:
             stem = Path(names[i]).stem
-            paths = tuple(_write_png(renders_dir / f"{stem}_{kind}.png", img) for kind, img in (("truth", images[i]), ("seed", views["seed"]), ("splat", views["cleaned"])))
+            paths = tuple(
+                _write_png(renders_dir / f"{stem}_{kind}.png", img)
+                for kind, img in (("truth", images[i]), ("seed", views["seed"]), ("splat", views["cleaned"]))
+            )
             render_paths.append((names[i], *paths))
     timings["evaluate"] = time.perf_counter() - t
 
@@ -263,7 +325,15 @@ def _run_splat(images, names, cam_from_world, cameras, seed_xyz, seed_rgb, optio
         from ffrecon.export.video import write_flythrough
 
         t = time.perf_counter()
-        video_path = write_flythrough(out_dir / "flythrough.mp4", cleaned, poses, cameras[0], num_frames=options.video_frames, background=options.background, raster=options.raster)
+        video_path = write_flythrough(
+            out_dir / "flythrough.mp4",
+            cleaned,
+            poses,
+            cameras[0],
+            num_frames=options.video_frames,
+            background=options.background,
+            raster=options.raster,
+        )
         timings["video"] = time.perf_counter() - t
 
     mesh_ply = mesh_glb = None
@@ -271,18 +341,44 @@ def _run_splat(images, names, cam_from_world, cameras, seed_xyz, seed_rgb, optio
         from ffrecon.export.mesh import write_mesh
 
         t = time.perf_counter()
-        mesh_ply, mesh_glb = write_mesh(out_dir / "mesh.ply", out_dir / "mesh.glb", np.asarray(seed_xyz, np.float64), np.asarray(seed_rgb, np.float32), camera_centers(poses))
+        mesh_ply, mesh_glb = write_mesh(
+            out_dir / "mesh.ply",
+            out_dir / "mesh.glb",
+            np.asarray(seed_xyz, np.float64),
+            np.asarray(seed_rgb, np.float32),
+            camera_centers(poses),
+        )
         timings["mesh"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t_start
 
     res = SplatResult(
-        out_dir=out_dir, ply_path=ply_path, renders_dir=renders_dir, render_paths=tuple(render_paths), video_path=video_path,
-        mesh_ply_path=mesh_ply, mesh_glb_path=mesh_glb, heldout=tuple(heldout), timings=timings, iterations=result.iterations,
-        iterations_per_second=result.iterations / max(result.seconds, 1e-9), count_seed=len(seed), count_optimized=len(result.gaussians),
-        count_cleaned=len(cleaned), clean=clean_report, backend="gsplat" if device == "cuda" else "cpu", cam_from_world=poses,
+        out_dir=out_dir,
+        ply_path=ply_path,
+        renders_dir=renders_dir,
+        render_paths=tuple(render_paths),
+        video_path=video_path,
+        mesh_ply_path=mesh_ply,
+        mesh_glb_path=mesh_glb,
+        heldout=tuple(heldout),
+        timings=timings,
+        iterations=result.iterations,
+        iterations_per_second=result.iterations / max(result.seconds, 1e-9),
+        count_seed=len(seed),
+        count_optimized=len(result.gaussians),
+        count_cleaned=len(cleaned),
+        clean=clean_report,
+        backend="gsplat" if device == "cuda" else "cpu",
+        cam_from_world=poses,
     )
     if heldout:
-        logger.info("splat: held-out PSNR %.2f -> %.2f dB (cleaned %.2f), SSIM %.3f -> %.3f; %d iterations (%.2f it/s)",
-                    res.mean("psnr_seed"), res.mean("psnr_optimized"), res.mean("psnr_cleaned"), res.mean("ssim_seed"), res.mean("ssim_optimized"),
-                    res.iterations, res.iterations_per_second)
+        logger.info(
+            "splat: held-out PSNR %.2f -> %.2f dB (cleaned %.2f), SSIM %.3f -> %.3f; %d iterations (%.2f it/s)",
+            res.mean("psnr_seed"),
+            res.mean("psnr_optimized"),
+            res.mean("psnr_cleaned"),
+            res.mean("ssim_seed"),
+            res.mean("ssim_optimized"),
+            res.iterations,
+            res.iterations_per_second,
+        )
     return res

@@ -79,7 +79,9 @@ class Geometry:
         return len(self.quads) + len(self.spheres)
 
 
-def _face_quad(lo: np.ndarray, hi: np.ndarray, world_from_local: np.ndarray, offset: np.ndarray, face: int, *, inward: bool) -> Quad:
+def _face_quad(
+    lo: np.ndarray, hi: np.ndarray, world_from_local: np.ndarray, offset: np.ndarray, face: int, *, inward: bool
+) -> Quad:
     """Face ``2 * axis + side`` of the box ``[lo, hi]`` (local frame) as a world-frame :class:`Quad`."""
     axis, side = divmod(face, 2)
     a, b = [k for k in range(3) if k != axis]
@@ -149,7 +151,9 @@ def intersect(geometry: Geometry, origin: np.ndarray, dirs: np.ndarray) -> tuple
     return t_best, surface
 
 
-def _near_rays(origin: np.ndarray, d: list[np.ndarray], dd: np.ndarray, center: np.ndarray, radius: float) -> np.ndarray:
+def _near_rays(
+    origin: np.ndarray, d: list[np.ndarray], dd: np.ndarray, center: np.ndarray, radius: float
+) -> np.ndarray:
     """Indices of rays (direction columns ``d``) passing within ``radius`` (plus a margin) of ``center`` ahead of the origin."""
     oc = center - origin
     along = d[0] * oc[0] + d[1] * oc[1] + d[2] * oc[2]
@@ -173,8 +177,16 @@ def _bilinear(texture: np.ndarray, x: np.ndarray, y: np.ndarray, *, wrap: bool) 
     return top * (1 - fy) + bottom * fy
 
 
-def shade(geometry: Geometry, textures: tuple[np.ndarray, ...], points: np.ndarray, surface: np.ndarray, *,
-          texels_per_unit: tuple[float, ...], wrap: bool, contrast: float = 1.0) -> np.ndarray:
+def shade(
+    geometry: Geometry,
+    textures: tuple[np.ndarray, ...],
+    points: np.ndarray,
+    surface: np.ndarray,
+    *,
+    texels_per_unit: tuple[float, ...],
+    wrap: bool,
+    contrast: float = 1.0,
+) -> np.ndarray:
     """Colour ``[M, 3]`` float32 of surface points ``[M, 3]`` (world) on surfaces ``[M]``.
 
     ``textures[k]`` (``[h, w, 3]`` float32) covers surface k at ``texels_per_unit[k]`` texels per world unit.
@@ -206,7 +218,9 @@ def shade(geometry: Geometry, textures: tuple[np.ndarray, ...], points: np.ndarr
     return out
 
 
-def camera_rays(cam_from_world: np.ndarray, K: np.ndarray, height: int, width: int, offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def camera_rays(
+    cam_from_world: np.ndarray, K: np.ndarray, height: int, width: int, offsets: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """World-frame ray directions through sub-pixel positions, scaled so that ``t`` is z-depth.
 
     Args:

@@ -76,8 +76,11 @@ class SceneOptions:
     @staticmethod
     def from_dict(data: dict) -> "SceneOptions":
         data = dict(data)
-        data.update(path=CameraPath(data["path"]), texture=Texture(data["texture"]),
-                    textureless_frames=tuple(int(i) for i in data["textureless_frames"]))
+        data.update(
+            path=CameraPath(data["path"]),
+            texture=Texture(data["texture"]),
+            textureless_frames=tuple(int(i) for i in data["textureless_frames"]),
+        )
         return SceneOptions(**data)
 
 
@@ -103,8 +106,12 @@ class SyntheticScene:
 def scene_geometry() -> render.Geometry:
     """The fixed room, boxes and sphere (the seed changes textures and jitter, not the layout)."""
     boxes = (
-        render.Box(center=np.array([0.15, -0.1, 0.225]), half_size=np.array([0.45, 0.3, 0.225]), yaw_rad=np.radians(20)),
-        render.Box(center=np.array([-0.45, 0.4, 0.55]), half_size=np.array([0.17, 0.17, 0.55]), yaw_rad=np.radians(-15)),
+        render.Box(
+            center=np.array([0.15, -0.1, 0.225]), half_size=np.array([0.45, 0.3, 0.225]), yaw_rad=np.radians(20)
+        ),
+        render.Box(
+            center=np.array([-0.45, 0.4, 0.55]), half_size=np.array([0.17, 0.17, 0.55]), yaw_rad=np.radians(-15)
+        ),
         render.Box(center=np.array([0.5, 0.5, 0.15]), half_size=np.array([0.2, 0.15, 0.15]), yaw_rad=np.radians(40)),
         render.Box(center=np.array([0.2, -0.12, 0.6]), half_size=np.array([0.15, 0.15, 0.15]), yaw_rad=np.radians(55)),
     )
@@ -119,12 +126,15 @@ def camera_path(path: CameraPath, num_frames: int) -> np.ndarray:
             angles = np.radians(-90.0) + 2 * np.pi * np.arange(num_frames) / num_frames
         else:
             angles = np.radians(np.linspace(-135.0, -45.0, num_frames))
-        centers = np.stack([ORBIT_RADIUS * np.cos(angles), ORBIT_RADIUS * np.sin(angles),
-                            np.full(num_frames, CAMERA_HEIGHT)], axis=1)
+        centers = np.stack(
+            [ORBIT_RADIUS * np.cos(angles), ORBIT_RADIUS * np.sin(angles), np.full(num_frames, CAMERA_HEIGHT)], axis=1
+        )
         return np.stack([look_at_cam_from_world(c, LOOK_TARGET) for c in centers])
     # Forward: walk along +x beside the objects, heading slightly towards them, with a gentle bob.
     s = np.linspace(0.0, 1.0, num_frames)
-    centers = np.stack([-2.3 + 3.0 * s, np.full(num_frames, -1.45), CAMERA_HEIGHT + 0.04 * np.sin(6 * np.pi * s)], axis=1)
+    centers = np.stack(
+        [-2.3 + 3.0 * s, np.full(num_frames, -1.45), CAMERA_HEIGHT + 0.04 * np.sin(6 * np.pi * s)], axis=1
+    )
     heading = np.array([1.0, 0.28, -0.22])
     return np.stack([look_at_cam_from_world(c, c + heading) for c in centers])
 
@@ -132,10 +142,14 @@ def camera_path(path: CameraPath, num_frames: int) -> np.ndarray:
 def make_camera(options: SceneOptions) -> PinholeCamera:
     """Square-pixel pinhole with the principal point exactly at the image centre."""
     focal = options.width / 2 / np.tan(np.radians(options.fov_x_deg) / 2)
-    return PinholeCamera(options.width, options.height, float(focal), float(focal), options.width / 2, options.height / 2)
+    return PinholeCamera(
+        options.width, options.height, float(focal), float(focal), options.width / 2, options.height / 2
+    )
 
 
-def _surface_textures(geometry: render.Geometry, texture: Texture, rng: np.random.Generator) -> tuple[tuple[np.ndarray, ...], tuple[float, ...]]:
+def _surface_textures(
+    geometry: render.Geometry, texture: Texture, rng: np.random.Generator
+) -> tuple[tuple[np.ndarray, ...], tuple[float, ...]]:
     """One texture per surface and its texels per world unit.
 
     The room's surfaces get half the objects' texel density, so their detail stays a few pixels wide
@@ -145,7 +159,9 @@ def _surface_textures(geometry: render.Geometry, texture: Texture, rng: np.rando
     if texture is Texture.REPEATED:
         tile = textures.tile_texture(rng, int(OBJECT_TEXELS_PER_UNIT * 0.75))
         return tuple(tile for _ in range(geometry.num_surfaces)), (OBJECT_TEXELS_PER_UNIT,) * geometry.num_surfaces
-    sizes = [(q.size_v, q.size_u) for q in geometry.quads] + [(np.pi * s.radius, 2 * np.pi * s.radius) for s in geometry.spheres]
+    sizes = [(q.size_v, q.size_u) for q in geometry.quads] + [
+        (np.pi * s.radius, 2 * np.pi * s.radius) for s in geometry.spheres
+    ]
     densities = tuple(ROOM_TEXELS_PER_UNIT if k < num_room else OBJECT_TEXELS_PER_UNIT for k in range(len(sizes)))
     out = []
     for (size_v, size_u), density in zip(sizes, densities):
@@ -181,8 +197,15 @@ def make_scene(options: SceneOptions = SceneOptions()) -> SyntheticScene:
         if options.texture is Texture.TEXTURELESS or i in options.textureless_frames:
             contrast = _TEXTURELESS_CONTRAST
         points = origin + t[h * w :, None] * flat[h * w :]
-        colour = render.shade(geometry, surface_textures, points, surface[h * w :], texels_per_unit=densities,
-                              wrap=options.texture is Texture.REPEATED, contrast=contrast)
+        colour = render.shade(
+            geometry,
+            surface_textures,
+            points,
+            surface[h * w :],
+            texels_per_unit=densities,
+            wrap=options.texture is Texture.REPEATED,
+            contrast=contrast,
+        )
         img = colour.reshape(4, h, w, 3).mean(0) * np.float32(gains[i])
         if options.blur_sigma_px > 0:
             img = cv2.GaussianBlur(img, (0, 0), options.blur_sigma_px)
@@ -208,7 +231,15 @@ def write_scene(scene: SyntheticScene, out_dir: Path) -> Path:
         "description": "ffrecon synthetic scene: exact ground truth. Poses are OpenCV cam_from_world; "
         "pixel centres follow COLMAP (top-left pixel centre at (0.5, 0.5)); world z is up.",
         "options": scene.options.to_dict(),
-        "camera": {"model": "PINHOLE", "width": cam.width, "height": cam.height, "fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy},
+        "camera": {
+            "model": "PINHOLE",
+            "width": cam.width,
+            "height": cam.height,
+            "fx": cam.fx,
+            "fy": cam.fy,
+            "cx": cam.cx,
+            "cy": cam.cy,
+        },
         "frames": [{"name": n, "cam_from_world": p.tolist()} for n, p in zip(scene.names, scene.cam_from_world)],
     }
     (out_dir / "ground_truth.json").write_text(json.dumps(truth, indent=1))
@@ -221,12 +252,17 @@ def load_scene(out_dir: Path) -> SyntheticScene:
     out_dir = Path(out_dir)
     truth_path = out_dir / "ground_truth.json"
     if not truth_path.is_file():
-        raise InputError(f"no synthetic scene in {out_dir}: {truth_path.name} is missing", "write one with ffrecon.synthetic.write_scene")
+        raise InputError(
+            f"no synthetic scene in {out_dir}: {truth_path.name} is missing",
+            "write one with ffrecon.synthetic.write_scene",
+        )
     truth = json.loads(truth_path.read_text())
     names = tuple(f["name"] for f in truth["frames"])
     images = np.stack([np.asarray(Image.open(out_dir / "images" / n).convert("RGB")) for n in names])
     c = truth["camera"]
-    camera = PinholeCamera(int(c["width"]), int(c["height"]), float(c["fx"]), float(c["fy"]), float(c["cx"]), float(c["cy"]))
+    camera = PinholeCamera(
+        int(c["width"]), int(c["height"]), float(c["fx"]), float(c["fy"]), float(c["cx"]), float(c["cy"])
+    )
     with np.load(out_dir / "depth.npz") as data:
         depth = data["depth"].astype(np.float32)
     return SyntheticScene(

@@ -137,10 +137,17 @@ def simulate(scene: SyntheticScene, options: SimulationOptions = SimulationOptio
     for i in range(n):
         depth_err[i] = options.depth_error * _eval_field(fields[i], orig_uv / [w, h])
         err_net = options.depth_error * _eval_field(fields[i], net_uv / [w, h])
-        true_net = render.cast_depth(geometry, scene.cam_from_world[i], scene.camera.K, net_uv.reshape(-1, 2)).reshape(hn, wn)
+        true_net = render.cast_depth(geometry, scene.cam_from_world[i], scene.camera.K, net_uv.reshape(-1, 2)).reshape(
+            hn, wn
+        )
         net_depth[i] = true_net * (1 + err_net)
         net_conf[i] = 1 + (_CONF_MAX - 1) * np.exp(-np.abs(err_net) / max(options.depth_error, 1e-6))
-    truth = SimulatedTruth(cam_from_world=cam_from_world, K=K, depth=(scene.depth * (1 + depth_err)).astype(np.float32), depth_error=depth_err)
+    truth = SimulatedTruth(
+        cam_from_world=cam_from_world,
+        K=K,
+        depth=(scene.depth * (1 + depth_err)).astype(np.float32),
+        depth_error=depth_err,
+    )
 
     K_net = K.copy()
     K_net[:, 0] *= t.scale_x
@@ -170,7 +177,9 @@ def injected_cam_from_first(truth: SimulatedTruth, frames: list[int]) -> np.ndar
     return compose_poses(truth.cam_from_world[frames], invert_pose(truth.cam_from_world[frames[0]]))
 
 
-def build_simulated_vggt(scene: SyntheticScene, out_path: Path, options: SimulationOptions = SimulationOptions()) -> SimulatedTruth:
+def build_simulated_vggt(
+    scene: SyntheticScene, out_path: Path, options: SimulationOptions = SimulationOptions()
+) -> SimulatedTruth:
     """Write the simulated model to ``out_path`` (an ``.onnx`` file) and return the injected errors.
 
     The model's input is ``input_images [S, 3, Hn, Wn]`` float32 in [0, 1], the scene's frames
@@ -198,7 +207,13 @@ def build_simulated_vggt(scene: SyntheticScene, out_path: Path, options: Simulat
     out_path = Path(out_path)
     out_path.parent.mkdir(parents=True, exist_ok=True)
     onnx.save_model(model, str(out_path))
-    logger.info("wrote simulated VGGT model for %d frames (%dx%d network input) to %s", len(scene), arrays["size_hw"][1], arrays["size_hw"][0], out_path)
+    logger.info(
+        "wrote simulated VGGT model for %d frames (%dx%d network input) to %s",
+        len(scene),
+        arrays["size_hw"][1],
+        arrays["size_hw"][0],
+        out_path,
+    )
     return truth
 
 
@@ -219,7 +234,11 @@ def _build_graph(arrays: dict) -> onnx.ModelProto:
     def gather(name: str, values: np.ndarray) -> str:
         return g.op("Gather", [g.const(values.astype(np.float32), name), idx], axis=0)
 
-    rot, centers, quat = gather("rot", arrays["rot"]), gather("centers", arrays["centers"]), gather("quat_xyzw", arrays["quat_xyzw"])
+    rot, centers, quat = (
+        gather("rot", arrays["rot"]),
+        gather("centers", arrays["centers"]),
+        gather("quat_xyzw", arrays["quat_xyzw"]),
+    )
     fov, inv_f = gather("fov_hw", arrays["fov_hw"]), gather("inv_focal", arrays["inv_focal"])
     depth = gather("depth", arrays["depth"].reshape(n, p))
     conf = gather("conf", arrays["conf"].reshape(n, p))
@@ -229,7 +248,13 @@ def _build_graph(arrays: dict) -> onnx.ModelProto:
     # Quaternions: q_rel = q_i (x) conj(q_0) = q_i @ M(conj(q_0)), M linear in its argument.
     quat0_conj = g.op("Mul", [quat0, g.const(np.array([-1, -1, -1, 1], np.float32))])
     basis = quat_product_basis().reshape(4, 16).astype(np.float32)
-    mat = g.op("Reshape", [g.op("MatMul", [g.op("Unsqueeze", [quat0_conj, g.const(np.array([0], np.int64))]), g.const(basis)]), g.const(np.array([4, 4], np.int64))])
+    mat = g.op(
+        "Reshape",
+        [
+            g.op("MatMul", [g.op("Unsqueeze", [quat0_conj, g.const(np.array([0], np.int64))]), g.const(basis)]),
+            g.const(np.array([4, 4], np.int64)),
+        ],
+    )
     quat_rel = g.op("MatMul", [quat, mat])
     # Translations: t_rel_i = R_i (c_0 - c_i).
     diff = g.op("Sub", [center0, centers])  # [S, 3]
@@ -263,14 +288,17 @@ def _build_graph(arrays: dict) -> onnx.ModelProto:
     g.output(g.op("Reshape", [conf, shape4]), "depth_conf", [1, "S", hn, wn])
     shape_pts = g.const(np.array([1, -1, hn, wn, 3], np.int64))
     g.output(g.op("Reshape", [g.op("Mul", [p_rel, inv_scale]), shape_pts]), "world_points", [1, "S", hn, wn, 3])
-    point_conf = g.op("Add", [g.op("Mul", [conf, g.const(np.float32(0.8))]), g.const(np.float32(0.2))])  # a little less sure
+    point_conf = g.op(
+        "Add", [g.op("Mul", [conf, g.const(np.float32(0.8))]), g.const(np.float32(0.2))]
+    )  # a little less sure
     g.output(g.op("Reshape", [point_conf, shape4]), "world_points_conf", [1, "S", hn, wn])
     g.output(g.op("Unsqueeze", [x, batch0]), "images", [1, "S", 3, hn, wn])
     return g.model(opset=17)
 
 
-
-def prediction_from_truth(scene: SyntheticScene, truth: SimulatedTruth, options: SimulationOptions = SimulationOptions()) -> Prediction:
+def prediction_from_truth(
+    scene: SyntheticScene, truth: SimulatedTruth, options: SimulationOptions = SimulationOptions()
+) -> Prediction:
     """What the simulated model says, at original resolution in the ground-truth world frame.
 
     For tests and benchmarks of later stages that should not depend on the ONNX path; the
@@ -278,5 +306,9 @@ def prediction_from_truth(scene: SyntheticScene, truth: SimulatedTruth, options:
     """
     conf = 1 + (_CONF_MAX - 1) * np.exp(-np.abs(truth.depth_error) / max(options.depth_error, 1e-6))
     cameras = tuple(PinholeCamera.from_K(K, scene.camera.width, scene.camera.height) for K in truth.K)
-    model = ModelInfo("simulated", ModelFamily.MULTIVIEW, simulated=True, description="simulated model outputs, no ONNX")
-    return Prediction(scene.names, truth.cam_from_world, cameras, tuple(truth.depth), tuple(conf.astype(np.float32)), model)
+    model = ModelInfo(
+        "simulated", ModelFamily.MULTIVIEW, simulated=True, description="simulated model outputs, no ONNX"
+    )
+    return Prediction(
+        scene.names, truth.cam_from_world, cameras, tuple(truth.depth), tuple(conf.astype(np.float32)), model
+    )

@@ -63,8 +63,15 @@ def _draw_shapes(rng: np.random.Generator, img: np.ndarray, count: int) -> None:
             for k in range(int(rng.integers(2, 5))):
                 centre = np.array([cx, cy]) + across * gap * k
                 p0, p1 = centre - along * size, centre + along * size
-                cv2.line(img, tuple(np.round(p0 * 16).astype(int)), tuple(np.round(p1 * 16).astype(int)), colour,
-                         max(1, int(gap / 2)), cv2.LINE_AA, shift=4)
+                cv2.line(
+                    img,
+                    tuple(np.round(p0 * 16).astype(int)),
+                    tuple(np.round(p1 * 16).astype(int)),
+                    colour,
+                    max(1, int(gap / 2)),
+                    cv2.LINE_AA,
+                    shift=4,
+                )
         else:  # a short random "word", drawn as a uint8 coverage mask (putText wants 8-bit images)
             text = "".join(rng.choice(list(_LETTERS), size=int(rng.integers(1, 4))))
             scale = size / 14.0 + 0.3

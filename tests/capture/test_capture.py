@@ -21,7 +21,9 @@ def _pattern(h=60, w=80, seed=0):
 def test_formats_load_as_rgb8(tmp_path, ext):
     rgb = _pattern()
     path = tmp_path / f"a{ext}"
-    Image.fromarray(rgb).save(path, **({"quality": 100} if ext == ".jpg" else {"lossless": True} if ext == ".webp" else {}))
+    Image.fromarray(rgb).save(
+        path, **({"quality": 100} if ext == ".jpg" else {"lossless": True} if ext == ".webp" else {})
+    )
     out, focal, converted = load_image(path)
     assert out.shape == rgb.shape and out.dtype == np.uint8 and focal is None and not converted
     if ext == ".jpg":  # lossy: compare with Pillow's decode of the same file (decoders differ by rounding)
@@ -37,7 +39,9 @@ def test_grayscale_rgba_and_16bit(tmp_path):
     gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
     cv2.imwrite(str(tmp_path / "g.png"), gray)
     out, _, converted = load_image(tmp_path / "g.png")
-    assert converted and out.shape == rgb.shape and np.array_equal(out[..., 0], gray) and np.array_equal(out[..., 1], gray)
+    assert (
+        converted and out.shape == rgb.shape and np.array_equal(out[..., 0], gray) and np.array_equal(out[..., 1], gray)
+    )
     # RGBA: fully transparent pixels become white, opaque ones keep their colour.
     rgba = np.dstack([rgb, np.full(rgb.shape[:2], 255, np.uint8)])
     rgba[:10, :, 3] = 0

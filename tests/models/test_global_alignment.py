@@ -13,7 +13,13 @@ from ffrecon.geometry.metrics import pose_errors
 from ffrecon.geometry.poses import look_at_cam_from_world, transform_points
 from ffrecon.geometry.projection import pixel_centers, unproject_depth
 from ffrecon.geometry.rotations import axis_angle_to_matrix
-from ffrecon.models.global_alignment import AlignmentOptions, PairPrediction, estimate_focal, global_align, maximum_spanning_tree
+from ffrecon.models.global_alignment import (
+    AlignmentOptions,
+    PairPrediction,
+    estimate_focal,
+    global_align,
+    maximum_spanning_tree,
+)
 
 SIZE_HW = (32, 48)
 
@@ -65,7 +71,16 @@ def exact_pairs(pairs, cam_from_world, K, depth, seed):
         pts_i = unproject_depth(depth[i], K[i]) * scale
         pts_j = transform_points(cam_from_world[i], world[j]) * scale
         conf_i, conf_j = 1 + 5 * rng.random((2, *depth[i].shape))
-        out.append(PairPrediction(i, j, pts_i.astype(np.float32), conf_i.astype(np.float32), pts_j.astype(np.float32), conf_j.astype(np.float32)))
+        out.append(
+            PairPrediction(
+                i,
+                j,
+                pts_i.astype(np.float32),
+                conf_i.astype(np.float32),
+                pts_j.astype(np.float32),
+                conf_j.astype(np.float32),
+            )
+        )
     return out
 
 
@@ -74,11 +89,15 @@ SLIDING = [(i, j) for i in range(6) for j in range(6) if i != j and abs(i - j) <
 ONE_REF_ONE_WAY = [(0, j) for j in range(1, 6)]  # views 1..5 are never first: the PnP path
 
 
-@pytest.mark.parametrize("pairs", [COMPLETE, SLIDING, ONE_REF_ONE_WAY], ids=["complete", "sliding_window", "one_reference_one_way"])
+@pytest.mark.parametrize(
+    "pairs", [COMPLETE, SLIDING, ONE_REF_ONE_WAY], ids=["complete", "sliding_window", "one_reference_one_way"]
+)
 def test_exact_pairs_recover_ground_truth(pairs):
     """The last Adam iterate (not the best one, which may be the exact initialisation) is checked."""
     cam_from_world, K, depth = orbit_scene(6, SIZE_HW, seed=0)
-    result = global_align(exact_pairs(pairs, cam_from_world, K, depth, seed=1), SIZE_HW, AlignmentOptions(keep_best=False))
+    result = global_align(
+        exact_pairs(pairs, cam_from_world, K, depth, seed=1), SIZE_HW, AlignmentOptions(keep_best=False)
+    )
     assert result.best_iteration == result.iterations == 300
     errors = pose_errors(result.cam_from_world, cam_from_world)
     assert errors.auc[5] >= 0.99  # acceptance criterion
@@ -89,7 +108,11 @@ def test_exact_pairs_recover_ground_truth(pairs):
     assert np.median(rel) < 1e-3 and rel.max() < 0.01
     # Gauge: the world is view 0's camera.
     np.testing.assert_allclose(result.cam_from_world[0], np.eye(3, 4), atol=1e-9)
-    np.testing.assert_allclose(result.cam_from_world[:, :, :3] @ result.cam_from_world[:, :, :3].transpose(0, 2, 1), np.broadcast_to(np.eye(3), (6, 3, 3)), atol=1e-9)
+    np.testing.assert_allclose(
+        result.cam_from_world[:, :, :3] @ result.cam_from_world[:, :, :3].transpose(0, 2, 1),
+        np.broadcast_to(np.eye(3), (6, 3, 3)),
+        atol=1e-9,
+    )
     assert result.conf.shape == (6, *SIZE_HW) and result.conf.min() >= 1
 
 
@@ -102,7 +125,9 @@ def test_optimisation_improves_on_noisy_pairs():
     for p in exact_pairs(COMPLETE, cam_from_world, K, depth, seed=1):
         rot = axis_angle_to_matrix(rng.normal(size=3) * np.radians(2.0) / np.sqrt(3)).astype(np.float32)
         noise_i, noise_j = (1 + 0.01 * rng.normal(size=(2, *SIZE_HW, 1))).astype(np.float32)
-        noisy.append(PairPrediction(p.i, p.j, p.pts_i_in_i * noise_i, p.conf_i, (p.pts_j_in_i @ rot.T) * noise_j, p.conf_j))
+        noisy.append(
+            PairPrediction(p.i, p.j, p.pts_i_in_i * noise_i, p.conf_i, (p.pts_j_in_i @ rot.T) * noise_j, p.conf_j)
+        )
     result = global_align(noisy, SIZE_HW)
     initial = pose_errors(result.initial_cam_from_world, cam_from_world)
     final = pose_errors(result.cam_from_world, cam_from_world)
@@ -115,7 +140,11 @@ def test_optimisation_improves_on_noisy_pairs():
 def test_coarse_depth_unknowns():
     cam_from_world, K, depth = orbit_scene(4, SIZE_HW, seed=3)
     pairs = [(i, j) for i in range(4) for j in range(4) if i != j]
-    result = global_align(exact_pairs(pairs, cam_from_world, K, depth, seed=1), SIZE_HW, AlignmentOptions(depth_downsample=2, iterations=150))
+    result = global_align(
+        exact_pairs(pairs, cam_from_world, K, depth, seed=1),
+        SIZE_HW,
+        AlignmentOptions(depth_downsample=2, iterations=150),
+    )
     errors = pose_errors(result.cam_from_world, cam_from_world)
     assert errors.auc[5] >= 0.99
     np.testing.assert_allclose(result.focal, K[:, 0, 0], rtol=0.01)
@@ -145,7 +174,9 @@ def test_estimate_focal_exact_and_robust_to_outliers():
 def _pair(i, j, conf):
     shape = (4, 6)
     ones = np.ones(shape, np.float32)
-    return PairPrediction(i, j, np.ones((*shape, 3), np.float32), ones * conf, np.ones((*shape, 3), np.float32), ones * conf)
+    return PairPrediction(
+        i, j, np.ones((*shape, 3), np.float32), ones * conf, np.ones((*shape, 3), np.float32), ones * conf
+    )
 
 
 def test_maximum_spanning_tree_keeps_the_most_confident_edges():

@@ -36,7 +36,11 @@ def _truth(width: int, height: int, seed: int = 0) -> tuple[np.ndarray, np.ndarr
     f = rng.uniform(0.7, 1.3, VIEWS) * max(width, height)
     K = np.zeros((VIEWS, 3, 3))
     K[:, 0, 0], K[:, 1, 1] = f, f * rng.uniform(0.97, 1.03, VIEWS)
-    K[:, 0, 2], K[:, 1, 2], K[:, 2, 2] = width * rng.uniform(0.45, 0.55, VIEWS), height * rng.uniform(0.45, 0.55, VIEWS), 1.0
+    K[:, 0, 2], K[:, 1, 2], K[:, 2, 2] = (
+        width * rng.uniform(0.45, 0.55, VIEWS),
+        height * rng.uniform(0.45, 0.55, VIEWS),
+        1.0,
+    )
     return cam_from_world, K
 
 
@@ -51,7 +55,9 @@ def _perfect_outputs(cam_from_world: np.ndarray, K: np.ndarray, transforms) -> d
     ys, xs = np.mgrid[0:hn, 0:wn] + 0.5
     rays, dist, conf = [], [], []
     for k, t in enumerate(transforms):
-        K_net = np.diag([t.scale_x, t.scale_y, 1.0]) @ K[k] + np.array([[0, 0, t.offset_x], [0, 0, t.offset_y], [0, 0, 0]])
+        K_net = np.diag([t.scale_x, t.scale_y, 1.0]) @ K[k] + np.array(
+            [[0, 0, t.offset_x], [0, 0, t.offset_y], [0, 0, 0]]
+        )
         d = np.stack([(xs - K_net[0, 2]) / K_net[0, 0], (ys - K_net[1, 2]) / K_net[1, 1], np.ones_like(xs)], axis=-1)
         length = np.linalg.norm(d, axis=-1)
         rays.append(d / length[..., None])
@@ -89,7 +95,16 @@ def _export_stand_in(outputs: dict[str, np.ndarray], path: Path) -> Path:
     module = StandIn(outputs).eval()
     example = torch.zeros(2, 3, *outputs["conf"].shape[2:])
     names = list(outputs)
-    torch.onnx.export(module, (example,), str(path), input_names=["images"], output_names=names, dynamic_axes={"images": {0: "S"}, **{n: {1: "S"} for n in names}}, opset_version=17, dynamo=False)
+    torch.onnx.export(
+        module,
+        (example,),
+        str(path),
+        input_names=["images"],
+        output_names=names,
+        dynamic_axes={"images": {0: "S"}, **{n: {1: "S"} for n in names}},
+        opset_version=17,
+        dynamo=False,
+    )
     return path
 
 
@@ -114,7 +129,9 @@ def test_family_detected_from_names(case):
 def test_decodes_known_cameras_and_depth(case):
     """Through ffrecon's multi-view loop (preprocess, run at 3 views, decode, validate)."""
     model = OnnxModel(case["path"])
-    pred = predict_multiview(case["photos"], ["a", "b", "c"], lambda batch: model.run({"images": batch}), model.info(), adapter=ADAPTER)
+    pred = predict_multiview(
+        case["photos"], ["a", "b", "c"], lambda batch: model.run({"images": batch}), model.info(), adapter=ADAPTER
+    )
     want = compose_poses(case["cam_from_world"], invert_pose(case["cam_from_world"][0]))  # frame 0 is the world
     want[:, :, 3] *= METRIC_SCALE  # the model's world is metric-scaled
     np.testing.assert_allclose(pred.cam_from_world, want, rtol=TOL, atol=1e-5)
@@ -138,7 +155,12 @@ def test_decodes_known_cameras_and_depth(case):
 @pytest.mark.parametrize(
     "size_wh,net_hw,scale,offset",
     [
-        ((640, 480), (392, 518), (522 / 640, 392 / 480), (-2.0, 0.0)),  # shrink (Lanczos) to cover 518x392, crop 2 px a side
+        (
+            (640, 480),
+            (392, 518),
+            (522 / 640, 392 / 480),
+            (-2.0, 0.0),
+        ),  # shrink (Lanczos) to cover 518x392, crop 2 px a side
         ((480, 640), (518, 392), (392 / 480, 522 / 640), (0.0, -2.0)),
         ((320, 240), (392, 518), (522 / 320, 392 / 240), (-2.0, 0.0)),  # enlarge (bicubic)
         ((1920, 1080), (294, 518), (522 / 1920, 294 / 1080), (-2.0, 0.0)),  # 16:9 -> 1.762 entry
@@ -157,7 +179,12 @@ def test_preprocessing_follows_fixed_mapping(size_wh, net_hw, scale, offset):
 
     new_w, new_h = round(width * scale[0]), round(height * scale[1])
     resample = Image.Resampling.LANCZOS if new_w < width else Image.Resampling.BICUBIC
-    want = np.asarray(Image.fromarray(photo).resize((new_w, new_h), resample), np.float32)[-int(offset[1]) :, -int(offset[0]) :][: net_hw[0], : net_hw[1]] / 255
+    want = (
+        np.asarray(Image.fromarray(photo).resize((new_w, new_h), resample), np.float32)[
+            -int(offset[1]) :, -int(offset[0]) :
+        ][: net_hw[0], : net_hw[1]]
+        / 255
+    )
     np.testing.assert_array_equal(batch[0].transpose(1, 2, 0), want)
     with pytest.raises(ModelError, match="no 'pad' preprocessing"):
         preprocess_mapanything([photo], PreprocessMode.PAD)
@@ -170,7 +197,9 @@ def test_bad_outputs_name_the_output():
     good = _perfect_outputs(cam_from_world, K, transforms)
     info = ModelInfo("stand-in", ModelFamily.MAPANYTHING)
     with pytest.raises(ModelError, match="lack \\['cam_quats'\\]"):
-        decode_mapanything_outputs({k: v for k, v in good.items() if k != "cam_quats"}, transforms, ["a", "b", "c"], info)
+        decode_mapanything_outputs(
+            {k: v for k, v in good.items() if k != "cam_quats"}, transforms, ["a", "b", "c"], info
+        )
     with pytest.raises(ModelError, match="'cam_trans' has shape"):
         decode_mapanything_outputs({**good, "cam_trans": good["cam_trans"][:, :2]}, transforms, ["a", "b", "c"], info)
     bad = good["depth_along_ray"].copy()
@@ -178,4 +207,6 @@ def test_bad_outputs_name_the_output():
     with pytest.raises(ModelError, match="'depth_along_ray' has 1 non-finite"):
         decode_mapanything_outputs({**good, "depth_along_ray": bad}, transforms, ["a", "b", "c"], info)
     with pytest.raises(ModelError, match="'cam_quats' has a zero quaternion"):
-        decode_mapanything_outputs({**good, "cam_quats": np.zeros_like(good["cam_quats"])}, transforms, ["a", "b", "c"], info)
+        decode_mapanything_outputs(
+            {**good, "cam_quats": np.zeros_like(good["cam_quats"])}, transforms, ["a", "b", "c"], info
+        )

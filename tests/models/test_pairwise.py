@@ -12,7 +12,15 @@ from ffrecon.geometry.metrics import pose_errors
 from ffrecon.geometry.poses import look_at_cam_from_world, transform_points
 from ffrecon.geometry.projection import pixel_centers, unproject_depth
 from ffrecon.models.global_alignment import AlignmentOptions, PairPrediction
-from ffrecon.models.pairwise import PairGraph, PairwiseOptions, downsample_pair, make_pairs, predict_pairwise, preprocess_pairwise, run_pairs
+from ffrecon.models.pairwise import (
+    PairGraph,
+    PairwiseOptions,
+    downsample_pair,
+    make_pairs,
+    predict_pairwise,
+    preprocess_pairwise,
+    run_pairs,
+)
 from ffrecon.types import ModelFamily, ModelInfo
 
 MODEL = ModelInfo("oracle", ModelFamily.PAIRWISE)
@@ -32,7 +40,15 @@ def test_complete_graph():
 
 
 def test_sliding_window_graph():
-    assert make_pairs(5, PairGraph.SLIDING_WINDOW, window=2, symmetric=False) == [(0, 1), (0, 2), (1, 2), (1, 3), (2, 3), (2, 4), (3, 4)]
+    assert make_pairs(5, PairGraph.SLIDING_WINDOW, window=2, symmetric=False) == [
+        (0, 1),
+        (0, 2),
+        (1, 2),
+        (1, 3),
+        (2, 3),
+        (2, 4),
+        (3, 4),
+    ]
     cyclic = make_pairs(4, PairGraph.SLIDING_WINDOW, window=1, symmetric=False, cyclic=True)
     assert cyclic == [(0, 1), (1, 2), (2, 3), (3, 0)]
     # A window as long as the sequence is the complete graph; symmetric adds each reverse once.
@@ -104,7 +120,12 @@ def _tagging_model(calls):
         tag1, tag2 = view1[:, 0, 0, 0], view2[:, 0, 0, 0]
         b, _, h, w = view1.shape
         ones3, ones = np.ones((b, h, w, 3), np.float32), np.ones((b, h, w), np.float32)
-        return {"pts3d": ones3 * tag1[:, None, None, None], "conf": ones + tag1[:, None, None] + 1, "pts3d_in_other_view": ones3 * tag2[:, None, None, None], "conf_in_other_view": ones + tag2[:, None, None] + 1}
+        return {
+            "pts3d": ones3 * tag1[:, None, None, None],
+            "conf": ones + tag1[:, None, None] + 1,
+            "pts3d_in_other_view": ones3 * tag2[:, None, None, None],
+            "conf_in_other_view": ones + tag2[:, None, None] + 1,
+        }
 
     return infer
 
@@ -151,7 +172,9 @@ def test_downsample_pair_keeps_planar_points_at_block_centres():
     pts = unproject_depth(np.full((h, w), 2.0), np.array([[f, 0, w / 2], [0, f, h / 2], [0, 0, 1]])).astype(np.float32)
     conf = np.full((h, w), 3.0, np.float32)
     coarse = downsample_pair(PairPrediction(0, 1, pts, conf, pts, conf), 4)
-    expected = unproject_depth(np.full((h // 4, w // 4), 2.0), np.array([[f / 4, 0, w / 8], [0, f / 4, h / 8], [0, 0, 1]]))
+    expected = unproject_depth(
+        np.full((h // 4, w // 4), 2.0), np.array([[f / 4, 0, w / 8], [0, f / 4, h / 8], [0, 0, 1]])
+    )
     np.testing.assert_allclose(coarse.pts_i_in_i, expected, atol=1e-6)
     assert coarse.conf_j.shape == (4, 6)
 
@@ -170,7 +193,9 @@ def _room_depth(cam_from_world, K, size_hw):
     for axis in range(3):
         for sign in (1.0, -1.0):
             along = sign * dirs[..., axis]
-            t = np.where(along > 1e-9, np.minimum(t, (3.0 - sign * center[axis]) / np.where(along > 1e-9, along, 1.0)), t)
+            t = np.where(
+                along > 1e-9, np.minimum(t, (3.0 - sign * center[axis]) / np.where(along > 1e-9, along, 1.0)), t
+            )
     a, b, c = (dirs**2).sum(-1), (dirs * center).sum(-1), center @ center - 0.7**2
     t_sphere = (-b - np.sqrt(np.maximum(b**2 - a * c, 0.0))) / a
     return np.where((b**2 - a * c > 0) & (t_sphere > 0), np.minimum(t, t_sphere), t)
@@ -181,14 +206,20 @@ def test_predict_pairwise_with_an_exact_model_recovers_original_cameras():
     rng = np.random.default_rng(0)
     n, photo_hw = 4, (100, 136)
     photos = [rng.integers(0, 256, (*photo_hw, 3), dtype=np.uint8) for _ in range(n)]
-    options = PairwiseOptions(graph=PairGraph.SLIDING_WINDOW, window=2, long_side=96, batch_size=3, alignment=AlignmentOptions(iterations=200))
+    options = PairwiseOptions(
+        graph=PairGraph.SLIDING_WINDOW, window=2, long_side=96, batch_size=3, alignment=AlignmentOptions(iterations=200)
+    )
     batch, transforms = preprocess_pairwise(photos, options.long_side)
     net_h, net_w = batch.shape[2:]
     # Ground truth lives in network pixels, with the principal point at the centre as the model assumes.
     poses, K_net = [], []
     for k in range(n):
         angle = 0.35 * k
-        poses.append(look_at_cam_from_world(np.array([1.8 * np.cos(angle), 1.8 * np.sin(angle), 0.3 * k - 0.4]), rng.normal(0, 0.2, 3)))
+        poses.append(
+            look_at_cam_from_world(
+                np.array([1.8 * np.cos(angle), 1.8 * np.sin(angle), 0.3 * k - 0.4]), rng.normal(0, 0.2, 3)
+            )
+        )
         f = rng.uniform(0.8, 1.1) * net_w
         K_net.append(np.array([[f, 0, net_w / 2], [0, f, net_h / 2], [0, 0, 1.0]]))
     poses = np.stack(poses)
@@ -235,7 +266,9 @@ def test_predict_pairwise_with_an_exact_model_recovers_original_cameras():
         assert (pred.depth_conf[k][known] >= 1).all() and (pred.depth_conf[k][~known] == 0).all()
 
 
-@pytest.mark.skipif(not TINY_DUST3R.is_file(), reason="models/tiny_dust3r.onnx is not built yet (another developer's fixture)")
+@pytest.mark.skipif(
+    not TINY_DUST3R.is_file(), reason="models/tiny_dust3r.onnx is not built yet (another developer's fixture)"
+)
 def test_tiny_dust3r_onnx_smoke():
     from ffrecon.models.runner import OnnxModel
 
@@ -246,7 +279,9 @@ def test_tiny_dust3r_onnx_smoke():
     rng = np.random.default_rng(0)
     photos = [rng.integers(0, 256, (120, 160, 3), dtype=np.uint8) for _ in range(3)]
     options = PairwiseOptions(long_side=64, size_hw=size_hw, alignment=AlignmentOptions(iterations=20))
-    pred = predict_pairwise(photos, ["a", "b", "c"], lambda v1, v2: model.run({"view1": v1, "view2": v2}), model.info(), options)
+    pred = predict_pairwise(
+        photos, ["a", "b", "c"], lambda v1, v2: model.run({"view1": v1, "view2": v2}), model.info(), options
+    )
     assert len(pred) == 3 and np.isfinite(pred.cam_from_world).all()
     assert all(c.fx > 0 and (c.width, c.height) == (160, 120) for c in pred.cameras)
     assert all(np.isfinite(d).all() and (d >= 0).all() for d in pred.depth)

@@ -41,8 +41,13 @@ def test_tiny_vggt_contract(s, h, w):
     x = _images(s, (s, 3, h, w))
     out = _run(TINY_VGGT, {"input_images": x})
     assert {k: v.shape for k, v in out.items()} == {
-        "pose_enc": (1, s, 9), "depth": (1, s, h, w, 1), "depth_conf": (1, s, h, w),
-        "world_points": (1, s, h, w, 3), "world_points_conf": (1, s, h, w), "images": (1, s, 3, h, w)}
+        "pose_enc": (1, s, 9),
+        "depth": (1, s, h, w, 1),
+        "depth_conf": (1, s, h, w),
+        "world_points": (1, s, h, w, 3),
+        "world_points_conf": (1, s, h, w),
+        "images": (1, s, 3, h, w),
+    }
     assert all(v.dtype == np.float32 and np.isfinite(v).all() for v in out.values())
     pose = out["pose_enc"][0]
     np.testing.assert_allclose(np.linalg.norm(pose[:, 3:7], axis=1), 1.0, atol=1e-5)
@@ -63,11 +68,18 @@ def test_tiny_vggt_contract(s, h, w):
 @pytest.mark.parametrize("b,h,w", [(1, 32, 48), (2, 48, 64), (1, 384, 512)])
 def test_tiny_dust3r_contract(b, h, w):
     session = ort.InferenceSession(str(TINY_DUST3R), providers=["CPUExecutionProvider"])
-    assert [(i.name, i.shape) for i in session.get_inputs()] == [("view1", ["B", 3, "H", "W"]), ("view2", ["B", 3, "H", "W"])]
+    assert [(i.name, i.shape) for i in session.get_inputs()] == [
+        ("view1", ["B", 3, "H", "W"]),
+        ("view2", ["B", 3, "H", "W"]),
+    ]
     v1, v2 = 2 * _images(b, (b, 3, h, w)) - 1, 2 * _images(b + 10, (b, 3, h, w)) - 1
     out = _run(TINY_DUST3R, {"view1": v1, "view2": v2})
     assert {k: v.shape for k, v in out.items()} == {
-        "pts3d": (b, h, w, 3), "conf": (b, h, w), "pts3d_in_other_view": (b, h, w, 3), "conf_in_other_view": (b, h, w)}
+        "pts3d": (b, h, w, 3),
+        "conf": (b, h, w),
+        "pts3d_in_other_view": (b, h, w, 3),
+        "conf_in_other_view": (b, h, w),
+    }
     assert all(v.dtype == np.float32 and np.isfinite(v).all() for v in out.values())
     assert out["pts3d"][..., 2].min() > 0 and out["pts3d_in_other_view"][..., 2].min() > 0
     assert out["conf"].min() >= 1 and out["conf_in_other_view"].min() >= 1
@@ -84,19 +96,30 @@ def test_tiny_dust3r_contract(b, h, w):
 
 def test_outputs_are_deterministic():
     x = _images(0, (2, 3, 28, 28))
-    assert all(np.array_equal(a, b) for a, b in zip(_run(TINY_VGGT, {"input_images": x}).values(), _run(TINY_VGGT, {"input_images": x}).values()))
+    assert all(
+        np.array_equal(a, b)
+        for a, b in zip(_run(TINY_VGGT, {"input_images": x}).values(), _run(TINY_VGGT, {"input_images": x}).values())
+    )
     v = 2 * _images(1, (1, 3, 32, 32)) - 1
     first, second = _run(TINY_DUST3R, {"view1": v, "view2": -v}), _run(TINY_DUST3R, {"view1": v, "view2": -v})
     assert all(np.array_equal(first[k], second[k]) for k in first)
 
 
 def test_regenerating_gives_identical_files_and_outputs(tmp_path):
-    subprocess.run([sys.executable, str(REPO / "tools" / "make_test_nets.py"), "--out", str(tmp_path)], check=True, capture_output=True)
+    subprocess.run(
+        [sys.executable, str(REPO / "tools" / "make_test_nets.py"), "--out", str(tmp_path)],
+        check=True,
+        capture_output=True,
+    )
     for name, committed in (("tiny_vggt.onnx", TINY_VGGT), ("tiny_dust3r.onnx", TINY_DUST3R)):
         assert (tmp_path / name).read_bytes() == committed.read_bytes(), f"{name} differs from a fresh build"
     x = _images(2, (2, 3, 42, 56))
     fresh, old = _run(tmp_path / "tiny_vggt.onnx", {"input_images": x}), _run(TINY_VGGT, {"input_images": x})
     assert all(np.array_equal(fresh[k], old[k]) for k in old)
     # A different seed gives a different net (the seed is really used).
-    subprocess.run([sys.executable, str(REPO / "tools" / "make_test_nets.py"), "--out", str(tmp_path / "s1"), "--seed", "1"], check=True, capture_output=True)
+    subprocess.run(
+        [sys.executable, str(REPO / "tools" / "make_test_nets.py"), "--out", str(tmp_path / "s1"), "--seed", "1"],
+        check=True,
+        capture_output=True,
+    )
     assert not np.allclose(_run(tmp_path / "s1" / "tiny_vggt.onnx", {"input_images": x})["depth"], old["depth"])

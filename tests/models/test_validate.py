@@ -19,7 +19,9 @@ def _prediction(n: int = 3) -> Prediction:
     poses[:, 0, 3] = np.arange(n)
     depth = tuple(np.full((48, 64), 2.0, np.float32) for _ in range(n))
     conf = tuple(np.full((48, 64), 3.0, np.float32) for _ in range(n))
-    return Prediction(tuple(f"f{k}.jpg" for k in range(n)), poses, cams, depth, conf, ModelInfo("m.onnx", ModelFamily.MULTIVIEW))
+    return Prediction(
+        tuple(f"f{k}.jpg" for k in range(n)), poses, cams, depth, conf, ModelInfo("m.onnx", ModelFamily.MULTIVIEW)
+    )
 
 
 def test_plausible_prediction_passes():
@@ -44,7 +46,15 @@ def test_non_rigid_pose_rejected():
         validate_prediction(dataclasses.replace(pred, cam_from_world=poses))
 
 
-@pytest.mark.parametrize("case,message", [("zero", "zero or negative everywhere"), ("negconf", "confidence down to"), ("inf", "points at infinity"), ("nan", "NaN")])
+@pytest.mark.parametrize(
+    "case,message",
+    [
+        ("zero", "zero or negative everywhere"),
+        ("negconf", "confidence down to"),
+        ("inf", "points at infinity"),
+        ("nan", "NaN"),
+    ],
+)
 def test_unusable_depth_rejected(case, message):
     pred = _prediction()
     depth, conf = list(pred.depth), list(pred.depth_conf)

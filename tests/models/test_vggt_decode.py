@@ -28,7 +28,12 @@ def _ground_truth(width, height, n=4, seed=0):
 def _outputs_from_truth(cam_from_world, K, transforms):
     """Network outputs a perfect model would give: K and depth in network pixels."""
     wn, hn = transforms[0].net_size_wh
-    K_net = np.stack([np.diag([t.scale_x, t.scale_y, 1.0]) @ k + np.array([[0, 0, t.offset_x], [0, 0, t.offset_y], [0, 0, 0]]) for k, t in zip(K, transforms)])
+    K_net = np.stack(
+        [
+            np.diag([t.scale_x, t.scale_y, 1.0]) @ k + np.array([[0, 0, t.offset_x], [0, 0, t.offset_y], [0, 0, 0]])
+            for k, t in zip(K, transforms)
+        ]
+    )
     ys, xs = np.mgrid[0:hn, 0:wn] + 0.5
     depth = np.stack([2.0 + 0.001 * xs + 0.002 * ys + k for k in range(len(K))])  # planar in net pixels
     return {
@@ -38,7 +43,11 @@ def _outputs_from_truth(cam_from_world, K, transforms):
     }, K_net
 
 
-@pytest.mark.parametrize("size_wh", [(320, 240), (240, 320), (1000, 750), (600, 900)], ids=["landscape", "portrait", "landscape-large", "portrait-large"])
+@pytest.mark.parametrize(
+    "size_wh",
+    [(320, 240), (240, 320), (1000, 750), (600, 900)],
+    ids=["landscape", "portrait", "landscape-large", "portrait-large"],
+)
 @pytest.mark.parametrize("mode", list(ADAPTER.modes))
 def test_decode_recovers_original_cameras(size_wh, mode):
     width, height = size_wh
@@ -46,7 +55,11 @@ def test_decode_recovers_original_cameras(size_wh, mode):
     images = [np.zeros((height, width, 3), np.uint8)] * len(K)
     batch, transforms = preprocess_vggt(images, mode)
     assert batch.shape[2] % 14 == 0 and batch.shape[3] % 14 == 0
-    assert max(batch.shape[2:]) <= 518 and (mode is PreprocessMode.CROP) == (batch.shape[3] == 518 and batch.shape[2] <= 518) or mode is PreprocessMode.PAD
+    assert (
+        max(batch.shape[2:]) <= 518
+        and (mode is PreprocessMode.CROP) == (batch.shape[3] == 518 and batch.shape[2] <= 518)
+        or mode is PreprocessMode.PAD
+    )
     outputs, K_net = _outputs_from_truth(cam_from_world, K, transforms)
     # The principal point of the ground truth lands exactly on the network image centre.
     np.testing.assert_allclose(K_net[:, :2, 2], [[batch.shape[3] / 2, batch.shape[2] / 2]] * len(K), atol=1e-9)
@@ -107,7 +120,11 @@ def test_outputs_without_batch_axis_are_accepted():
     cam_from_world, K = _ground_truth(320, 240, n=3)
     batch, transforms = preprocess_vggt([np.zeros((240, 320, 3), np.uint8)] * 3)
     outputs, _ = _outputs_from_truth(cam_from_world, K, transforms)
-    stripped = {"pose_enc": outputs["pose_enc"][0], "depth": outputs["depth"][0, ..., 0], "depth_conf": outputs["depth_conf"][0]}
+    stripped = {
+        "pose_enc": outputs["pose_enc"][0],
+        "depth": outputs["depth"][0, ..., 0],
+        "depth_conf": outputs["depth_conf"][0],
+    }
     pred = decode_vggt_outputs(stripped, transforms, ["a", "b", "c"], MODEL)
     np.testing.assert_allclose(pred.cam_from_world, cam_from_world, rtol=1e-4, atol=1e-5)
 

@@ -14,7 +14,7 @@ import pytest
 from ffrecon.sfm.crosscheck import ColmapOptions, ColmapResult, run_colmap
 from ffrecon.sfm.refine import RefineOptions, RefineResult, run_refine
 from ffrecon.synthetic import SceneOptions, SyntheticScene, Texture, make_scene, write_scene
-from ffrecon.synthetic.simulated_model import prediction_from_truth, SimulationOptions, simulate
+from ffrecon.synthetic.simulated_model import SimulationOptions, prediction_from_truth, simulate
 from ffrecon.types import Prediction
 
 
@@ -29,7 +29,10 @@ def _capture(tmp_path_factory, options: SceneOptions, truth_of: Capture | None =
     scene = make_scene(options)
     image_dir = write_scene(scene, tmp_path_factory.mktemp("scene"))
     if truth_of is not None:  # same geometry and poses: the injected errors carry over exactly
-        prediction = Prediction(scene.names, *[getattr(truth_of.prediction, f) for f in ("cam_from_world", "cameras", "depth", "depth_conf", "model")])
+        prediction = Prediction(
+            scene.names,
+            *[getattr(truth_of.prediction, f) for f in ("cam_from_world", "cameras", "depth", "depth_conf", "model")],
+        )
         return Capture(scene, image_dir, prediction)
     sim = SimulationOptions(seed=0)
     truth, _ = simulate(scene, sim)
@@ -45,13 +48,17 @@ def orbit24(tmp_path_factory) -> Capture:
 @pytest.fixture(scope="session")
 def one_flat_frame24(tmp_path_factory, orbit24) -> Capture:
     """The same capture with frame 5 nearly textureless."""
-    return _capture(tmp_path_factory, SceneOptions(num_frames=24, width=320, height=240, seed=0, textureless_frames=(5,)), orbit24)
+    return _capture(
+        tmp_path_factory, SceneOptions(num_frames=24, width=320, height=240, seed=0, textureless_frames=(5,)), orbit24
+    )
 
 
 @pytest.fixture(scope="session")
 def repeated24(tmp_path_factory, orbit24) -> Capture:
     """The same capture with one tile repeated on every surface (look-alike views)."""
-    return _capture(tmp_path_factory, SceneOptions(num_frames=24, width=320, height=240, seed=0, texture=Texture.REPEATED), orbit24)
+    return _capture(
+        tmp_path_factory, SceneOptions(num_frames=24, width=320, height=240, seed=0, texture=Texture.REPEATED), orbit24
+    )
 
 
 @pytest.fixture(scope="session")

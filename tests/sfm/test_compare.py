@@ -71,6 +71,8 @@ def test_centre_error_threshold_is_relative_to_the_reference_extent(ring):
     # Move camera 4 by 10% of the extent (about 4 units across) without turning it.
     shift = np.array([0.4, 0.0, 0.0])
     est[4, :, 3] -= est[4, :, :3] @ shift
-    result = compare_poses(est, ref, names, None, options=DisagreementOptions(max_rotation_deg=90, max_center_error=0.05))
+    result = compare_poses(
+        est, ref, names, None, options=DisagreementOptions(max_rotation_deg=90, max_center_error=0.05)
+    )
     assert result.disagreeing == ("im04.png",)
     assert "centre" in result.disagreements[0].reason

@@ -60,9 +60,13 @@ def test_crosscheck_numbers_equal_an_independent_computation_from_the_written_mo
     result, out = colmap24
     names = list(orbit24.scene.names)
     ff = orbit24.prediction
-    ff_dir = write_reconstruction(reconstruction_from_cameras(names, ff.cam_from_world, ff.cameras), tmp_path / "feedforward" / "sparse")
+    ff_dir = write_reconstruction(
+        reconstruction_from_cameras(names, ff.cam_from_world, ff.cameras), tmp_path / "feedforward" / "sparse"
+    )
     report = compare_models(ff_dir, out / "sparse" / "0", names, estimate="feedforward", reference="colmap").to_report()
-    expected = _independent_metrics(pycolmap.Reconstruction(str(ff_dir)), pycolmap.Reconstruction(str(out / "sparse" / "0")), names)
+    expected = _independent_metrics(
+        pycolmap.Reconstruction(str(ff_dir)), pycolmap.Reconstruction(str(out / "sparse" / "0")), names
+    )
     for key, value in expected.items():
         assert report["metrics"][key] == pytest.approx(value, rel=1e-6, abs=1e-9), key
     assert report["metrics"]["AUC@30"] > report["metrics"]["AUC@5"]  # the simulated model is off by a few degrees
@@ -72,7 +76,10 @@ def test_crosscheck_numbers_equal_an_independent_computation_from_the_written_mo
 def test_pairing_resolution():
     assert resolve_pairing(ColmapOptions(), 20) is PairingMode.EXHAUSTIVE
     assert resolve_pairing(ColmapOptions(exhaustive_max_images=10), 20) is PairingMode.SEQUENTIAL
-    assert resolve_pairing(ColmapOptions(exhaustive_max_images=10, vocab_tree_path="tree.bin"), 20) is PairingMode.VOCAB_TREE
+    assert (
+        resolve_pairing(ColmapOptions(exhaustive_max_images=10, vocab_tree_path="tree.bin"), 20)
+        is PairingMode.VOCAB_TREE
+    )
     assert resolve_pairing(ColmapOptions(pairing=PairingMode.SEQUENTIAL), 3) is PairingMode.SEQUENTIAL
 
 
@@ -81,7 +88,9 @@ def test_two_images_need_a_focal_prior(orbit24, tmp_path):
     and gets the relative rotation wrong; the feed-forward focal as a prior fixes that."""
     names = list(orbit24.scene.names[:2])
     truth = orbit24.scene.cam_from_world[:2]
-    with_prior = run_colmap(orbit24.image_dir, names, ColmapOptions(), tmp_path / "prior", focal_prior_px=orbit24.prediction.cameras[0].fx)
+    with_prior = run_colmap(
+        orbit24.image_dir, names, ColmapOptions(), tmp_path / "prior", focal_prior_px=orbit24.prediction.cameras[0].fx
+    )
     assert with_prior.num_registered == 2
     assert pose_errors(with_prior.cam_from_world, truth, with_prior.registered).rra[5] == 1.0
     assert abs(with_prior.cameras[0].fx / orbit24.scene.camera.fx - 1) < 0.05

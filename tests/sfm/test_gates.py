@@ -78,7 +78,9 @@ def test_sparse_cloud_gate_catches_points_behind_cameras_and_explosions(colmap24
 def test_depth_coverage_gate(orbit24):
     prediction = orbit24.prediction
     assert evaluate_gates(colmap=None, prediction=prediction)[2].status is GateStatus.PASS
-    unsure = dataclasses.replace(prediction, depth_conf=tuple(np.where(c > 0, 1.0, 0.0).astype(np.float32) for c in prediction.depth_conf))
+    unsure = dataclasses.replace(
+        prediction, depth_conf=tuple(np.where(c > 0, 1.0, 0.0).astype(np.float32) for c in prediction.depth_conf)
+    )
     verdicts = evaluate_gates(colmap=None, prediction=unsure)
     assert verdicts[0].status is GateStatus.SKIPPED and verdicts[1].status is GateStatus.SKIPPED
     assert verdicts[2].status is GateStatus.FAIL and verdicts[2].value == 0.0

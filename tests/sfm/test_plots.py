@@ -7,7 +7,14 @@ import io
 import numpy as np
 from PIL import Image
 
-from ffrecon.export.plots import PathSeries, _plane_axes, camera_paths_png, error_bars_png, thumbnail_png, up_from_cameras
+from ffrecon.export.plots import (
+    PathSeries,
+    _plane_axes,
+    camera_paths_png,
+    error_bars_png,
+    thumbnail_png,
+    up_from_cameras,
+)
 from ffrecon.geometry.poses import look_at_cam_from_world
 
 
@@ -34,11 +41,17 @@ def test_figures_are_pngs():
     ref = rng.normal(size=(8, 3))
     est = ref + 0.05 * rng.normal(size=(8, 3))
     est[3] = np.nan  # not registered
-    paths = camera_paths_png([PathSeries("colmap", ref), PathSeries("feedforward", est)], names=[f"f{i}" for i in range(8)], highlight=[2])
+    paths = camera_paths_png(
+        [PathSeries("colmap", ref), PathSeries("feedforward", est)], names=[f"f{i}" for i in range(8)], highlight=[2]
+    )
     assert _png(paths).size == (600, 550)
     names = [f"frame_{i:03d}.png" for i in range(8)]
-    bars = error_bars_png(names, {"feedforward": rng.uniform(0, 3, 8), "refined": np.r_[rng.uniform(0, 0.1, 7), np.nan]},
-                          {"feedforward": rng.uniform(0, 0.1, 8), "refined": rng.uniform(0, 0.01, 8)}, rotation_threshold_deg=5.0)
+    bars = error_bars_png(
+        names,
+        {"feedforward": rng.uniform(0, 3, 8), "refined": np.r_[rng.uniform(0, 0.1, 7), np.nan]},
+        {"feedforward": rng.uniform(0, 0.1, 8), "refined": rng.uniform(0, 0.01, 8)},
+        rotation_threshold_deg=5.0,
+    )
     assert _png(bars).size[1] == 500
     thumb = _png(thumbnail_png(rng.integers(0, 255, (240, 320, 3), dtype=np.uint8), max_side=160))
     assert thumb.size == (160, 120)

@@ -85,7 +85,12 @@ def test_feedforward_guidance_rescues_repeated_texture(repeated24, tmp_path):
     assert errors.auc[5] >= 0.95 and errors.median_rotation_deg < 0.3
     assert errors.median_rotation_deg < ff.median_rotation_deg / 5
     # Without guidance, COLMAP's own matching and verification: clearly worse on this scene.
-    plain = run_refine(capture.image_dir, capture.prediction, RefineOptions(guidance=GuidanceOptions(mode=MatchGuidance.NONE)), tmp_path / "plain")
+    plain = run_refine(
+        capture.image_dir,
+        capture.prediction,
+        RefineOptions(guidance=GuidanceOptions(mode=MatchGuidance.NONE)),
+        tmp_path / "plain",
+    )
     plain_errors = pose_errors(plain.cam_from_world, truth, plain.registered)
     assert plain_errors.auc[5] < errors.auc[5] - 0.1
 

@@ -28,7 +28,21 @@ def random_scene(rng: np.random.Generator, n: int, width: int, height: int, *, s
     }
 
 
-def reference_render(means, quats_wxyz, log_scales, opacity_logits, rgb, cam_from_world, K, width, height, background, *, near=0.01, eps2d=0.3):
+def reference_render(
+    means,
+    quats_wxyz,
+    log_scales,
+    opacity_logits,
+    rgb,
+    cam_from_world,
+    K,
+    width,
+    height,
+    background,
+    *,
+    near=0.01,
+    eps2d=0.3,
+):
     """Returns (rgb [H, W, 3], alpha [H, W], depth [H, W]) in float64."""
     quat_xyzw = np.concatenate([quats_wxyz[:, 1:], quats_wxyz[:, :1]], 1)
     rot_g = quat_xyzw_to_matrix(quat_xyzw)

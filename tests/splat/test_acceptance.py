@@ -26,14 +26,20 @@ def test_demo_scene_two_minutes(tmp_path):
     train, test = split_views(len(scene), options.holdout_every)
     assert len(test) == 3
     truth, _ = simulate(scene, SimulationOptions())
-    xyz = np.concatenate([unproject_depth(truth.depth[i], scene.camera.K, scene.cam_from_world[i]).reshape(-1, 3) for i in train])
+    xyz = np.concatenate(
+        [unproject_depth(truth.depth[i], scene.camera.K, scene.cam_from_world[i]).reshape(-1, 3) for i in train]
+    )
     rgb = np.concatenate([scene.images[i].reshape(-1, 3) for i in train]).astype(np.float32) / 255.0
-    result = run_splat(list(scene.images), scene.names, scene.cam_from_world, [scene.camera] * len(scene), xyz, rgb, options, tmp_path)
+    result = run_splat(
+        list(scene.images), scene.names, scene.cam_from_world, [scene.camera] * len(scene), xyz, rgb, options, tmp_path
+    )
 
     seed, optimized, cleaned = result.mean("psnr_seed"), result.mean("psnr_optimized"), result.mean("psnr_cleaned")
-    print(f"held-out PSNR seed {seed:.2f} optimised {optimized:.2f} cleaned {cleaned:.2f} dB; SSIM {result.mean('ssim_seed'):.3f} -> "
-          f"{result.mean('ssim_cleaned'):.3f}; {result.iterations} iterations, {result.iterations_per_second:.2f} it/s; "
-          f"Gaussians {result.count_seed} -> {result.count_optimized} -> {result.count_cleaned}")
+    print(
+        f"held-out PSNR seed {seed:.2f} optimised {optimized:.2f} cleaned {cleaned:.2f} dB; SSIM {result.mean('ssim_seed'):.3f} -> "
+        f"{result.mean('ssim_cleaned'):.3f}; {result.iterations} iterations, {result.iterations_per_second:.2f} it/s; "
+        f"Gaussians {result.count_seed} -> {result.count_optimized} -> {result.count_cleaned}"
+    )
     assert result.timings["optimize"] <= 121.0
     assert optimized >= 24.0 and optimized >= seed + 5.0
     assert cleaned >= optimized - 0.2  # cleaning removes junk, not the scene

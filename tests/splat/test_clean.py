@@ -25,7 +25,9 @@ def _scene(rng: np.random.Generator):
     g = Gaussians.from_points(means, np.full((len(means), 3), 0.5), np.full(len(means), np.log(0.01)), opacity=0.5)
     g.opacity_logits = torch.tensor(np.log(opacity / (1 - opacity)), dtype=torch.float32)
     angles = np.linspace(0, 2 * np.pi, 8, endpoint=False)
-    poses = np.stack([look_at_cam_from_world(np.array([3 * np.cos(a), 3 * np.sin(a), 1.0]), np.zeros(3)) for a in angles])
+    poses = np.stack(
+        [look_at_cam_from_world(np.array([3 * np.cos(a), 3 * np.sin(a), 1.0]), np.zeros(3)) for a in angles]
+    )
     cams = [PinholeCamera(64, 48, 60.0, 60.0, 32.0, 24.0)] * len(poses)
     return g, poses, cams
 

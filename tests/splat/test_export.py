@@ -35,7 +35,12 @@ def _splat(rng: np.random.Generator, n: int = 50, degree: int = 3) -> tuple[Gaus
     s = random_scene(rng, n, 48, 36, sh_bases=(degree + 1) ** 2)
     if degree == 0:
         s["colors"] = rgb_to_sh_dc(s["colors"])[:, None, :]
-    g = Gaussians(*(torch.tensor(s[k], dtype=torch.float32) for k in ("means", "quats_wxyz", "log_scales", "opacity_logits", "colors")))
+    g = Gaussians(
+        *(
+            torch.tensor(s[k], dtype=torch.float32)
+            for k in ("means", "quats_wxyz", "log_scales", "opacity_logits", "colors")
+        )
+    )
     return g, torch.tensor(s["K"], dtype=torch.float32)
 
 
@@ -57,13 +62,17 @@ def test_ply_round_trip(tmp_path, degree):
     assert all(np.isfinite(vertex[name]).all() for name in vertex.dtype.names)
     # Values in the documented encodings: f_rest channel-major, rotation wxyz normalised.
     if degree:
-        assert np.allclose(vertex["f_rest_0"], g.sh[:, 1, 0].numpy()) and np.allclose(vertex["f_rest_15"], g.sh[:, 1, 1].numpy())
+        assert np.allclose(vertex["f_rest_0"], g.sh[:, 1, 0].numpy()) and np.allclose(
+            vertex["f_rest_15"], g.sh[:, 1, 1].numpy()
+        )
     q = torch.nn.functional.normalize(g.quats_wxyz, dim=1).numpy()
     assert np.allclose(np.stack([vertex[f"rot_{i}"] for i in range(4)], 1), q, atol=1e-6)
     back = read_splat_ply(path)
     pose = torch.eye(4)[:3]
     a = render(g.means, g.quats_wxyz, g.log_scales, g.opacity_logits, g.sh, pose, K, 48, 36, sh_degree=degree)
-    b = render(back.means, back.quats_wxyz, back.log_scales, back.opacity_logits, back.sh, pose, K, 48, 36, sh_degree=degree)
+    b = render(
+        back.means, back.quats_wxyz, back.log_scales, back.opacity_logits, back.sh, pose, K, 48, 36, sh_degree=degree
+    )
     assert float((a.rgb - b.rgb).abs().max()) < 1e-6 and float(a.rgb.std()) > 0.01
 
 
@@ -76,7 +85,9 @@ def test_ply_pads_sh_degree(tmp_path):
 
 def _orbit(n: int) -> np.ndarray:
     angles = np.linspace(0, np.pi, n)
-    return np.stack([look_at_cam_from_world(np.array([3 * np.cos(a), 3 * np.sin(a), 1.0]), np.zeros(3)) for a in angles])
+    return np.stack(
+        [look_at_cam_from_world(np.array([3 * np.cos(a), 3 * np.sin(a), 1.0]), np.zeros(3)) for a in angles]
+    )
 
 
 def test_smooth_path_passes_near_the_cameras_and_is_smooth():

@@ -18,7 +18,10 @@ from ffrecon.splat.render_gsplat import gsplat_available, render_gsplat
 
 from .reference import random_scene
 
-pytestmark = [pytest.mark.gpu, pytest.mark.skipif(not gsplat_available(), reason="needs CUDA and gsplat (ffrecon[gpu])")]
+pytestmark = [
+    pytest.mark.gpu,
+    pytest.mark.skipif(not gsplat_available(), reason="needs CUDA and gsplat (ffrecon[gpu])"),
+]
 
 
 @pytest.mark.parametrize("sh_degree", [None, 2])
@@ -31,8 +34,32 @@ def test_gsplat_matches_cpu_renderer(sh_degree):
     bg = torch.tensor([0.1, 0.2, 0.3])
     cpu = {k: torch.tensor(v, dtype=torch.float32, requires_grad=k == "means") for k, v in scene.items()}
     gpu = {k: torch.tensor(v, dtype=torch.float32, device="cuda", requires_grad=k == "means") for k, v in scene.items()}
-    a = render(cpu["means"], cpu["quats_wxyz"], cpu["log_scales"], cpu["opacity_logits"], cpu["colors"], pose, cpu["K"], w, h, background=bg, sh_degree=sh_degree)
-    b = render_gsplat(gpu["means"], gpu["quats_wxyz"], gpu["log_scales"], gpu["opacity_logits"], gpu["colors"], pose.cuda(), gpu["K"], w, h, background=bg.cuda(), sh_degree=sh_degree)
+    a = render(
+        cpu["means"],
+        cpu["quats_wxyz"],
+        cpu["log_scales"],
+        cpu["opacity_logits"],
+        cpu["colors"],
+        pose,
+        cpu["K"],
+        w,
+        h,
+        background=bg,
+        sh_degree=sh_degree,
+    )
+    b = render_gsplat(
+        gpu["means"],
+        gpu["quats_wxyz"],
+        gpu["log_scales"],
+        gpu["opacity_logits"],
+        gpu["colors"],
+        pose.cuda(),
+        gpu["K"],
+        w,
+        h,
+        background=bg.cuda(),
+        sh_degree=sh_degree,
+    )
     diff = (a.rgb - b.rgb.cpu()).abs()
     assert float(diff.max()) <= 2e-3 and float(diff.mean()) <= 2e-4
     assert float((a.alpha - b.alpha.cpu()).abs().max()) <= 2e-3

@@ -27,13 +27,33 @@ def _truth(rng: np.random.Generator, n: int = 400) -> Gaussians:
 
 def _cameras(num: int) -> np.ndarray:
     angles = np.linspace(-0.6, 0.6, num)
-    return np.stack([look_at_cam_from_world(np.array([2.2 * np.sin(a), -0.4, 2.2 * np.cos(a)]), np.zeros(3), up=np.array([0, -1.0, 0])) for a in angles])
+    return np.stack(
+        [
+            look_at_cam_from_world(
+                np.array([2.2 * np.sin(a), -0.4, 2.2 * np.cos(a)]), np.zeros(3), up=np.array([0, -1.0, 0])
+            )
+            for a in angles
+        ]
+    )
 
 
 def _images(g: Gaussians, poses: np.ndarray) -> list[torch.Tensor]:
     with torch.no_grad():
-        return [render(g.means, g.quats_wxyz, g.log_scales, g.opacity_logits, g.sh, torch.tensor(p, dtype=torch.float32), torch.tensor(K, dtype=torch.float32), W, H, sh_degree=0).rgb
-                for p in poses]
+        return [
+            render(
+                g.means,
+                g.quats_wxyz,
+                g.log_scales,
+                g.opacity_logits,
+                g.sh,
+                torch.tensor(p, dtype=torch.float32),
+                torch.tensor(K, dtype=torch.float32),
+                W,
+                H,
+                sh_degree=0,
+            ).rgb
+            for p in poses
+        ]
 
 
 def _psnr(a: torch.Tensor, b: torch.Tensor) -> float:
@@ -66,10 +86,29 @@ def test_pose_refinement_recovers_a_perturbed_camera():
     images = _images(truth, poses)
     perturbed = poses.copy()
     delta = axis_angle_to_matrix(np.radians(1.5) * np.array([0.6, -0.8, 0.0]))
-    perturbed[2] = np.concatenate([delta @ poses[2][:, :3], delta @ poses[2][:, 3:] + np.array([[0.03], [-0.02], [0.0]])], axis=1)
-    frozen = {"lr_means": 0.0, "lr_means_final": 0.0, "lr_sh_dc": 0.0, "lr_sh_rest": 0.0, "lr_opacity": 0.0, "lr_scales": 0.0, "lr_quats": 0.0}
-    options = OptimizeOptions(iterations=240, sh_degree=0, densify=None, progress=False, refine_poses=True, lr_pose_rotation=2e-3,
-                              lr_pose_translation=2e-3, ssim_weight=0.0, **frozen)
+    perturbed[2] = np.concatenate(
+        [delta @ poses[2][:, :3], delta @ poses[2][:, 3:] + np.array([[0.03], [-0.02], [0.0]])], axis=1
+    )
+    frozen = {
+        "lr_means": 0.0,
+        "lr_means_final": 0.0,
+        "lr_sh_dc": 0.0,
+        "lr_sh_rest": 0.0,
+        "lr_opacity": 0.0,
+        "lr_scales": 0.0,
+        "lr_quats": 0.0,
+    }
+    options = OptimizeOptions(
+        iterations=240,
+        sh_degree=0,
+        densify=None,
+        progress=False,
+        refine_poses=True,
+        lr_pose_rotation=2e-3,
+        lr_pose_translation=2e-3,
+        ssim_weight=0.0,
+        **frozen,
+    )
     result = optimize(truth, images, perturbed, np.stack([K] * 4), [0, 1, 2, 3], options, scale=1.0)
 
     def errors(p: np.ndarray) -> tuple[float, float]:
@@ -85,7 +124,9 @@ def test_pose_refinement_recovers_a_perturbed_camera():
 
 def test_densifier_clones_splits_and_prunes():
     n = 6
-    g = Gaussians.from_points(np.zeros((n, 3)), np.full((n, 3), 0.5), np.log([0.001, 0.001, 0.5, 0.5, 0.001, 0.001]), opacity=0.5)
+    g = Gaussians.from_points(
+        np.zeros((n, 3)), np.full((n, 3), 0.5), np.log([0.001, 0.001, 0.5, 0.5, 0.001, 0.001]), opacity=0.5
+    )
     g.opacity_logits[5] = -8.0  # prune: opacity < 0.005
     d = Densifier(n, DensifyOptions(grad_threshold=0.01), scene_scale=1.0, max_gaussians=100, seed=0)
     grad = torch.zeros(n, 2)
@@ -98,7 +139,11 @@ def test_densifier_clones_splits_and_prunes():
     adam = Adam({"means": g.means.clone().requires_grad_(True)}, {"means": 0.1})
     adam.m["means"] += 1.0
     adam.rebuild({"means": new.means.clone().requires_grad_(True)}, keep, num_new)
-    assert adam.m["means"].shape == (7, 3) and float(adam.m["means"][:4].min()) == 1.0 and float(adam.m["means"][4:].abs().max()) == 0.0
+    assert (
+        adam.m["means"].shape == (7, 3)
+        and float(adam.m["means"][:4].min()) == 1.0
+        and float(adam.m["means"][4:].abs().max()) == 0.0
+    )
 
 
 def test_ssim_map_matches_kornia_inside_the_border():

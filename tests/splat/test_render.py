@@ -26,7 +26,9 @@ def _pose(rng: np.random.Generator, scene: dict, angle_deg: float) -> np.ndarray
     world_from_cam_rot = random_rotation(rng)
     center = rng.normal(size=3)
     # x_cam = rot @ world_from_cam_rot^T (x_world - center): the scene is placed so it stays in view.
-    cam_from_world = np.concatenate([rot @ world_from_cam_rot.T, (-rot @ world_from_cam_rot.T @ center)[:, None]], axis=1)
+    cam_from_world = np.concatenate(
+        [rot @ world_from_cam_rot.T, (-rot @ world_from_cam_rot.T @ center)[:, None]], axis=1
+    )
     scene["means"] = scene["means"] @ world_from_cam_rot.T + center
     return cam_from_world
 
@@ -44,10 +46,32 @@ def test_matches_brute_force_reference(tile_size, chunk, seed):
     scene["means"][6, :2] = scene["means"][6, 2] * 1.5  # one far outside the image
     pose = _pose(rng, scene, angle_deg=3.0)
     bg = np.array([0.2, 0.5, 0.9])
-    ref_rgb, ref_alpha, ref_depth = reference_render(scene["means"], scene["quats_wxyz"], scene["log_scales"], scene["opacity_logits"], scene["colors"], pose, scene["K"], W, H, bg)
+    ref_rgb, ref_alpha, ref_depth = reference_render(
+        scene["means"],
+        scene["quats_wxyz"],
+        scene["log_scales"],
+        scene["opacity_logits"],
+        scene["colors"],
+        pose,
+        scene["K"],
+        W,
+        H,
+        bg,
+    )
     t = _torch(scene)
-    out = render(t["means"], t["quats_wxyz"], t["log_scales"], t["opacity_logits"], t["colors"], torch.tensor(pose, dtype=torch.float32), t["K"], W, H,
-                 background=torch.tensor(bg, dtype=torch.float32), options=RasterOptions(tile_size=tile_size, chunk_elements=chunk))
+    out = render(
+        t["means"],
+        t["quats_wxyz"],
+        t["log_scales"],
+        t["opacity_logits"],
+        t["colors"],
+        torch.tensor(pose, dtype=torch.float32),
+        t["K"],
+        W,
+        H,
+        background=torch.tensor(bg, dtype=torch.float32),
+        options=RasterOptions(tile_size=tile_size, chunk_elements=chunk),
+    )
     assert ref_alpha.max() > 0.95 and ref_alpha.min() < 0.5  # a scene with both opaque and empty parts
     assert np.abs(out.rgb.numpy() - ref_rgb).max() < 1e-4
     assert np.abs(out.alpha.numpy() - ref_alpha).max() < 1e-4
@@ -58,8 +82,21 @@ def test_chunking_and_tiles_do_not_change_the_image():
     rng = np.random.default_rng(3)
     t = _torch(random_scene(rng, 80, W, H))
     pose = torch.eye(4)[:3]
-    imgs = [render(t["means"], t["quats_wxyz"], t["log_scales"], t["opacity_logits"], t["colors"], pose, t["K"], W, H, options=RasterOptions(tile_size=ts, chunk_elements=ce)).rgb
-            for ts, ce in ((8, 300), (8, 1 << 20), (16, 1000))]
+    imgs = [
+        render(
+            t["means"],
+            t["quats_wxyz"],
+            t["log_scales"],
+            t["opacity_logits"],
+            t["colors"],
+            pose,
+            t["K"],
+            W,
+            H,
+            options=RasterOptions(tile_size=ts, chunk_elements=ce),
+        ).rgb
+        for ts, ce in ((8, 300), (8, 1 << 20), (16, 1000))
+    ]
     assert torch.allclose(imgs[0], imgs[1], atol=1e-6) and torch.allclose(imgs[0], imgs[2], atol=1e-5)
 
 
@@ -68,24 +105,57 @@ def test_nothing_visible_gives_background():
     t = _torch(random_scene(rng, 10, W, H))
     t["means"][:, 2] = -t["means"][:, 2]  # all behind the camera
     bg = torch.tensor([0.1, 0.2, 0.3])
-    out = render(t["means"], t["quats_wxyz"], t["log_scales"], t["opacity_logits"], t["colors"], torch.eye(4)[:3], t["K"], W, H, background=bg)
+    out = render(
+        t["means"],
+        t["quats_wxyz"],
+        t["log_scales"],
+        t["opacity_logits"],
+        t["colors"],
+        torch.eye(4)[:3],
+        t["K"],
+        W,
+        H,
+        background=bg,
+    )
     assert torch.equal(out.rgb, bg.expand(H, W, 3)) and float(out.alpha.abs().max()) == 0.0 and not out.visible.any()
 
 
-def _fd_check(scene: dict, rng: np.random.Generator, *, sh_degree: int | None, width: int, height: int, samples_per_tensor: int = 12) -> None:
+def _fd_check(
+    scene: dict,
+    rng: np.random.Generator,
+    *,
+    sh_degree: int | None,
+    width: int,
+    height: int,
+    samples_per_tensor: int = 12,
+) -> None:
     """Autograd gradients of a random linear function of (rgb, alpha, depth) vs central differences."""
     d = torch.float64
     params = {k: torch.tensor(v, dtype=d, requires_grad=True) for k, v in scene.items() if k != "K"}
     params["pose"] = torch.tensor(rng.normal(scale=0.02, size=6), dtype=d, requires_grad=True)  # so(3) and translation
     params["background"] = torch.tensor([0.3, 0.1, 0.7], dtype=d, requires_grad=True)
     K = torch.tensor(scene["K"], dtype=d)
-    weights = [torch.tensor(rng.normal(size=s), dtype=d) for s in ((height, width, 3), (height, width), (height, width))]
+    weights = [
+        torch.tensor(rng.normal(size=s), dtype=d) for s in ((height, width, 3), (height, width), (height, width))
+    ]
 
     def loss_fn() -> torch.Tensor:
         rot = So3.exp(params["pose"][:3]).matrix()
         pose = torch.cat([rot, params["pose"][3:, None]], dim=1)
-        out = render(params["means"], params["quats_wxyz"], params["log_scales"], params["opacity_logits"], params["colors"], pose, K, width, height,
-                     background=params["background"], sh_degree=sh_degree, options=RasterOptions(tile_size=8, chunk_elements=3000))
+        out = render(
+            params["means"],
+            params["quats_wxyz"],
+            params["log_scales"],
+            params["opacity_logits"],
+            params["colors"],
+            pose,
+            K,
+            width,
+            height,
+            background=params["background"],
+            sh_degree=sh_degree,
+            options=RasterOptions(tile_size=8, chunk_elements=3000),
+        )
         return (out.rgb * weights[0]).sum() + (out.alpha * weights[1]).sum() + (out.depth * weights[2]).sum()
 
     loss_fn().backward()
@@ -122,7 +192,9 @@ def test_gradients_with_sh_and_clamped_alphas():
 
 
 def test_sh_basis_is_orthonormal_and_has_3dgs_signs():
-    dirs = torch.nn.functional.normalize(torch.randn(400_000, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64), dim=1)
+    dirs = torch.nn.functional.normalize(
+        torch.randn(400_000, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64), dim=1
+    )
     basis = sh_basis(dirs, 3)  # [M, 16]
     gram = 4 * np.pi * (basis.T @ basis).numpy() / len(dirs)  # integral over the sphere of Y_i Y_j
     assert np.abs(gram - np.eye(16)).max() < 0.02
@@ -133,4 +205,6 @@ def test_sh_basis_is_orthonormal_and_has_3dgs_signs():
     sh[0, 2] = torch.tensor([0.0, 0.0, 0.5])  # the z coefficient of band 1
     rgb = sh_to_rgb(sh, y_axis.new_tensor([[0.0, 0.0, 1.0]]), 1).numpy()
     assert np.allclose(rgb, [[0.5 + SH_C0, 0.0, 0.5 + 0.5 * SH_C1]])
-    assert np.allclose(sh_to_rgb(sh, y_axis.new_tensor([[0.0, 0.0, 1.0]]), 0).numpy(), [[0.5 + SH_C0, 0.0, 0.5]])  # band 1 off
+    assert np.allclose(
+        sh_to_rgb(sh, y_axis.new_tensor([[0.0, 0.0, 1.0]]), 0).numpy(), [[0.5 + SH_C0, 0.0, 0.5]]
+    )  # band 1 off

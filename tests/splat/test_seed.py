@@ -38,10 +38,14 @@ def test_seed_from_prediction_filters_confidence_and_lies_on_the_surfaces(scene)
     voxel = 0.02
     pred = _prediction(scene, [2.0, 0.5, 0.5], [0, 1, 2])  # frames 1 and 2 are below min_conf
     xyz, rgb = seed_from_prediction(pred, list(scene.images), min_conf=1.0, voxel_size=voxel, max_points=10**6)
-    only_first = seed_from_prediction(_prediction(scene, [2.0], [0]), [scene.images[0]], min_conf=1.0, voxel_size=voxel, max_points=10**6)
+    only_first = seed_from_prediction(
+        _prediction(scene, [2.0], [0]), [scene.images[0]], min_conf=1.0, voxel_size=voxel, max_points=10**6
+    )
     assert np.array_equal(xyz, only_first[0]) and np.array_equal(rgb, only_first[1])
     confident = _prediction(scene, [2.0, 2.0, 2.0], [0, 1, 2])
-    assert np.array_equal(seed_from_prediction(confident, list(scene.images), voxel_size=voxel, max_points=10**6, frames=[0])[0], xyz)
+    assert np.array_equal(
+        seed_from_prediction(confident, list(scene.images), voxel_size=voxel, max_points=10**6, frames=[0])[0], xyz
+    )
     truth = scene.frame_points(0).reshape(-1, 3)
     nearest = np.min(np.linalg.norm(xyz[:, None, :] - truth[None], axis=2), axis=1)
     assert np.percentile(nearest, 95) < voxel * np.sqrt(3)
@@ -68,9 +72,17 @@ def test_nearest_neighbour_scales_match_brute_force():
     expected = np.log(np.sort(dist, axis=1)[:, :3].mean(1))
     assert np.allclose(nearest_neighbour_log_scales(xyz), expected, atol=1e-5)
     g = initial_gaussians(xyz, np.full((300, 3), 0.75), sh_degree=2, opacity=0.1)
-    assert g.sh.shape == (300, 9, 3) and np.allclose(g.sh[:, 0].numpy(), 0.25 / SH_C0) and float(g.sh[:, 1:].abs().max()) == 0
-    assert np.allclose(g.log_scales[:, 0].numpy(), expected, atol=1e-5) and np.allclose(g.log_scales[:, 1].numpy(), g.log_scales[:, 2].numpy())
-    assert np.allclose(g.quats_wxyz.numpy(), [1, 0, 0, 0]) and np.allclose(1 / (1 + np.exp(-g.opacity_logits.numpy())), 0.1)
+    assert (
+        g.sh.shape == (300, 9, 3)
+        and np.allclose(g.sh[:, 0].numpy(), 0.25 / SH_C0)
+        and float(g.sh[:, 1:].abs().max()) == 0
+    )
+    assert np.allclose(g.log_scales[:, 0].numpy(), expected, atol=1e-5) and np.allclose(
+        g.log_scales[:, 1].numpy(), g.log_scales[:, 2].numpy()
+    )
+    assert np.allclose(g.quats_wxyz.numpy(), [1, 0, 0, 0]) and np.allclose(
+        1 / (1 + np.exp(-g.opacity_logits.numpy())), 0.1
+    )
 
 
 def test_reduce_points_is_deterministic_and_capped():

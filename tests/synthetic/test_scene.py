@@ -9,8 +9,7 @@ import pytest
 from ffrecon.geometry.metrics import pose_errors
 from ffrecon.geometry.poses import camera_centers
 from ffrecon.geometry.projection import project_points
-from ffrecon.synthetic import CameraPath, SceneOptions, Texture, load_scene, make_scene, write_scene
-from ffrecon.synthetic import render
+from ffrecon.synthetic import CameraPath, SceneOptions, Texture, load_scene, make_scene, render, write_scene
 from ffrecon.synthetic.scene import ROOM_HI, ROOM_LO, _surface_textures, scene_geometry
 
 SMALL = SceneOptions(num_frames=6, width=160, height=120, seed=4)
@@ -67,7 +66,10 @@ def test_depth_is_z_depth_through_pixel_centres(small):
             checked += int(on_plane.sum())
     assert checked > 0.5 * small.depth.size
     # Half a pixel matters: the same test with pixel corners (no +0.5) fails on the floor.
-    corner = np.stack([(cols - K[0, 2]) / K[0, 0], (rows - K[1, 2]) / K[1, 1], np.ones((h, w))], -1) @ small.cam_from_world[0, :, :3]
+    corner = (
+        np.stack([(cols - K[0, 2]) / K[0, 0], (rows - K[1, 2]) / K[1, 1], np.ones((h, w))], -1)
+        @ small.cam_from_world[0, :, :3]
+    )
     floor = np.abs(small.frame_points(0)[..., 2]) < 1e-4
     z_corner = -camera_centers(small.cam_from_world[:1])[0, 2] / corner[..., 2]
     assert np.median(np.abs(z_corner[floor] / small.depth[0][floor] - 1)) > 1e-3
@@ -123,7 +125,9 @@ def test_paths_textures_and_photometric_options():
     c_arc = camera_centers(arc.cam_from_world)[:, :2]
     angle = np.degrees(np.arccos(c_arc[0] @ c_arc[-1] / np.linalg.norm(c_arc[0]) / np.linalg.norm(c_arc[-1])))
     assert angle == pytest.approx(90.0, abs=1e-6)
-    assert np.linalg.norm(np.diff(camera_centers(forward.cam_from_world), axis=0), axis=1).sum() == pytest.approx(3.0, abs=0.05)
+    assert np.linalg.norm(np.diff(camera_centers(forward.cam_from_world), axis=0), axis=1).sum() == pytest.approx(
+        3.0, abs=0.05
+    )
     np.testing.assert_allclose(forward.cam_from_world[0, :, :3], forward.cam_from_world[-1, :, :3], atol=1e-12)
 
     flat = make_scene(dataclasses.replace(base, texture=Texture.TEXTURELESS))
@@ -168,7 +172,9 @@ def test_colmap_registers_every_rich_orbit_frame(tmp_path):
     reader.camera_model = "PINHOLE"
     reader.camera_params = f"{cam.fx},{cam.fy},{cam.cx},{cam.cy}"
     db = tmp_path / "database.db"
-    pycolmap.extract_features(db, image_dir, camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader, device=pycolmap.Device.cpu)
+    pycolmap.extract_features(
+        db, image_dir, camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader, device=pycolmap.Device.cpu
+    )
     pycolmap.match_exhaustive(db, device=pycolmap.Device.cpu)
     options = pycolmap.IncrementalPipelineOptions()
     options.ba_refine_focal_length = False

@@ -51,8 +51,14 @@ def test_contract_and_pose_errors_equal_the_injected_ones(sim, frames):
     scene, truth, _, run, _ = sim
     out = run(frames)
     s, hn, wn = len(frames), 392, 518
-    expected_shapes = {"pose_enc": (1, s, 9), "depth": (1, s, hn, wn, 1), "depth_conf": (1, s, hn, wn),
-                       "world_points": (1, s, hn, wn, 3), "world_points_conf": (1, s, hn, wn), "images": (1, s, 3, hn, wn)}
+    expected_shapes = {
+        "pose_enc": (1, s, 9),
+        "depth": (1, s, hn, wn, 1),
+        "depth_conf": (1, s, hn, wn),
+        "world_points": (1, s, hn, wn, 3),
+        "world_points_conf": (1, s, hn, wn),
+        "images": (1, s, 3, hn, wn),
+    }
     assert {k: v.shape for k, v in out.items()} == expected_shapes
     assert all(v.dtype == np.float32 and np.isfinite(v).all() for v in out.values())
     assert out["depth"].min() > 0 and out["depth_conf"].min() >= 1 and out["world_points_conf"].min() >= 1
@@ -89,7 +95,13 @@ def test_depth_intrinsics_and_points_are_the_injected_ones(sim):
         # Bilinear resampling network -> original blurs depth edges only.
         assert np.median(np.abs(rel)) < 1e-4 and np.quantile(np.abs(rel), 0.9) < 2e-3
         # The point head agrees with the depth unprojected with the predicted camera.
-        net_K = np.diag([518 / 2 / np.tan(out["pose_enc"][0, local, 8] / 2), 392 / 2 / np.tan(out["pose_enc"][0, local, 7] / 2), 1.0])
+        net_K = np.diag(
+            [
+                518 / 2 / np.tan(out["pose_enc"][0, local, 8] / 2),
+                392 / 2 / np.tan(out["pose_enc"][0, local, 7] / 2),
+                1.0,
+            ]
+        )
         net_K[:2, 2] = [518 / 2, 392 / 2]
         pts = unproject_depth(out["depth"][0, local, :, :, 0], net_K, pred.cam_from_world[local])
         np.testing.assert_allclose(out["world_points"][0, local], pts, atol=2e-5)
@@ -110,7 +122,10 @@ def test_poses_and_focal_error_have_the_requested_size(sim):
     assert np.all(np.abs(np.abs(focal) - OPTIONS.focal_error) < 0.5 * OPTIONS.focal_error)
     rot = rotation_angle_deg(np.swapaxes(truth.cam_from_world[:, :, :3], 1, 2) @ scene.cam_from_world[:, :, :3])
     np.testing.assert_allclose(rot[3], OPTIONS.bad_rotation_deg, atol=1e-9)
-    assert np.all((np.delete(rot, 3) >= 0.5 * OPTIONS.rotation_noise_deg - 1e-9) & (np.delete(rot, 3) <= 1.5 * OPTIONS.rotation_noise_deg + 1e-9))
+    assert np.all(
+        (np.delete(rot, 3) >= 0.5 * OPTIONS.rotation_noise_deg - 1e-9)
+        & (np.delete(rot, 3) <= 1.5 * OPTIONS.rotation_noise_deg + 1e-9)
+    )
 
 
 def test_zero_error_model_returns_ground_truth(tmp_path):

@@ -30,7 +30,9 @@ FAMILIES: dict[str, FamilyEntry] = {
     "pi3": FamilyEntry("pi3", "Pi3 (yyfz/Pi3): multi-view, permutation-equivariant, world_from_cam poses"),
     "dust3r": FamilyEntry("dust3r", "DUSt3R (naver/dust3r): pairwise point maps, globally aligned by ffrecon"),
     "mast3r": FamilyEntry("dust3r", "MASt3R (naver/mast3r): DUSt3R's outputs plus local descriptors"),
-    "monodepth": FamilyEntry("monodepth", "monocular depth (Depth Anything V2 / DPT via transformers): one image, depth"),
+    "monodepth": FamilyEntry(
+        "monodepth", "monocular depth (Depth Anything V2 / DPT via transformers): one image, depth"
+    ),
 }
 
 
@@ -47,9 +49,18 @@ def photo_size_hw(path: Path) -> tuple[int, int]:
     from ffrecon.capture.images import IMAGE_EXTENSIONS
 
     path = Path(path)
-    files = [path] if path.is_file() else sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS) if path.is_dir() else []
+    files = (
+        [path]
+        if path.is_file()
+        else sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS)
+        if path.is_dir()
+        else []
+    )
     if not files:
-        raise InputError(f"no photo found at {path}", "pass a photo, or a folder of photos, the model will be used on (or --height/--width)")
+        raise InputError(
+            f"no photo found at {path}",
+            "pass a photo, or a folder of photos, the model will be used on (or --height/--width)",
+        )
     try:
         with Image.open(files[0]) as image:
             w, h = ImageOps.exif_transpose(image).size
@@ -68,11 +79,17 @@ def export_model(options: ExportOptions) -> ExportReport:
     size_hw = size_hw or module.DEFAULT_SIZE_HW
     patch = getattr(module, "PATCH_SIZE", 14)
     if size_hw[0] % patch or size_hw[1] % patch or min(size_hw) <= 0:
-        raise FFReconError(f"input size {size_hw[1]}x{size_hw[0]} is not a multiple of {options.family}'s patch size {patch}", f"use --height and --width that are multiples of {patch}")
+        raise FFReconError(
+            f"input size {size_hw[1]}x{size_hw[0]} is not a multiple of {options.family}'s patch size {patch}",
+            f"use --height and --width that are multiples of {patch}",
+        )
     options = replace(options, size_hw=size_hw)
     try:
         spec = module.build(options, size_hw)
     except ImportError as exc:  # upstream code importing an optional package of its own deep inside
         missing = getattr(exc, "name", None) or str(exc)
-        raise InputError(f"building {options.family} needs the Python package '{missing}', which is not installed", f"pip install 'ffrecon[export]'; if '{missing}' is not among its packages, install it (pip install {missing})") from exc
+        raise InputError(
+            f"building {options.family} needs the Python package '{missing}', which is not installed",
+            f"pip install 'ffrecon[export]'; if '{missing}' is not among its packages, install it (pip install {missing})",
+        ) from exc
     return export_spec(spec, options)

@@ -53,13 +53,18 @@ class ExportOptions:
 
     def __post_init__(self) -> None:
         if self.checkpoint is None and not (self.random_init or self.tiny):
-            raise FFReconError("no weights given", "pass --checkpoint FILE_OR_FOLDER, or --random-init / --tiny to check the export path without weights")
+            raise FFReconError(
+                "no weights given",
+                "pass --checkpoint FILE_OR_FOLDER, or --random-init / --tiny to check the export path without weights",
+            )
         if self.checkpoint is not None and (self.random_init or self.tiny):
             raise FFReconError("--checkpoint cannot be combined with --random-init or --tiny", "drop one of them")
         if self.opset < 15:
             raise FFReconError(f"opset {self.opset} is too old", "use --opset 17 (the default) or newer")
         if self.count < 1:
-            raise FFReconError(f"the traced example needs at least one frame or pair, got {self.count}", "use --frames 2")
+            raise FFReconError(
+                f"the traced example needs at least one frame or pair, got {self.count}", "use --frames 2"
+            )
 
     @property
     def weights(self) -> str:
@@ -102,10 +107,14 @@ class ExportReport:
 
     def summary(self) -> str:
         lines = [f"wrote {p} ({p.stat().st_size / 2**20:.1f} MiB)" for p in self.files]
-        lines.append(f"{self.parameters / 1e6:.1f} M parameters; export {self.export_seconds:.0f} s, verification {self.verify_seconds:.0f} s, peak memory {self.peak_rss_gb:.1f} GB")
+        lines.append(
+            f"{self.parameters / 1e6:.1f} M parameters; export {self.export_seconds:.0f} s, verification {self.verify_seconds:.0f} s, peak memory {self.peak_rss_gb:.1f} GB"
+        )
         if self.worst_difference is not None:
             per = ", ".join(f"{k} {v:.1e}" for k, v in self.differences.items())
-            lines.append(f"onnxruntime vs PyTorch at {self.verify_count} frames/pairs: worst relative difference {self.worst_difference:.2e} ({per})")
+            lines.append(
+                f"onnxruntime vs PyTorch at {self.verify_count} frames/pairs: worst relative difference {self.worst_difference:.2e} ({per})"
+            )
         return "\n".join(lines)
 
 
@@ -141,18 +150,40 @@ def export_spec(spec: ExportSpec, options: ExportOptions) -> ExportReport:
     rng = np.random.default_rng(options.seed)
     example = tuple(torch.from_numpy(x) for x in spec.make_inputs(options.count, rng))
     params = sum(p.numel() for p in spec.module.parameters())
-    log.info("exporting %s (%.1f M parameters) at %d frames/pairs, %dx%d, opset %d", spec.family, params / 1e6, options.count, spec.size_hw[1], spec.size_hw[0], options.opset)
+    log.info(
+        "exporting %s (%.1f M parameters) at %d frames/pairs, %dx%d, opset %d",
+        spec.family,
+        params / 1e6,
+        options.count,
+        spec.size_hw[1],
+        spec.size_hw[0],
+        options.opset,
+    )
     start = time.perf_counter()
     with tempfile.TemporaryDirectory(dir=out.parent, prefix=".export-") as tmp:
         raw = Path(tmp) / "raw.onnx"
         context = spec.trace_context(spec.module) if spec.trace_context else contextlib.nullcontext()
         with torch.no_grad(), context:
-            warm = torch_outputs(spec, tuple(x.numpy() for x in example))  # fills the size-dependent caches (see patches)
+            warm = torch_outputs(
+                spec, tuple(x.numpy() for x in example)
+            )  # fills the size-dependent caches (see patches)
             try:
                 with export_rewrites():
-                    torch.onnx.export(spec.module, example, str(raw), input_names=list(spec.input_names), output_names=list(spec.output_names), dynamic_axes=spec.dynamic_axes, opset_version=options.opset, dynamo=False)
+                    torch.onnx.export(
+                        spec.module,
+                        example,
+                        str(raw),
+                        input_names=list(spec.input_names),
+                        output_names=list(spec.output_names),
+                        dynamic_axes=spec.dynamic_axes,
+                        opset_version=options.opset,
+                        dynamo=False,
+                    )
             except Exception as exc:  # the exporter raises many types; all mean "this graph did not export"
-                raise ModelError(f"the ONNX exporter failed on {spec.family}: {str(exc).splitlines()[0]}", "this upstream version uses an operator ffrecon does not rewrite yet; report it with the upstream commit") from exc
+                raise ModelError(
+                    f"the ONNX exporter failed on {spec.family}: {str(exc).splitlines()[0]}",
+                    "this upstream version uses an operator ffrecon does not rewrite yet; report it with the upstream commit",
+                ) from exc
         model = onnx.load(str(raw))  # also reads external weight files the exporter wrote
     _declare_output_shapes(model, warm, spec.dynamic_axes)
     if options.fp16:
@@ -170,7 +201,9 @@ def export_spec(spec: ExportSpec, options: ExportOptions) -> ExportReport:
         "ffrecon.notes": " | ".join(spec.notes),
         "ffrecon.torch": torch.__version__,
         # For ffrecon.models.memory: the widest attention's head count sizes the frames-squared score matrices.
-        "ffrecon.attention_heads": str(max((int(getattr(m, "num_heads", 0) or 0) for m in spec.module.modules()), default=0)),
+        "ffrecon.attention_heads": str(
+            max((int(getattr(m, "num_heads", 0) or 0) for m in spec.module.modules()), default=0)
+        ),
         "ffrecon.parameters": str(params),
         **spec.extra_metadata,
     }
@@ -188,8 +221,20 @@ def export_spec(spec: ExportSpec, options: ExportOptions) -> ExportReport:
         worst = max(differences.values())
         tolerance = FP16_TOLERANCE if options.fp16 else FP32_TOLERANCE
         if not worst <= tolerance:
-            raise ModelError(f"onnxruntime and PyTorch differ by up to {worst:.2e} at {count} frames/pairs (tolerance {tolerance:.0e}): {differences}", "the traced graph does not generalise; export with --frames equal to the chunk size you will run, and report the upstream commit")
-    return ExportReport(tuple(files), max(differences.values()) if differences else None, differences, count, export_seconds, verify_seconds, peak_rss_gb(), params)
+            raise ModelError(
+                f"onnxruntime and PyTorch differ by up to {worst:.2e} at {count} frames/pairs (tolerance {tolerance:.0e}): {differences}",
+                "the traced graph does not generalise; export with --frames equal to the chunk size you will run, and report the upstream commit",
+            )
+    return ExportReport(
+        tuple(files),
+        max(differences.values()) if differences else None,
+        differences,
+        count,
+        export_seconds,
+        verify_seconds,
+        peak_rss_gb(),
+        params,
+    )
 
 
 def verify(spec: ExportSpec, path: Path, inputs: tuple[np.ndarray, ...]) -> dict[str, float]:
@@ -202,7 +247,10 @@ def verify(spec: ExportSpec, path: Path, inputs: tuple[np.ndarray, ...]) -> dict
     try:
         session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
     except Exception as exc:  # onnxruntime raises several types; all mean the same here
-        raise ModelError(f"onnxruntime cannot load {path}: {str(exc).splitlines()[0]}", "fp16 files may need onnxruntime-gpu; verify there, or pass --skip-verify") from exc
+        raise ModelError(
+            f"onnxruntime cannot load {path}: {str(exc).splitlines()[0]}",
+            "fp16 files may need onnxruntime-gpu; verify there, or pass --skip-verify",
+        ) from exc
     got = session.run(list(spec.output_names), dict(zip(spec.input_names, inputs)))
     return {name: relative_difference(have, reference[name]) for name, have in zip(spec.output_names, got)}
 
@@ -257,11 +305,26 @@ def _save(model, out: Path) -> list[Path]:
     if weight_bytes < PROTOBUF_LIMIT - 2**26:
         onnx.save_model(model, str(out))
         return [out]
-    onnx.save_model(model, str(out), save_as_external_data=True, all_tensors_to_one_file=True, location=data.name, size_threshold=1024)
+    onnx.save_model(
+        model,
+        str(out),
+        save_as_external_data=True,
+        all_tensors_to_one_file=True,
+        location=data.name,
+        size_threshold=1024,
+    )
     return [out, data]
 
 
-def random_images(count: int, size_hw: tuple[int, int], rng: np.random.Generator, *, low: float = 0.0, high: float = 1.0, batch_axis: bool = False) -> np.ndarray:
+def random_images(
+    count: int,
+    size_hw: tuple[int, int],
+    rng: np.random.Generator,
+    *,
+    low: float = 0.0,
+    high: float = 1.0,
+    batch_axis: bool = False,
+) -> np.ndarray:
     """``[count, 3, H, W]`` (or ``[1, count, 3, H, W]``) float32 uniform in [low, high]: example inputs."""
     x = rng.uniform(low, high, (count, 3, *size_hw)).astype(np.float32)
     return x[None] if batch_axis else x

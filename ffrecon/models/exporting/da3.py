@@ -83,7 +83,10 @@ def config_name(options: ExportOptions) -> str:
     if name not in registry:
         raise InputError(f"'{name}' is not a Depth Anything 3 config", f"use one of: {', '.join(sorted(registry))}")
     if name not in CAMERA_CONFIGS.values():
-        raise InputError(f"{name} has no camera decoder (a monocular, metric or nested model): ffrecon's da3 contract needs cameras", f"export one of {', '.join(CAMERA_CONFIGS.values())}")
+        raise InputError(
+            f"{name} has no camera decoder (a monocular, metric or nested model): ffrecon's da3 contract needs cameras",
+            f"export one of {', '.join(CAMERA_CONFIGS.values())}",
+        )
     return name
 
 
@@ -118,9 +121,25 @@ def build_tiny(upstream: Path | None) -> torch.nn.Module:
     backbone.name, backbone.out_layers = "vits", [2, 3, 4, 5]
     backbone.alt_start = backbone.qknorm_start = backbone.rope_start = alt
     backbone.cat_token = True
-    backbone.pretrained = vit.DinoVisionTransformer(img_size=518, patch_size=PATCH_SIZE, embed_dim=dim, depth=blocks, num_heads=2, mlp_ratio=4, alt_start=alt, qknorm_start=alt, rope_start=alt, cat_token=True)
+    backbone.pretrained = vit.DinoVisionTransformer(
+        img_size=518,
+        patch_size=PATCH_SIZE,
+        embed_dim=dim,
+        depth=blocks,
+        num_heads=2,
+        mlp_ratio=4,
+        alt_start=alt,
+        qknorm_start=alt,
+        rope_start=alt,
+        cat_token=True,
+    )
     head = dualdpt.DualDPT(dim_in=2 * dim, output_dim=2, features=16, out_channels=[8, 16, 32, 32])
-    return da3.DepthAnything3Net(backbone, head, cam_dec=cam_dec.CameraDec(dim_in=2 * dim), cam_enc=cam_enc.CameraEnc(dim_out=dim, num_heads=2, trunk_depth=1))
+    return da3.DepthAnything3Net(
+        backbone,
+        head,
+        cam_dec=cam_dec.CameraDec(dim_in=2 * dim),
+        cam_enc=cam_enc.CameraEnc(dim_out=dim, num_heads=2, trunk_depth=1),
+    )
 
 
 def build_net(options: ExportOptions) -> tuple[torch.nn.Module, str]:
@@ -275,7 +294,10 @@ def export_rewrites(upstream: Path | None) -> Iterator[None]:
     vit = import_upstream("depth_anything_3.model.dinov2.vision_transformer", upstream, family="depth_anything_3")
     da3 = import_upstream("depth_anything_3.model.da3", upstream, family="depth_anything_3")
     if vit.THRESH_FOR_REF_SELECTION != REF_SELECTION_MIN_FRAMES:
-        raise InputError(f"this depth_anything_3 selects a reference view from {vit.THRESH_FOR_REF_SELECTION} frames, ffrecon's rewrite from {REF_SELECTION_MIN_FRAMES}", "install depth-anything-3==0.1.1, or report the version you use")
+        raise InputError(
+            f"this depth_anything_3 selects a reference view from {vit.THRESH_FOR_REF_SELECTION} frames, ffrecon's rewrite from {REF_SELECTION_MIN_FRAMES}",
+            "install depth-anything-3==0.1.1, or report the version you use",
+        )
     view_selection = {
         "THRESH_FOR_REF_SELECTION": 1,  # always take the branch; the frame-count rule is in select_reference_view
         "select_reference_view": select_reference_view,
@@ -299,7 +321,9 @@ def build(options: ExportOptions, size_hw: tuple[int, int]) -> ExportSpec:
     torch.manual_seed(options.seed)
     net, name = build_net(options)
     net = net.eval().float()
-    notes = [f"reference view strategy {REF_VIEW_STRATEGY} from {REF_SELECTION_MIN_FRAMES} frames (upstream's default): extrinsics are relative to the chosen view"]
+    notes = [
+        f"reference view strategy {REF_VIEW_STRATEGY} from {REF_SELECTION_MIN_FRAMES} frames (upstream's default): extrinsics are relative to the chosen view"
+    ]
     if options.checkpoint is None and not options.keep_untrained_heads:
         notes.append(plausible_fov(net, size_hw))
     elif options.checkpoint is None:
@@ -328,4 +352,3 @@ def size_for_photo(height: int, width: int) -> tuple[int, int]:
     ((378, 504), (504, 378), (378, 504))
     """
     return contract.network_size_hw(height, width, contract.DEFAULT_METHOD)
-

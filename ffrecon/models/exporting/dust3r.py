@@ -65,10 +65,29 @@ MODULES = {"dust3r": "dust3r.model", "mast3r": "mast3r.model"}
 # The published 512 checkpoints' architectures (their training commands in the upstream READMEs, with
 # upstream load_model's changes: PatchEmbedDust3R for ManyAR_PatchEmbed, landscape_only=False):
 # DUSt3R_ViTLarge_BaseDecoder_512_dpt and MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric.
-_VIT_LARGE = dict(pos_embed="RoPE100", patch_embed_cls="PatchEmbedDust3R", img_size=(512, 512), depth_mode=("exp", -INF, INF), conf_mode=("exp", 1, INF), enc_embed_dim=1024, enc_depth=24, enc_num_heads=16, dec_embed_dim=768, dec_depth=12, dec_num_heads=12, landscape_only=False)
+_VIT_LARGE = dict(
+    pos_embed="RoPE100",
+    patch_embed_cls="PatchEmbedDust3R",
+    img_size=(512, 512),
+    depth_mode=("exp", -INF, INF),
+    conf_mode=("exp", 1, INF),
+    enc_embed_dim=1024,
+    enc_depth=24,
+    enc_num_heads=16,
+    dec_embed_dim=768,
+    dec_depth=12,
+    dec_num_heads=12,
+    landscape_only=False,
+)
 PUBLISHED = {
     "dust3r": dict(_VIT_LARGE, head_type="dpt", output_mode="pts3d"),
-    "mast3r": dict(_VIT_LARGE, head_type="catmlp+dpt", output_mode=f"pts3d+desc{DESC_DIM}", two_confs=True, desc_conf_mode=("exp", 0, INF)),
+    "mast3r": dict(
+        _VIT_LARGE,
+        head_type="catmlp+dpt",
+        output_mode=f"pts3d+desc{DESC_DIM}",
+        two_confs=True,
+        desc_conf_mode=("exp", 0, INF),
+    ),
 }
 # Tiny: the same classes and heads; dec_depth 10 is the least the DPT head takes (its hooks are
 # [0, d/2, 3d/4, d]); the DPT widths are narrowed after construction (see _narrow_dpt).
@@ -93,13 +112,26 @@ class PairwiseForOnnx(torch.nn.Module):
         b = view1.shape[0]
         # Distinct instance names: upstream's is_symmetrized() is False, every pair is encoded as given.
         # true_shape is left out: upstream then uses the image's own shape, as load_images records it.
-        res1, res2 = self.model({"img": view1, "instance": [f"view1_{k}" for k in range(b)]}, {"img": view2, "instance": [f"view2_{k}" for k in range(b)]})
+        res1, res2 = self.model(
+            {"img": view1, "instance": [f"view1_{k}" for k in range(b)]},
+            {"img": view2, "instance": [f"view2_{k}" for k in range(b)]},
+        )
         h, w = self.size_hw
         points, maps = (-1, h, w, 3), (-1, h, w)
-        outputs = (res1["pts3d"].reshape(points), res1["conf"].reshape(maps), res2["pts3d_in_other_view"].reshape(points), res2["conf"].reshape(maps))
+        outputs = (
+            res1["pts3d"].reshape(points),
+            res1["conf"].reshape(maps),
+            res2["pts3d_in_other_view"].reshape(points),
+            res2["conf"].reshape(maps),
+        )
         if self.desc_dim is not None:
             desc = (-1, h, w, self.desc_dim)
-            outputs += (res1["desc"].reshape(desc), res1["desc_conf"].reshape(maps), res2["desc"].reshape(desc), res2["desc_conf"].reshape(maps))
+            outputs += (
+                res1["desc"].reshape(desc),
+                res1["desc_conf"].reshape(maps),
+                res2["desc"].reshape(desc),
+                res2["desc_conf"].reshape(maps),
+            )
         return outputs
 
 
@@ -130,7 +162,10 @@ def parse_model_string(text: str) -> tuple[str, dict]:
             raise ValueError("not a call with keyword arguments")
         return call.func.id, {k.arg: value(k.value) for k in call.keywords}
     except (SyntaxError, ValueError) as exc:
-        raise InputError(f"cannot read the checkpoint's model description {text[:120]!r} ({exc})", "pass a checkpoint published by naver (its 'args.model' is a constructor call with literal arguments)") from exc
+        raise InputError(
+            f"cannot read the checkpoint's model description {text[:120]!r} ({exc})",
+            "pass a checkpoint published by naver (its 'args.model' is a constructor call with literal arguments)",
+        ) from exc
 
 
 def _read_pth(file: Path) -> dict:
@@ -139,7 +174,10 @@ def _read_pth(file: Path) -> dict:
         with torch.serialization.safe_globals([argparse.Namespace]):
             return torch.load(file, map_location="cpu", weights_only=True)
     except Exception as exc:  # unpickling raises several types
-        raise InputError(f"cannot read checkpoint {file}: {str(exc).splitlines()[0]}", "pass the .pth file naver publishes (or a state dict of tensors); download it again if it is truncated") from exc
+        raise InputError(
+            f"cannot read checkpoint {file}: {str(exc).splitlines()[0]}",
+            "pass the .pth file naver publishes (or a state dict of tensors); download it again if it is truncated",
+        ) from exc
 
 
 def _narrow_dpt(model: torch.nn.Module, upstream: Path | None, family: str) -> None:
@@ -148,7 +186,9 @@ def _narrow_dpt(model: torch.nn.Module, upstream: Path | None, family: str) -> N
     dpt_mod = import_upstream("dust3r.heads.dpt_head", upstream, family=family)
     for head in (model.downstream_head1, model.downstream_head2):
         old = head.dpt
-        new = dpt_mod.DPTOutputAdapter_fix(num_channels=old.num_channels, hooks=old.hooks, head_type="regression", **TINY_DPT)
+        new = dpt_mod.DPTOutputAdapter_fix(
+            num_channels=old.num_channels, hooks=old.hooks, head_type="regression", **TINY_DPT
+        )
         new.init(dim_tokens_enc=old.dim_tokens_enc)
         head.dpt = new
 
@@ -168,12 +208,19 @@ def pytorch_rope(model: torch.nn.Module) -> str | None:
     ``pos_embed.py`` is loaded once more with that extension hidden: upstream's own class, not a copy.
     Returns a note for the metadata, or None when nothing was swapped.
     """
-    compiled = [(parent, name) for parent in model.modules() for name, child in parent.named_children() if type(child).__name__ == "cuRoPE2D"]
+    compiled = [
+        (parent, name)
+        for parent in model.modules()
+        for name, child in parent.named_children()
+        if type(child).__name__ == "cuRoPE2D"
+    ]
     if not compiled:
         return None
     rope = getattr(compiled[0][0], compiled[0][1])
     source = Path(sys.modules["models.pos_embed"].__file__)
-    hidden = {k: sys.modules.pop(k) for k in list(sys.modules) if k == "models.curope" or k.startswith("models.curope.")}
+    hidden = {
+        k: sys.modules.pop(k) for k in list(sys.modules) if k == "models.curope" or k.startswith("models.curope.")
+    }
     sys.modules["models.curope"] = None  # makes `from models.curope import cuRoPE2D` raise ImportError
     try:
         spec = importlib.util.spec_from_file_location("ffrecon_croco_pos_embed_pytorch", source)
@@ -206,13 +253,19 @@ def load_checkpoint(options: ExportOptions) -> torch.nn.Module:
     cls = model_class(options.family, options.upstream)
     path = Path(options.checkpoint).expanduser()
     if not path.exists() and (path.suffix in WEIGHT_SUFFIXES or str(options.checkpoint).startswith((".", "/", "~"))):
-        raise InputError(f"no checkpoint at {path}", "pass the .pth file you downloaded (see docs/models.md), or a Hugging Face id such as naver/DUSt3R_ViTLarge_BaseDecoder_512_dpt")
+        raise InputError(
+            f"no checkpoint at {path}",
+            "pass the .pth file you downloaded (see docs/models.md), or a Hugging Face id such as naver/DUSt3R_ViTLarge_BaseDecoder_512_dpt",
+        )
     if (path.is_dir() and (path / "config.json").is_file()) or not path.exists():
         log.info("loading %s with upstream from_pretrained(%s)", options.family, options.checkpoint)
         try:
             return cls.from_pretrained(str(path) if path.exists() else options.checkpoint)
         except Exception as exc:  # huggingface_hub and torch raise many types
-            raise InputError(f"upstream from_pretrained cannot load {options.checkpoint}: {str(exc).splitlines()[0]}", "pass the .pth file you downloaded, or a folder with config.json and model.safetensors") from exc
+            raise InputError(
+                f"upstream from_pretrained cannot load {options.checkpoint}: {str(exc).splitlines()[0]}",
+                "pass the .pth file you downloaded, or a folder with config.json and model.safetensors",
+            ) from exc
     file = find_weights(path)
     if file.suffix == ".safetensors":
         state, arch = load_state_dict(file), None
@@ -221,14 +274,20 @@ def load_checkpoint(options: ExportOptions) -> torch.nn.Module:
         arch = getattr(stored.get("args"), "model", None) if isinstance(stored, dict) else None
         state = stored.get("model", stored) if isinstance(stored, dict) else stored
     if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):
-        raise InputError(f"{file} holds no state dict of tensors", "pass the checkpoint .pth naver publishes (keys 'args' and 'model') or a state dict")
+        raise InputError(
+            f"{file} holds no state dict of tensors",
+            "pass the checkpoint .pth naver publishes (keys 'args' and 'model') or a state dict",
+        )
     if arch is None:
         model = cls(**PUBLISHED[options.family])
     else:
         name, kwargs = parse_model_string(arch)
         if name != cls.__name__:
             other = next((f for f, c in CLASSES.items() if c == name), None)
-            raise InputError(f"{file.name} holds a {name} model, not {cls.__name__}", f"use `ffrecon export-model {other}`" if other else "pass a DUSt3R or MASt3R checkpoint")
+            raise InputError(
+                f"{file.name} holds a {name} model, not {cls.__name__}",
+                f"use `ffrecon export-model {other}`" if other else "pass a DUSt3R or MASt3R checkpoint",
+            )
         model = cls(**kwargs)
     load_into(model, state, source=str(file))
     return model
@@ -262,11 +321,15 @@ def build_model(options: ExportOptions) -> tuple[torch.nn.Module, list[str]]:
     note = pytorch_rope(model)
     if note:
         notes.append(note)
-    notes.append("heads called at the export's HxW (upstream's landscape_only=False path); rotary tables and int(positions.max()) frozen at HxW; expm1 as exp - 1")
+    notes.append(
+        "heads called at the export's HxW (upstream's landscape_only=False path); rotary tables and int(positions.max()) frozen at HxW; expm1 as exp - 1"
+    )
     return model.eval().float(), notes
 
 
-def _static_head(head: torch.nn.Module, size_hw: tuple[int, int], decout: list[torch.Tensor], true_shape: torch.Tensor) -> dict:
+def _static_head(
+    head: torch.nn.Module, size_hw: tuple[int, int], decout: list[torch.Tensor], true_shape: torch.Tensor
+) -> dict:
     return head(decout, size_hw)  # upstream's wrapper_no, with (H, W) known instead of read from true_shape
 
 
@@ -293,7 +356,13 @@ def build(options: ExportOptions, size_hw: tuple[int, int]) -> ExportSpec:
     descriptors = options.family == "mast3r"
     desc_dim = int(model.downstream_head1.local_feat_dim) if descriptors else None
     names = OUTPUT_NAMES + (DESCRIPTOR_NAMES if descriptors else ())
-    kind = "tiny configuration" if options.tiny else "published 512 architecture" if options.checkpoint is None else "checkpoint"
+    kind = (
+        "tiny configuration"
+        if options.tiny
+        else "published 512 architecture"
+        if options.checkpoint is None
+        else "checkpoint"
+    )
     label = "MASt3R" if descriptors else "DUSt3R"
     return ExportSpec(
         family=options.family,
@@ -301,7 +370,10 @@ def build(options: ExportOptions, size_hw: tuple[int, int]) -> ExportSpec:
         input_names=INPUT_NAMES,
         output_names=names,
         dynamic_axes={k: {0: "B"} for k in INPUT_NAMES + names},
-        make_inputs=lambda n, rng: (random_images(n, size_hw, rng, low=-1.0, high=1.0), random_images(n, size_hw, rng, low=-1.0, high=1.0)),
+        make_inputs=lambda n, rng: (
+            random_images(n, size_hw, rng, low=-1.0, high=1.0),
+            random_images(n, size_hw, rng, low=-1.0, high=1.0),
+        ),
         size_hw=size_hw,
         contract="pairwise",
         description=f"{label} ({kind}, weights: {options.weights}) exported by ffrecon export-model, input {size_hw[1]}x{size_hw[0]}",

@@ -36,7 +36,9 @@ SUPPORTED = ("DepthAnythingForDepthEstimation", "DPTForDepthEstimation")
 VARIANTS = {
     "small": dict(hidden=384, heads=6, layers=12, out=[3, 6, 9, 12], neck=[48, 96, 192, 384], fusion=64, head=32),
     "base": dict(hidden=768, heads=12, layers=12, out=[3, 6, 9, 12], neck=[96, 192, 384, 768], fusion=128, head=32),
-    "large": dict(hidden=1024, heads=16, layers=24, out=[5, 12, 18, 24], neck=[256, 512, 1024, 1024], fusion=256, head=32),
+    "large": dict(
+        hidden=1024, heads=16, layers=24, out=[5, 12, 18, 24], neck=[256, 512, 1024, 1024], fusion=256, head=32
+    ),
     "tiny": dict(hidden=32, heads=2, layers=4, out=[1, 2, 3, 4], neck=[8, 16, 32, 32], fusion=16, head=8),
 }
 # Random weights drawn with std 0.02 (transformers' default) leave the tiny head's output near 1e-7;
@@ -66,9 +68,30 @@ def config_for(variant: str, metric: bool = False):
 
     v = VARIANTS[variant]
     init = dict(initializer_range=TINY_INITIALIZER_RANGE) if variant == "tiny" else {}
-    backbone = Dinov2Config(image_size=518, patch_size=PATCH_SIZE, hidden_size=v["hidden"], num_attention_heads=v["heads"], num_hidden_layers=v["layers"], out_indices=v["out"], reshape_hidden_states=False, **init)
-    kind = dict(depth_estimation_type="metric", max_depth=METRIC_MAX_DEPTH) if metric else dict(depth_estimation_type="relative")
-    return DepthAnythingConfig(backbone_config=backbone, reassemble_hidden_size=v["hidden"], neck_hidden_sizes=v["neck"], fusion_hidden_size=v["fusion"], head_hidden_size=v["head"], **kind, **init)
+    backbone = Dinov2Config(
+        image_size=518,
+        patch_size=PATCH_SIZE,
+        hidden_size=v["hidden"],
+        num_attention_heads=v["heads"],
+        num_hidden_layers=v["layers"],
+        out_indices=v["out"],
+        reshape_hidden_states=False,
+        **init,
+    )
+    kind = (
+        dict(depth_estimation_type="metric", max_depth=METRIC_MAX_DEPTH)
+        if metric
+        else dict(depth_estimation_type="relative")
+    )
+    return DepthAnythingConfig(
+        backbone_config=backbone,
+        reassemble_hidden_size=v["hidden"],
+        neck_hidden_sizes=v["neck"],
+        fusion_hidden_size=v["fusion"],
+        head_hidden_size=v["head"],
+        **kind,
+        **init,
+    )
 
 
 def _variant(options: ExportOptions) -> tuple[str, bool]:
@@ -79,7 +102,9 @@ def _variant(options: ExportOptions) -> tuple[str, bool]:
     name = getattr(options, "variant", None) or RANDOM_INIT_VARIANT
     size, _, kind = name.partition("-")
     if size not in VARIANTS or kind not in ("", "metric"):
-        raise InputError(f"unknown monocular depth variant '{name}'", f"use one of {', '.join(VARIANTS)}, optionally with '-metric'")
+        raise InputError(
+            f"unknown monocular depth variant '{name}'", f"use one of {', '.join(VARIANTS)}, optionally with '-metric'"
+        )
     return ("tiny" if options.tiny else size), kind == "metric"
 
 
@@ -87,17 +112,26 @@ def load_checkpoint(folder: Path) -> tuple[torch.nn.Module, dict]:
     """A downloaded Hugging Face folder: the model (``from_pretrained``) and its preprocessor settings."""
     folder = Path(folder).expanduser()
     if not (folder / "config.json").is_file():
-        raise InputError(f"{folder} is not a downloaded Hugging Face model folder (no config.json)", "download the whole model folder, e.g. `hf download depth-anything/Depth-Anything-V2-Small-hf --local-dir DA2S`")
+        raise InputError(
+            f"{folder} is not a downloaded Hugging Face model folder (no config.json)",
+            "download the whole model folder, e.g. `hf download depth-anything/Depth-Anything-V2-Small-hf --local-dir DA2S`",
+        )
     architectures = json.loads((folder / "config.json").read_text()).get("architectures") or []
     if not set(architectures) & set(SUPPORTED):
-        raise InputError(f"{folder} holds a {architectures or 'model of unknown architecture'}", f"ffrecon exports {', '.join(SUPPORTED)} checkpoints")
+        raise InputError(
+            f"{folder} holds a {architectures or 'model of unknown architecture'}",
+            f"ffrecon exports {', '.join(SUPPORTED)} checkpoints",
+        )
     from transformers import AutoModelForDepthEstimation
 
     log.info("loading %s (%s) with transformers", folder, ", ".join(architectures))
     try:
         model = AutoModelForDepthEstimation.from_pretrained(str(folder), local_files_only=True)
     except (OSError, ValueError) as exc:
-        raise InputError(f"transformers cannot load {folder}: {str(exc).splitlines()[0]}", "download the checkpoint folder again (config.json and model.safetensors)") from exc
+        raise InputError(
+            f"transformers cannot load {folder}: {str(exc).splitlines()[0]}",
+            "download the checkpoint folder again (config.json and model.safetensors)",
+        ) from exc
     processor = folder / "preprocessor_config.json"
     settings = json.loads(processor.read_text()) if processor.is_file() else {}
     return model, settings
@@ -123,14 +157,19 @@ def build(options: ExportOptions, size_hw: tuple[int, int]) -> ExportSpec:
     model = model.eval().float()
     patch = getattr(model.config, "patch_size", PATCH_SIZE)
     if size_hw[0] % patch or size_hw[1] % patch:
-        raise FFReconError(f"input size {size_hw[1]}x{size_hw[0]} is not a multiple of this model's patch size {patch}", f"use --height and --width that are multiples of {patch}")
+        raise FFReconError(
+            f"input size {size_hw[1]}x{size_hw[0]} is not a multiple of this model's patch size {patch}",
+            f"use --height and --width that are multiples of {patch}",
+        )
     mean = tuple(settings.get("image_mean", IMAGENET_MEAN))
     std = tuple(settings.get("image_std", IMAGENET_STD))
     kind = depth_kind(model.config)
     metadata = {
         "ffrecon.depth_kind": kind,
         "ffrecon.monodepth.architecture": type(model).__name__,
-        "ffrecon.monodepth.processor": json.dumps({k: settings[k] for k in ("size", "keep_aspect_ratio", "ensure_multiple_of", "resample") if k in settings}),
+        "ffrecon.monodepth.processor": json.dumps(
+            {k: settings[k] for k in ("size", "keep_aspect_ratio", "ensure_multiple_of", "resample") if k in settings}
+        ),
     }
     if kind == "metric":
         metadata["ffrecon.max_depth"] = str(model.config.max_depth)

@@ -52,7 +52,16 @@ def register_symbolics() -> None:
         _registered = True
 
 
-def _attention(query: torch.Tensor, key: torch.Tensor, value: torch.Tensor, attn_mask: torch.Tensor | None = None, dropout_p: float = 0.0, is_causal: bool = False, scale: float | None = None, **_: object) -> torch.Tensor:
+def _attention(
+    query: torch.Tensor,
+    key: torch.Tensor,
+    value: torch.Tensor,
+    attn_mask: torch.Tensor | None = None,
+    dropout_p: float = 0.0,
+    is_causal: bool = False,
+    scale: float | None = None,
+    **_: object,
+) -> torch.Tensor:
     """``F.scaled_dot_product_attention`` (inference) as MatMul-Softmax-MatMul with a constant scale.
 
     The fused op's ONNX symbolic computes its scale from the runtime shape through float32 Cast
@@ -83,6 +92,7 @@ def export_rewrites() -> Iterator[None]:
 
 def _cache_key(args: tuple, kwargs: dict) -> tuple:
     """Arguments reduced to what size-only tables depend on: tensors by shape and dtype, the rest by value."""
+
     def reduce(a):
         if isinstance(a, torch.Tensor) and a.ndim == 0 and not a.is_floating_point():
             return int(a)  # a size read under tracing

@@ -72,8 +72,18 @@ def build_tiny(upstream: Path | None) -> nn.Module:
     model = pi3_mod.Pi3.__new__(pi3_mod.Pi3)
     nn.Module.__init__(model)
     model.encoder = vit_mod.DinoVisionTransformer(
-        img_size=518, patch_size=PATCH_SIZE, embed_dim=dim, depth=1, num_heads=heads, mlp_ratio=4, init_values=1.0, block_chunks=0,
-        block_fn=partial(dino_block.Block, attn_class=dino_attn.MemEffAttention), num_register_tokens=4, interpolate_antialias=True, interpolate_offset=0.0,
+        img_size=518,
+        patch_size=PATCH_SIZE,
+        embed_dim=dim,
+        depth=1,
+        num_heads=heads,
+        mlp_ratio=4,
+        init_values=1.0,
+        block_chunks=0,
+        block_fn=partial(dino_block.Block, attn_class=dino_attn.MemEffAttention),
+        num_register_tokens=4,
+        interpolate_antialias=True,
+        interpolate_offset=0.0,
     )
     del model.encoder.mask_token  # as Pi3.__init__ does
     model.patch_size = PATCH_SIZE
@@ -81,9 +91,21 @@ def build_tiny(upstream: Path | None) -> nn.Module:
     model.rope = pi3_mod.RoPE2D(freq=100.0)
     model.position_getter = pi3_mod.PositionGetter()
     block = partial(
-        pi3_mod.BlockRope, dim=dim, num_heads=heads, mlp_ratio=4, qkv_bias=True, proj_bias=True, ffn_bias=True, drop_path=0.0,
-        norm_layer=partial(nn.LayerNorm, eps=1e-6), act_layer=nn.GELU, ffn_layer=pi3_mod.Mlp, init_values=0.01, qk_norm=True,
-        attn_class=pi3_mod.FlashAttentionRope, rope=model.rope,
+        pi3_mod.BlockRope,
+        dim=dim,
+        num_heads=heads,
+        mlp_ratio=4,
+        qkv_bias=True,
+        proj_bias=True,
+        ffn_bias=True,
+        drop_path=0.0,
+        norm_layer=partial(nn.LayerNorm, eps=1e-6),
+        act_layer=nn.GELU,
+        ffn_layer=pi3_mod.Mlp,
+        init_values=0.01,
+        qk_norm=True,
+        attn_class=pi3_mod.FlashAttentionRope,
+        rope=model.rope,
     )
     model.decoder = nn.ModuleList([block() for _ in range(2)])
     model.dec_embed_dim = dim
@@ -113,7 +135,9 @@ def plausible_rays(model: nn.Module, size_hw: tuple[int, int], fov_deg: float = 
     axes (the sums over patches cancel). Depth (the log-z rows), confidence and poses stay random.
     Returns the note for the metadata.
     """
-    proj = model.point_head.proj  # Linear(dim, 3 * 14 * 14); output channel c of sub-pixel (i, j) is row c*196 + i*14 + j
+    proj = (
+        model.point_head.proj
+    )  # Linear(dim, 3 * 14 * 14); output channel c of sub-pixel (i, j) is row c*196 + i*14 + j
     p = PATCH_SIZE
     offsets = torch.arange(p, dtype=torch.float32) - (p - 1) / 2
     focal = (size_hw[1] / 2) / math.tan(math.radians(fov_deg) / 2)
@@ -157,7 +181,9 @@ def closest_rotation(m: torch.Tensor, sweeps: int = JACOBI_SWEEPS) -> torch.Tens
             sign = torch.where(theta >= 0, torch.ones_like(theta), -torch.ones_like(theta))
             t = torch.where(nonzero, sign / (theta.abs() + torch.sqrt(theta * theta + 1)), torch.zeros_like(theta))
             c = 1 / torch.sqrt(t * t + 1)
-            jac = eye + (c - 1)[:, None, None] * diag + (t * c)[:, None, None] * anti  # [[c, s], [-s, c]] in the (p, q) plane
+            jac = (
+                eye + (c - 1)[:, None, None] * diag + (t * c)[:, None, None] * anti
+            )  # [[c, s], [-s, c]] in the (p, q) plane
             a = jac.transpose(-1, -2) @ a @ jac
             v = v @ jac
     lam = torch.diagonal(a, dim1=-2, dim2=-1)
@@ -241,4 +267,3 @@ def build(options: ExportOptions, size_hw: tuple[int, int]) -> ExportSpec:
 def size_for_photo(height: int, width: int) -> tuple[int, int]:
     """The network input size Pi3's reference preprocessing (``load_images_as_tensor``) gives a photo."""
     return contract.network_size_hw(height, width)
-

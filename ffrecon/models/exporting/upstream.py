@@ -40,7 +40,10 @@ def import_upstream(module: str, upstream: Path | None, *, family: str) -> Modul
     if upstream is not None:
         root = Path(upstream).expanduser().resolve()
         if not (root / package).is_dir():
-            raise InputError(f"--upstream {upstream} does not hold the '{package}' package folder", f"pass the root of the upstream clone ({how})")
+            raise InputError(
+                f"--upstream {upstream} does not hold the '{package}' package folder",
+                f"pass the root of the upstream clone ({how})",
+            )
         if str(root) not in sys.path:
             sys.path.insert(0, str(root))  # the upstream README's own instruction (see the module docstring)
     try:
@@ -48,5 +51,10 @@ def import_upstream(module: str, upstream: Path | None, *, family: str) -> Modul
     except ImportError as exc:
         missing = getattr(exc, "name", None) or str(exc)
         if missing and not missing.startswith(package):
-            raise InputError(f"the upstream {family} code needs the Python package '{missing}', which is not installed", "pip install 'ffrecon[export]' (huggingface_hub, einops, safetensors, ...)") from exc
-        raise InputError(f"the upstream {family} code was not found ({exc})", f"{how}; or pass --upstream DIR with the clone's root") from exc
+            raise InputError(
+                f"the upstream {family} code needs the Python package '{missing}', which is not installed",
+                "pip install 'ffrecon[export]' (huggingface_hub, einops, safetensors, ...)",
+            ) from exc
+        raise InputError(
+            f"the upstream {family} code was not found ({exc})", f"{how}; or pass --upstream DIR with the clone's root"
+        ) from exc

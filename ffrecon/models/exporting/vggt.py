@@ -11,7 +11,6 @@ import contextlib
 import math
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from ffrecon.models import vggt as contract
@@ -51,9 +50,21 @@ def build_tiny(upstream: Path | None, size_hw: tuple[int, int]) -> torch.nn.Modu
     dim = 64
     model = vggt_mod.VGGT.__new__(vggt_mod.VGGT)  # VGGT.__init__ always builds the 1.2 B-parameter parts
     torch.nn.Module.__init__(model)
-    model.aggregator = aggregator_mod.Aggregator(img_size=max(size_hw), patch_size=14, embed_dim=dim, depth=4, num_heads=4, patch_embed="conv")
+    model.aggregator = aggregator_mod.Aggregator(
+        img_size=max(size_hw), patch_size=14, embed_dim=dim, depth=4, num_heads=4, patch_embed="conv"
+    )
     # The full model embeds patches with DINOv2 (learnt position table, bicubic resize); keep that op path.
-    model.aggregator.patch_embed = vit_mod.DinoVisionTransformer(img_size=518, patch_size=14, embed_dim=dim, depth=1, num_heads=4, num_register_tokens=4, block_chunks=0, init_values=1.0, interpolate_antialias=True)
+    model.aggregator.patch_embed = vit_mod.DinoVisionTransformer(
+        img_size=518,
+        patch_size=14,
+        embed_dim=dim,
+        depth=1,
+        num_heads=4,
+        num_register_tokens=4,
+        block_chunks=0,
+        init_values=1.0,
+        interpolate_antialias=True,
+    )
     model.camera_head = camera_mod.CameraHead(dim_in=2 * dim, trunk_depth=1, num_heads=4)
     dpt = dict(dim_in=2 * dim, features=32, out_channels=[16, 32, 64, 64], intermediate_layer_idx=[0, 1, 2, 3])
     model.depth_head = dpt_mod.DPTHead(output_dim=2, activation="exp", conf_activation="expp1", **dpt)
@@ -101,7 +112,12 @@ def build(options: ExportOptions, size_hw: tuple[int, int]) -> ExportSpec:
         vggt_mod = import_upstream("vggt.models.vggt", options.upstream, family="vggt")
         model = vggt_mod.VGGT(enable_track=False)  # the track head needs query points; ffrecon does not export it
         if options.checkpoint:
-            load_into(model, load_state_dict(Path(options.checkpoint)), ignore_prefixes=("track_head.",), source=options.checkpoint)
+            load_into(
+                model,
+                load_state_dict(Path(options.checkpoint)),
+                ignore_prefixes=("track_head.",),
+                source=options.checkpoint,
+            )
     model = model.eval().float()
     if options.checkpoint is None and not options.keep_untrained_heads:
         notes.append(plausible_fov(model, size_hw))

@@ -27,7 +27,10 @@ def find_weights(path: Path) -> Path:
             preferred = [p for p in found if p.suffix == ".safetensors"] or found
             log.info("%s holds %d weight files; using %s", path, len(found), preferred[0].name)
             return preferred[0]
-    raise InputError(f"no checkpoint at {path}", f"pass a weight file ({', '.join(WEIGHT_SUFFIXES)}) or the folder you downloaded it into")
+    raise InputError(
+        f"no checkpoint at {path}",
+        f"pass a weight file ({', '.join(WEIGHT_SUFFIXES)}) or the folder you downloaded it into",
+    )
 
 
 def load_state_dict(path: Path) -> dict[str, torch.Tensor]:
@@ -41,18 +44,32 @@ def load_state_dict(path: Path) -> dict[str, torch.Tensor]:
         else:
             state = torch.load(file, map_location="cpu", weights_only=True)
     except Exception as exc:  # corrupt files raise several types
-        raise InputError(f"cannot read checkpoint {file}: {str(exc).splitlines()[0]}", "download the checkpoint again") from exc
+        raise InputError(
+            f"cannot read checkpoint {file}: {str(exc).splitlines()[0]}", "download the checkpoint again"
+        ) from exc
     for key in ("model", "state_dict", "module"):  # training checkpoints wrap the weights
         if isinstance(state, dict) and isinstance(state.get(key), dict):
             state = state[key]
     if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):
-        raise InputError(f"{file} is not a state dict of tensors", "pass the model weights, not a full training checkpoint")
+        raise InputError(
+            f"{file} is not a state dict of tensors", "pass the model weights, not a full training checkpoint"
+        )
     return state
 
 
-def load_into(model: torch.nn.Module, state: dict[str, torch.Tensor], *, ignore_prefixes: tuple[str, ...] = (), source: str = "checkpoint") -> None:
+def load_into(
+    model: torch.nn.Module,
+    state: dict[str, torch.Tensor],
+    *,
+    ignore_prefixes: tuple[str, ...] = (),
+    source: str = "checkpoint",
+) -> None:
     """Load ``state`` strictly, except for keys under ``ignore_prefixes`` (heads ffrecon does not export)."""
-    state = {k.removeprefix("module."): v for k, v in state.items() if not k.removeprefix("module.").startswith(ignore_prefixes)}
+    state = {
+        k.removeprefix("module."): v
+        for k, v in state.items()
+        if not k.removeprefix("module.").startswith(ignore_prefixes)
+    }
     result = model.load_state_dict(state, strict=False)
     missing = [k for k in result.missing_keys if not k.startswith(ignore_prefixes)]
     if missing or result.unexpected_keys:

@@ -42,7 +42,9 @@ def _torchvision_stub() -> dict[str, types.ModuleType]:
 
     class ToTensor:
         def __call__(self, pic):
-            return torch.from_numpy(np.array(pic, dtype=np.uint8)).permute(2, 0, 1).contiguous().to(torch.float32).div(255)
+            return (
+                torch.from_numpy(np.array(pic, dtype=np.uint8)).permute(2, 0, 1).contiguous().to(torch.float32).div(255)
+            )
 
     class Normalize:
         def __init__(self, mean, std):
@@ -125,7 +127,11 @@ def test_onnx_matches_pytorch_at_other_frame_counts(exported):
 @pytest.mark.parametrize("count", [1, 2, 3, 4, 6])
 def test_view_selection_rewrite_equals_upstream(count):
     x = torch.randn(2, count, 5, 16, generator=torch.Generator().manual_seed(count))
-    want = upstream_selector.select_reference_view(x, "saddle_balanced") if count >= 3 else torch.zeros(2, dtype=torch.long)
+    want = (
+        upstream_selector.select_reference_view(x, "saddle_balanced")
+        if count >= 3
+        else torch.zeros(2, dtype=torch.long)
+    )
     got = da3_export.select_reference_view(x, "saddle_balanced")
     assert torch.equal(got, want)
     b_idx = torch.tensor([count - 1, count // 2])
@@ -137,16 +143,29 @@ def test_view_selection_rewrite_equals_upstream(count):
 @pytest.mark.parametrize("method", da3.METHODS)
 def test_preprocessing_equals_upstream(upstream_input_processor, landscape_and_portrait, method):
     land, portrait = landscape_and_portrait["landscape"], landscape_and_portrait["portrait"]
-    odd = [cv2.resize(land[0], (1000, 700), interpolation=cv2.INTER_AREA), cv2.resize(land[1], (333, 250), interpolation=cv2.INTER_AREA)]
+    odd = [
+        cv2.resize(land[0], (1000, 700), interpolation=cv2.INTER_AREA),
+        cv2.resize(land[1], (333, 250), interpolation=cv2.INTER_AREA),
+    ]
     for images in (land, portrait, odd[:1], odd[1:], [land[0], portrait[0]]):
         batch, transforms = da3.preprocess_da3(images, method)
-        K_orig = np.stack([np.array([[0.9 * w, 0, w / 2], [0, 0.9 * w, h / 2], [0, 0, 1]], np.float32) for h, w in (im.shape[:2] for im in images)])
+        K_orig = np.stack(
+            [
+                np.array([[0.9 * w, 0, w / 2], [0, 0.9 * w, h / 2], [0, 0, 1]], np.float32)
+                for h, w in (im.shape[:2] for im in images)
+            ]
+        )
         tensor, K_up = upstream_input_processor(images, method, K_orig)
         assert batch.shape == tuple(tensor.shape)
         np.testing.assert_allclose(_normalize(batch), tensor.numpy(), atol=1e-5)
-        K_net = [np.diag([t.scale_x, t.scale_y, 1.0]) @ k + np.array([[0, 0, t.offset_x], [0, 0, t.offset_y], [0, 0, 0]]) for k, t in zip(K_orig, transforms)]
+        K_net = [
+            np.diag([t.scale_x, t.scale_y, 1.0]) @ k + np.array([[0, 0, t.offset_x], [0, 0, t.offset_y], [0, 0, 0]])
+            for k, t in zip(K_orig, transforms)
+        ]
         np.testing.assert_allclose(np.stack(K_net), K_up.numpy(), rtol=1e-6)
-        assert batch.shape[2:] == da3.network_size_hw(*images[0].shape[:2], method) or len({im.shape for im in images}) > 1
+        assert (
+            batch.shape[2:] == da3.network_size_hw(*images[0].shape[:2], method) or len({im.shape for im in images}) > 1
+        )
 
 
 def _upstream_reference(net, tensor):
@@ -168,7 +187,10 @@ def _check_against_upstream(pred, up, images, transforms, upstream_input_process
         assert transforms[k].offset_x == transforms[k].offset_y == 0  # these sizes need no crop
         want_depth = cv2.resize(up.depth[k], (w, h), interpolation=cv2.INTER_LINEAR)
         assert relative_difference(pred.depth[k], want_depth) <= TOLERANCE
-        assert relative_difference(pred.depth_conf[k], cv2.resize(up.conf[k], (w, h), interpolation=cv2.INTER_LINEAR)) <= TOLERANCE
+        assert (
+            relative_difference(pred.depth_conf[k], cv2.resize(up.conf[k], (w, h), interpolation=cv2.INTER_LINEAR))
+            <= TOLERANCE
+        )
         assert (pred.depth_conf[k] >= 1).all()
 
 
@@ -208,11 +230,20 @@ def test_decode_rejects_bad_outputs(exported):
     path, _, _ = exported
     info = OnnxModel(path, threads=2).info()
     batch, transforms = da3.preprocess_da3(real_photos(2))
-    good = {"depth": np.ones((1, 2, *SIZE_HW), np.float32), "depth_conf": np.full((1, 2, *SIZE_HW), 2, np.float32), "extrinsics": np.tile(np.eye(3, 4, dtype=np.float32), (1, 2, 1, 1)), "intrinsics": np.tile(np.diag([400.0, 400, 1]).astype(np.float32), (1, 2, 1, 1))}
+    good = {
+        "depth": np.ones((1, 2, *SIZE_HW), np.float32),
+        "depth_conf": np.full((1, 2, *SIZE_HW), 2, np.float32),
+        "extrinsics": np.tile(np.eye(3, 4, dtype=np.float32), (1, 2, 1, 1)),
+        "intrinsics": np.tile(np.diag([400.0, 400, 1]).astype(np.float32), (1, 2, 1, 1)),
+    }
     da3.decode_da3_outputs(good, transforms, ["a", "b"], info)
     from ffrecon.errors import ModelError
 
-    for key, bad in (("depth", np.ones((1, 3, *SIZE_HW), np.float32)), ("extrinsics", np.full((1, 2, 3, 4), np.nan, np.float32)), ("intrinsics", np.zeros((1, 2, 3, 3), np.float32))):
+    for key, bad in (
+        ("depth", np.ones((1, 3, *SIZE_HW), np.float32)),
+        ("extrinsics", np.full((1, 2, 3, 4), np.nan, np.float32)),
+        ("intrinsics", np.zeros((1, 2, 3, 3), np.float32)),
+    ):
         with pytest.raises(ModelError, match=key):
             da3.decode_da3_outputs({**good, key: bad}, transforms, ["a", "b"], info)
 
@@ -242,4 +273,6 @@ def test_cli_run_writes_upstream_cameras(exported, upstream_input_processor, pho
         assert relative_difference(image.cam_from_world().matrix(), want_pose[k]) <= TOLERANCE
         fx, fy, cx, cy = rec.cameras[image.camera_id].params
         K = up.intrinsics[k].astype(np.float64)
-        np.testing.assert_allclose([fx, fy, cx, cy], [K[0, 0] / sx, K[1, 1] / sy, K[0, 2] / sx, K[1, 2] / sy], rtol=TOLERANCE)
+        np.testing.assert_allclose(
+            [fx, fy, cx, cy], [K[0, 0] / sx, K[1, 1] / sy, K[0, 2] / sx, K[1, 2] / sy], rtol=TOLERANCE
+        )

@@ -23,7 +23,14 @@ from ffrecon.cli import main as cli
 from ffrecon.errors import InputError
 from ffrecon.models.exporting import ExportOptions, export_model, family_module
 from ffrecon.models.exporting.common import relative_difference
-from ffrecon.models.pairwise import DESCRIPTOR_NAMES, OUTPUT_NAMES, PairGraph, make_pairs, preprocess_pairwise, run_pairs
+from ffrecon.models.pairwise import (
+    DESCRIPTOR_NAMES,
+    OUTPUT_NAMES,
+    PairGraph,
+    make_pairs,
+    preprocess_pairwise,
+    run_pairs,
+)
 from ffrecon.models.runner import OnnxModel
 from ffrecon.types import ModelFamily
 
@@ -50,7 +57,9 @@ def exported(tmp_path_factory):
         for family in SIZES:
             options = _options(family, tmp / f"{family}.onnx")
             with warnings.catch_warnings():
-                warnings.simplefilter("ignore")  # the tracer's warnings about the size logic the export fixes on purpose
+                warnings.simplefilter(
+                    "ignore"
+                )  # the tracer's warnings about the size logic the export fixes on purpose
                 report = export_model(options)
             model = family_module(family).build(options, SIZES[family]).module.model  # same seed, same weights
             result[family] = (OnnxModel(options.out, threads=1), report, model)
@@ -71,7 +80,9 @@ def upstream_image_module():
     except ImportError:
         tvf = types.ModuleType("torchvision.transforms")
         tvf.ToTensor = lambda: lambda pic: torch.from_numpy(np.array(pic, np.uint8)).permute(2, 0, 1).float().div(255)
-        tvf.Normalize = lambda mean, std: lambda t: t.sub(torch.tensor(mean)[:, None, None]).div(torch.tensor(std)[:, None, None])
+        tvf.Normalize = lambda mean, std: (
+            lambda t: t.sub(torch.tensor(mean)[:, None, None]).div(torch.tensor(std)[:, None, None])
+        )
         tvf.Compose = lambda fns: lambda x: [x := f(x) for f in fns][-1]
         tv = types.ModuleType("torchvision")
         tv.transforms = tvf
@@ -135,7 +146,10 @@ def _upstream_pair_outputs(model: torch.nn.Module, batch: np.ndarray, batch_size
     from dust3r.image_pairs import make_pairs as upstream_pairs
     from dust3r.utils.device import collate_with_cat
 
-    views = [dict(img=torch.from_numpy(batch[k : k + 1]), true_shape=np.int32([batch.shape[2:]]), idx=k, instance=str(k)) for k in range(len(batch))]
+    views = [
+        dict(img=torch.from_numpy(batch[k : k + 1]), true_shape=np.int32([batch.shape[2:]]), idx=k, instance=str(k))
+        for k in range(len(batch))
+    ]
     pairs = upstream_pairs(views, scene_graph="complete", prefilter=None, symmetrize=True)
     out = {}
     with torch.no_grad():
@@ -143,7 +157,10 @@ def _upstream_pair_outputs(model: torch.nn.Module, batch: np.ndarray, batch_size
             view1, view2 = collate_with_cat(pairs[start : start + batch_size])
             pred1, pred2 = model(view1, view2)
             for k, (i, j) in enumerate(zip(view1["idx"], view2["idx"])):
-                out[i, j] = {"pred1": {n: v[k].numpy() for n, v in pred1.items()}, "pred2": {n: v[k].numpy() for n, v in pred2.items()}}
+                out[i, j] = {
+                    "pred1": {n: v[k].numpy() for n, v in pred1.items()},
+                    "pred2": {n: v[k].numpy() for n, v in pred2.items()},
+                }
     return out
 
 
@@ -193,11 +210,15 @@ def test_checkpoints_build_the_architecture_they_name(tmp_path):
     arch = "AsymmetricCroCo3DStereo(pos_embed='RoPE100', patch_embed_cls='ManyAR_PatchEmbed', img_size=(224, 224), head_type='linear', output_mode='pts3d', depth_mode=('exp', -inf, inf), conf_mode=('exp', 1, inf), enc_embed_dim=64, enc_depth=2, enc_num_heads=2, dec_embed_dim=48, dec_depth=2, dec_num_heads=2)"
     torch.manual_seed(1)
     _, kwargs = parse_model_string(arch)
-    original = model_class("dust3r", upstream)(**dict(kwargs, patch_embed_cls="PatchEmbedDust3R", landscape_only=False)).eval()
+    original = model_class("dust3r", upstream)(
+        **dict(kwargs, patch_embed_cls="PatchEmbedDust3R", landscape_only=False)
+    ).eval()
     state = {k: v for k, v in original.state_dict().items() if not k.startswith("dec_blocks2")}
     file = tmp_path / "checkpoint.pth"
     torch.save({"args": argparse.Namespace(model=arch, epoch=3), "model": state}, file)
-    loaded, _ = build_model(ExportOptions(family="dust3r", out=Path("unused.onnx"), upstream=upstream, checkpoint=str(file)))
+    loaded, _ = build_model(
+        ExportOptions(family="dust3r", out=Path("unused.onnx"), upstream=upstream, checkpoint=str(file))
+    )
     assert type(loaded.patch_embed).__name__ == "PatchEmbedDust3R" and loaded.head_type == "linear"
     x = torch.rand(2, 3, 64, 96) * 2 - 1
     with torch.no_grad():
@@ -208,15 +229,25 @@ def test_checkpoints_build_the_architecture_they_name(tmp_path):
     as_trained = model_class("dust3r", upstream)(**kwargs)  # ManyAR_PatchEmbed, landscape_only=True
     as_trained.load_state_dict(original.state_dict())
     as_trained.save_pretrained(tmp_path / "hub")
-    loaded, _ = build_model(ExportOptions(family="dust3r", out=Path("unused.onnx"), upstream=upstream, checkpoint=str(tmp_path / "hub")))
+    loaded, _ = build_model(
+        ExportOptions(family="dust3r", out=Path("unused.onnx"), upstream=upstream, checkpoint=str(tmp_path / "hub"))
+    )
     assert type(loaded.patch_embed).__name__ == "PatchEmbedDust3R"
     with torch.no_grad():
         got = loaded({"img": x[:1], "instance": ["0"]}, {"img": x[1:], "instance": ["1"]})
     assert torch.equal(want[0]["pts3d"], got[0]["pts3d"])
     with pytest.raises(InputError, match="export-model dust3r"):
-        load_checkpoint(ExportOptions(family="mast3r", out=Path("unused.onnx"), upstream=upstream_dir("mast3r"), checkpoint=str(file)))
+        load_checkpoint(
+            ExportOptions(
+                family="mast3r", out=Path("unused.onnx"), upstream=upstream_dir("mast3r"), checkpoint=str(file)
+            )
+        )
     with pytest.raises(InputError, match="no checkpoint"):
-        load_checkpoint(ExportOptions(family="dust3r", out=Path("unused.onnx"), upstream=upstream, checkpoint=str(tmp_path / "missing.pth")))
+        load_checkpoint(
+            ExportOptions(
+                family="dust3r", out=Path("unused.onnx"), upstream=upstream, checkpoint=str(tmp_path / "missing.pth")
+            )
+        )
 
 
 class cuRoPE2D(torch.nn.Module):  # noqa: N801 - the compiled class's name, which the export looks for

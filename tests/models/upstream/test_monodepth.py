@@ -8,9 +8,13 @@ import numpy as np
 import pytest
 import torch
 
-transformers = pytest.importorskip("transformers", reason="needs transformers (Depth Anything's reference implementation)")
+transformers = pytest.importorskip(
+    "transformers", reason="needs transformers (Depth Anything's reference implementation)"
+)
 if not hasattr(transformers, "DepthAnythingForDepthEstimation") or not hasattr(transformers, "DPTImageProcessorPil"):
-    pytest.skip("needs transformers >= 5 (DepthAnythingForDepthEstimation, DPTImageProcessorPil)", allow_module_level=True)
+    pytest.skip(
+        "needs transformers >= 5 (DepthAnythingForDepthEstimation, DPTImageProcessorPil)", allow_module_level=True
+    )
 
 from ffrecon.errors import InputError
 from ffrecon.geometry.projection import pixel_centers, project_points
@@ -34,7 +38,13 @@ def exported(tmp_path_factory):
     models = {}
     for orientation, size_hw in SIZES.items():
         # The portrait file is not re-verified here: the landscape export's verification covers the graph.
-        options = ExportOptions(family="monodepth", out=folder / f"{orientation}.onnx", tiny=True, size_hw=size_hw, verify=orientation == "landscape")
+        options = ExportOptions(
+            family="monodepth",
+            out=folder / f"{orientation}.onnx",
+            tiny=True,
+            size_hw=size_hw,
+            verify=orientation == "landscape",
+        )
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             report = export_model(options)
@@ -46,8 +56,16 @@ def exported(tmp_path_factory):
 def processor():
     """Depth Anything V2's preprocessor_config.json settings, PIL backend."""
     return transformers.DPTImageProcessorPil(
-        do_resize=True, size={"height": 518, "width": 518}, keep_aspect_ratio=True, ensure_multiple_of=14, resample=3,
-        do_rescale=True, do_normalize=True, image_mean=list(mono_export.IMAGENET_MEAN), image_std=list(mono_export.IMAGENET_STD), do_pad=False,
+        do_resize=True,
+        size={"height": 518, "width": 518},
+        keep_aspect_ratio=True,
+        ensure_multiple_of=14,
+        resample=3,
+        do_rescale=True,
+        do_normalize=True,
+        image_mean=list(mono_export.IMAGENET_MEAN),
+        image_std=list(mono_export.IMAGENET_STD),
+        do_pad=False,
     )
 
 
@@ -75,7 +93,10 @@ def test_onnx_matches_pytorch_at_other_batch(exported):
 
 def test_preprocessing_equals_transformers(processor, landscape_and_portrait):
     land = landscape_and_portrait["landscape"]
-    odd = [cv2.resize(land[0], (1000, 700), interpolation=cv2.INTER_AREA), cv2.resize(land[1], (333, 250), interpolation=cv2.INTER_AREA)]
+    odd = [
+        cv2.resize(land[0], (1000, 700), interpolation=cv2.INTER_AREA),
+        cv2.resize(land[1], (333, 250), interpolation=cv2.INTER_AREA),
+    ]
     for images in (land, landscape_and_portrait["portrait"], odd[:1], odd[1:]):
         batch, transforms = monodepth.preprocess_monodepth(images)
         want = processor(images=list(images), return_tensors="pt")["pixel_values"].numpy()
@@ -91,7 +112,9 @@ def _reference_inverse_depth(spec, processor, image):
     pixel_values = processor(images=[image], return_tensors="pt")["pixel_values"]
     with torch.no_grad():
         outputs = spec.module.model(pixel_values=pixel_values)
-    return processor.post_process_depth_estimation(outputs, target_sizes=[image.shape[:2]])[0]["predicted_depth"].numpy()
+    return processor.post_process_depth_estimation(outputs, target_sizes=[image.shape[:2]])[0][
+        "predicted_depth"
+    ].numpy()
 
 
 @pytest.mark.parametrize("orientation", ["landscape", "portrait"])
@@ -124,7 +147,9 @@ def test_one_photo_point_cloud_reprojects_to_its_pixels(exported, focal_px):
     path, _, _ = exported["landscape"]
     model = OnnxModel(path, threads=2)
     image = real_photos(1)[0]
-    pred = monodepth.predict_monodepth(image, "0.jpg", lambda b: model.run({"pixel_values": b}), model.info(), focal_px=focal_px)
+    pred = monodepth.predict_monodepth(
+        image, "0.jpg", lambda b: model.run({"pixel_values": b}), model.info(), focal_px=focal_px
+    )
     cam = pred.cameras[0]
     assert (cam.width, cam.height, cam.cx, cam.cy) == (640, 480, 320.0, 240.0)
     assert cam.fx == cam.fy == pytest.approx(focal_px or 320 / np.tan(np.radians(30)))
@@ -142,7 +167,9 @@ def test_one_photo_only(exported):
     info = OnnxModel(path, threads=2).info()
     batch, transforms = monodepth.preprocess_monodepth(real_photos(2))
     with pytest.raises(InputError, match="one photo"):
-        monodepth.decode_monodepth({"predicted_depth": np.ones((2, *batch.shape[2:]), np.float32)}, transforms, ["a", "b"], info)
+        monodepth.decode_monodepth(
+            {"predicted_depth": np.ones((2, *batch.shape[2:]), np.float32)}, transforms, ["a", "b"], info
+        )
 
 
 def test_cli_run_one_photo(exported, tmp_path):
@@ -166,13 +193,30 @@ def test_export_from_downloaded_metric_folder(tmp_path):
     folder = tmp_path / "Depth-Anything-V2-Metric-tiny"
     torch.manual_seed(0)
     transformers.DepthAnythingForDepthEstimation(mono_export.config_for("tiny", metric=True)).save_pretrained(folder)
-    (folder / "preprocessor_config.json").write_text(json.dumps({"image_processor_type": "DPTImageProcessor", "size": {"height": 518, "width": 518}, "keep_aspect_ratio": True, "ensure_multiple_of": 14, "resample": 3, "image_mean": [0.5, 0.5, 0.5], "image_std": [0.25, 0.25, 0.25]}))
+    (folder / "preprocessor_config.json").write_text(
+        json.dumps(
+            {
+                "image_processor_type": "DPTImageProcessor",
+                "size": {"height": 518, "width": 518},
+                "keep_aspect_ratio": True,
+                "ensure_multiple_of": 14,
+                "resample": 3,
+                "image_mean": [0.5, 0.5, 0.5],
+                "image_std": [0.25, 0.25, 0.25],
+            }
+        )
+    )
     out = tmp_path / "metric.onnx"
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        export_model(ExportOptions(family="monodepth", out=out, checkpoint=str(folder), size_hw=(126, 168), verify=False))
+        export_model(
+            ExportOptions(family="monodepth", out=out, checkpoint=str(folder), size_hw=(126, 168), verify=False)
+        )
     model = OnnxModel(out, threads=2)
-    assert model.metadata["ffrecon.depth_kind"] == "metric" and float(model.metadata["ffrecon.max_depth"]) == mono_export.METRIC_MAX_DEPTH
+    assert (
+        model.metadata["ffrecon.depth_kind"] == "metric"
+        and float(model.metadata["ffrecon.max_depth"]) == mono_export.METRIC_MAX_DEPTH
+    )
     assert "0.25" in model.metadata["ffrecon.notes"]  # the folder's normalisation, not ImageNet's
     x = np.random.default_rng(0).uniform(0, 1, (1, 3, 126, 168)).astype(np.float32)
     reference = transformers.DepthAnythingForDepthEstimation.from_pretrained(folder).eval()
@@ -187,9 +231,24 @@ def test_processor_settings_from_metadata():
 
     from ffrecon.types import ModelInfo
 
-    info = ModelInfo("dpt.onnx", ModelFamily.MONODEPTH, metadata={"ffrecon.monodepth.processor": json.dumps({"size": {"height": 384, "width": 384}, "keep_aspect_ratio": False, "ensure_multiple_of": 32, "resample": 2})})
+    info = ModelInfo(
+        "dpt.onnx",
+        ModelFamily.MONODEPTH,
+        metadata={
+            "ffrecon.monodepth.processor": json.dumps(
+                {
+                    "size": {"height": 384, "width": 384},
+                    "keep_aspect_ratio": False,
+                    "ensure_multiple_of": 32,
+                    "resample": 2,
+                }
+            )
+        },
+    )
     settings = monodepth.ProcessorSettings.from_model(info)
     assert settings == monodepth.ProcessorSettings((384, 384), False, 32, 2)
     batch, transforms = monodepth.preprocess_monodepth(real_photos(1), settings=settings)
     assert batch.shape == (1, 3, 384, 384) and transforms[0].scale_x == 384 / 640
-    assert monodepth.ProcessorSettings.from_model(ModelInfo("x", ModelFamily.MONODEPTH)) == monodepth.ProcessorSettings()
+    assert (
+        monodepth.ProcessorSettings.from_model(ModelInfo("x", ModelFamily.MONODEPTH)) == monodepth.ProcessorSettings()
+    )

@@ -43,7 +43,22 @@ INFO = ModelInfo("pi3 tiny (PyTorch)", ModelFamily.PI3)
 def exported(tmp_path_factory) -> Path:
     """Tiny Pi3 exported by the CLI, traced with 1 frame (its own check runs 2)."""
     out = tmp_path_factory.mktemp("pi3") / "pi3_tiny.onnx"
-    args = ["export-model", "pi3", "--upstream", str(upstream_dir("pi3")), "--tiny", "-o", str(out), "--height", str(SIZE_HW[0]), "--width", str(SIZE_HW[1]), "--frames", "1", "-q"]
+    args = [
+        "export-model",
+        "pi3",
+        "--upstream",
+        str(upstream_dir("pi3")),
+        "--tiny",
+        "-o",
+        str(out),
+        "--height",
+        str(SIZE_HW[0]),
+        "--width",
+        str(SIZE_HW[1]),
+        "--frames",
+        "1",
+        "-q",
+    ]
     assert cli(args) == 0
     return out
 
@@ -51,7 +66,9 @@ def exported(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def spec():
     """The same upstream model in PyTorch, rebuilt from the same seed (as export-model builds it)."""
-    options = ExportOptions(family="pi3", out=Path("unused.onnx"), upstream=upstream_dir("pi3"), tiny=True, size_hw=SIZE_HW)
+    options = ExportOptions(
+        family="pi3", out=Path("unused.onnx"), upstream=upstream_dir("pi3"), tiny=True, size_hw=SIZE_HW
+    )
     return family_module("pi3").build(options, SIZE_HW)
 
 
@@ -64,7 +81,9 @@ def _upstream_cameras(outputs: dict[str, np.ndarray], geometry) -> tuple[np.ndar
     """Upstream's own decoding: cam_from_world with frame 0 as world, K (pixel-index convention), depth."""
     poses = torch.from_numpy(outputs["camera_poses"][0]).double()
     cam_from_world = (geometry.se3_inverse(poses) @ poses[0]).numpy()
-    K = geometry.recover_intrinsic_from_rays_d(torch.from_numpy(outputs["local_points"][0]).double(), force_center_principal_point=True).numpy()
+    K = geometry.recover_intrinsic_from_rays_d(
+        torch.from_numpy(outputs["local_points"][0]).double(), force_center_principal_point=True
+    ).numpy()
     return cam_from_world, K, outputs["local_points"][0, ..., 2]
 
 
@@ -103,7 +122,9 @@ def fake_torchvision(monkeypatch):
     if importlib.util.find_spec("torchvision") is not None:
         return
     transforms = types.ModuleType("torchvision.transforms")
-    transforms.ToTensor = lambda: (lambda pil: torch.from_numpy(np.array(pil)).permute(2, 0, 1).contiguous().float().div(255))
+    transforms.ToTensor = lambda: (
+        lambda pil: torch.from_numpy(np.array(pil)).permute(2, 0, 1).contiguous().float().div(255)
+    )
     package = types.ModuleType("torchvision")
     package.transforms = transforms
     monkeypatch.setitem(sys.modules, "torchvision", package)
@@ -146,17 +167,30 @@ def test_decoded_cameras_equal_upstream_decoding(landscape_and_portrait, spec, u
     sx, sy = wn / w, hn / h  # computed by hand, independently of ResizeTransform
     for k in range(len(photos)):
         cam = pred.cameras[k]
-        want = [K[k, 0, 0] / sx, K[k, 1, 1] / sy, (K[k, 0, 2] + 0.5) / sx, (K[k, 1, 2] + 0.5) / sy]  # index -> COLMAP centre
+        want = [
+            K[k, 0, 0] / sx,
+            K[k, 1, 1] / sy,
+            (K[k, 0, 2] + 0.5) / sx,
+            (K[k, 1, 2] + 0.5) / sy,
+        ]  # index -> COLMAP centre
         np.testing.assert_allclose([cam.fx, cam.fy, cam.cx, cam.cy], want, rtol=TOL)
         assert (cam.width, cam.height) == (w, h) and (cam.cx, cam.cy) == (w / 2, h / 2)
         # Bilinear resampling at photo pixel centres ((x + 0.5) * s in network pixels), by torch's grid_sample.
         gx = 2 * (np.arange(w) + 0.5) * sx / wn - 1
         gy = 2 * (np.arange(h) + 0.5) * sy / hn - 1
         grid = torch.from_numpy(np.stack(np.meshgrid(gx, gy), -1)[None].astype(np.float32))
-        sample = lambda net_map: torch.nn.functional.grid_sample(torch.from_numpy(net_map)[None, None], grid, align_corners=False, padding_mode="border")[0, 0].numpy()  # noqa: E731
+        sample = lambda net_map: torch.nn.functional.grid_sample(
+            torch.from_numpy(net_map)[None, None], grid, align_corners=False, padding_mode="border"
+        )[0, 0].numpy()  # noqa: E731
         assert relative_difference(pred.depth[k], sample(depth[k])) < TOL
         # Confidence: 1 + exp(logit) = 1 / (1 - sigmoid(logit)), the reference's sigmoid mapped to ffrecon's >= 1 scale.
-        assert relative_difference(pred.depth_conf[k], sample(1 / (1 - torch.sigmoid(torch.from_numpy(outputs["conf"][0, k, ..., 0])).numpy()))) < TOL
+        assert (
+            relative_difference(
+                pred.depth_conf[k],
+                sample(1 / (1 - torch.sigmoid(torch.from_numpy(outputs["conf"][0, k, ..., 0])).numpy())),
+            )
+            < TOL
+        )
 
 
 @pytest.mark.parametrize("photo_hw", [SIZE_HW, SIZE_HW[::-1]], ids=["landscape", "portrait"])
@@ -182,18 +216,26 @@ def test_depth_and_points_equal_upstream_unprojection(spec, upstream_utils, phot
         assert relative_difference(pred.world_points(k), want) < TOL
 
 
-def _pinhole_outputs(n: int, size_hw: tuple[int, int], focal: np.ndarray, seed: int = 0) -> tuple[dict[str, np.ndarray], np.ndarray]:
+def _pinhole_outputs(
+    n: int, size_hw: tuple[int, int], focal: np.ndarray, seed: int = 0
+) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """Pi3 outputs of a perfect pinhole model (centred principal point): returns (outputs, world_from_cam [n, 4, 4])."""
     rng = np.random.default_rng(seed)
     h, w = size_hw
     ys, xs = np.mgrid[0:h, 0:w] + 0.5
     z = np.stack([1.5 + 0.001 * xs + 0.002 * ys + 0.3 * k for k in range(n)])
-    local = np.stack([(xs - w / 2) / focal[:, None, None, 0] * z, (ys - h / 2) / focal[:, None, None, 1] * z, z], axis=-1)
+    local = np.stack(
+        [(xs - w / 2) / focal[:, None, None, 0] * z, (ys - h / 2) / focal[:, None, None, 1] * z, z], axis=-1
+    )
     world_from_cam = np.tile(np.eye(4), (n, 1, 1))
     world_from_cam[:, :3, :3] = torch.linalg.qr(torch.from_numpy(rng.normal(size=(n, 3, 3))))[0].numpy()
     world_from_cam[:, :3, :3] *= np.sign(np.linalg.det(world_from_cam[:, :3, :3]))[:, None, None]
     world_from_cam[:, :3, 3] = rng.normal(size=(n, 3))
-    outputs = {"local_points": local[None].astype(np.float32), "conf": np.zeros((1, n, h, w, 1), np.float32), "camera_poses": world_from_cam[None].astype(np.float32)}
+    outputs = {
+        "local_points": local[None].astype(np.float32),
+        "conf": np.zeros((1, n, h, w, 1), np.float32),
+        "camera_poses": world_from_cam[None].astype(np.float32),
+    }
     return outputs, world_from_cam
 
 
@@ -207,7 +249,11 @@ def test_decode_recovers_a_known_pinhole_camera_set():
     want = np.linalg.inv(world_from_cam) @ world_from_cam[0]
     np.testing.assert_allclose(pred.cam_from_world, want[:, :3], rtol=TOL, atol=1e-5)
     for k, t in enumerate(transforms):
-        np.testing.assert_allclose(pred.cameras[k].K, [[focal[k, 0] / t.scale_x, 0, 320], [0, focal[k, 1] / t.scale_y, 240], [0, 0, 1]], rtol=TOL)
+        np.testing.assert_allclose(
+            pred.cameras[k].K,
+            [[focal[k, 0] / t.scale_x, 0, 320], [0, focal[k, 1] / t.scale_y, 240], [0, 0, 1]],
+            rtol=TOL,
+        )
         np.testing.assert_allclose(pred.depth_conf[k], 2.0)  # logit 0: sigmoid 0.5
     validate_prediction(pred, camera_outputs=ADAPTER.camera_outputs)
 
@@ -228,7 +274,14 @@ def test_bad_outputs_name_the_output():
 def test_untrained_rays_stop_with_the_decoded_output_error(landscape_and_portrait):
     """Left as initialised (--keep-untrained-heads), the point head's rays fit no usable focal: the
     decoded-output check names the outputs it came from instead of letting a broken camera through."""
-    options = ExportOptions(family="pi3", out=Path("unused.onnx"), upstream=upstream_dir("pi3"), tiny=True, size_hw=SIZE_HW, keep_untrained_heads=True)
+    options = ExportOptions(
+        family="pi3",
+        out=Path("unused.onnx"),
+        upstream=upstream_dir("pi3"),
+        tiny=True,
+        size_hw=SIZE_HW,
+        keep_untrained_heads=True,
+    )
     untrained = family_module("pi3").build(options, SIZE_HW)
     assert "left as initialised" in untrained.notes[0]
     batch, transforms = preprocess_pi3(landscape_and_portrait["landscape"][:2])
@@ -255,4 +308,3 @@ def test_run_writes_upstream_cameras(exported, spec, upstream_utils, photo_folde
         fx, fy, cx, cy = rec.cameras[image.camera_id].params
         sx, sy = SIZE_HW[1] / 640, SIZE_HW[0] / 480
         np.testing.assert_allclose([fx, fy, cx, cy], [K[k, 0, 0] / sx, K[k, 1, 1] / sy, 320, 240], rtol=TOL)
-

@@ -21,7 +21,7 @@ from ffrecon.models.adapters import PreprocessMode
 from ffrecon.models.exporting import ExportOptions, family_module
 from ffrecon.models.exporting.common import relative_difference, torch_outputs
 from ffrecon.models.runner import OnnxModel
-from ffrecon.models.vggt import ADAPTER, decode_vggt_outputs, network_size_hw, preprocess_vggt
+from ffrecon.models.vggt import decode_vggt_outputs, network_size_hw, preprocess_vggt
 from ffrecon.types import ModelFamily
 
 from .conftest import real_photos, upstream_dir
@@ -31,7 +31,21 @@ TOL = 1e-4
 
 def _export(tmp: Path, size_hw: tuple[int, int], *extra: str) -> Path:
     out = tmp / f"vggt_{size_hw[1]}x{size_hw[0]}{'_'.join(extra)}.onnx"
-    args = ["export-model", "vggt", "--upstream", str(upstream_dir("vggt")), "--tiny", "-o", str(out), "--height", str(size_hw[0]), "--width", str(size_hw[1]), "-q", *extra]
+    args = [
+        "export-model",
+        "vggt",
+        "--upstream",
+        str(upstream_dir("vggt")),
+        "--tiny",
+        "-o",
+        str(out),
+        "--height",
+        str(size_hw[0]),
+        "--width",
+        str(size_hw[1]),
+        "-q",
+        *extra,
+    ]
     assert cli(args) == 0
     return out
 
@@ -46,9 +60,13 @@ def exported(tmp_path_factory):
 @pytest.fixture(scope="module")
 def torch_spec():
     """The same upstream model in PyTorch, rebuilt from the same seed (as export-model builds it)."""
+
     def build(size_hw):
-        options = ExportOptions(family="vggt", out=Path("unused.onnx"), upstream=upstream_dir("vggt"), tiny=True, size_hw=size_hw)
+        options = ExportOptions(
+            family="vggt", out=Path("unused.onnx"), upstream=upstream_dir("vggt"), tiny=True, size_hw=size_hw
+        )
         return family_module("vggt").build(options, size_hw)
+
     torch.manual_seed(0)
     return build
 
@@ -103,7 +121,15 @@ def test_decoded_cameras_equal_upstream_decoding(exported, torch_spec, orientati
         assert (cam.width, cam.height) == size
 
 
-@pytest.mark.parametrize("photo_hw,mode", [((392, 518), PreprocessMode.CROP), ((686, 518), PreprocessMode.CROP), ((518, 392), PreprocessMode.PAD), ((392, 518), PreprocessMode.PAD)])
+@pytest.mark.parametrize(
+    "photo_hw,mode",
+    [
+        ((392, 518), PreprocessMode.CROP),
+        ((686, 518), PreprocessMode.CROP),
+        ((518, 392), PreprocessMode.PAD),
+        ((392, 518), PreprocessMode.PAD),
+    ],
+)
 def test_depth_and_points_equal_upstream_unprojection(exported, photo_hw, mode):
     """Photos at the network's scale (crop and pad only): ffrecon's depth in photo pixels equals the
     network's depth, and its world points equal upstream's unproject_depth_map_to_point_map.
@@ -118,7 +144,9 @@ def test_depth_and_points_equal_upstream_unprojection(exported, photo_hw, mode):
     batch, transforms = preprocess_vggt(photos, mode)
     size_hw = tuple(batch.shape[2:])
     outputs = OnnxModel(exported[size_hw]).run({"input_images": batch})
-    pred = decode_vggt_outputs(outputs, transforms, ["a", "b"], OnnxModel(exported[size_hw]).info(), max_depth_side=None)
+    pred = decode_vggt_outputs(
+        outputs, transforms, ["a", "b"], OnnxModel(exported[size_hw]).info(), max_depth_side=None
+    )
     extri, intri = _upstream_decode(outputs["pose_enc"], size_hw)
     net_depth = outputs["depth"][0, ..., 0]
     intri_index = intri.copy()
@@ -150,7 +178,10 @@ def test_run_writes_cameras_equal_to_upstream(exported, torch_spec, photo_folder
     report = json.loads((out / "report.json").read_text())
     assert report["verdict"]["status"] in ("ok", "gate_failed")
     rec = pycolmap.Reconstruction(out / "feedforward" / "sparse")
-    photos = [np.asarray(__import__("PIL.Image", fromlist=["Image"]).open(p).convert("RGB")) for p in sorted(photo_folder.glob("*.jpg"))]
+    photos = [
+        np.asarray(__import__("PIL.Image", fromlist=["Image"]).open(p).convert("RGB"))
+        for p in sorted(photo_folder.glob("*.jpg"))
+    ]
     batch, _ = preprocess_vggt(photos, PreprocessMode.CROP)
     spec = torch_spec((392, 518))
     pose_enc = torch_outputs(spec, (batch,))["pose_enc"]
@@ -161,7 +192,9 @@ def test_run_writes_cameras_equal_to_upstream(exported, torch_spec, photo_folder
         np.testing.assert_allclose(image.cam_from_world().matrix(), extri[0, k].double().numpy(), rtol=TOL, atol=TOL)
         fx, fy, cx, cy = rec.cameras[image.camera_id].params
         K = intri[0, k].double().numpy()
-        np.testing.assert_allclose([fx, fy, cx, cy], [K[0, 0] / scale, K[1, 1] * 480 / 392, K[0, 2] / scale, K[1, 2] * 480 / 392], rtol=TOL)
+        np.testing.assert_allclose(
+            [fx, fy, cx, cy], [K[0, 0] / scale, K[1, 1] * 480 / 392, K[0, 2] / scale, K[1, 2] * 480 / 392], rtol=TOL
+        )
 
 
 def test_untrained_fov_stops_within_a_minute_with_exit_3(tmp_path, photo_folder):
@@ -191,7 +224,9 @@ def _to_tensor_stub():
     transforms.ToTensor = ToTensor
     torchvision = types.ModuleType("torchvision")
     torchvision.transforms = transforms
-    return {"torchvision": torchvision, "torchvision.transforms": transforms} if "torchvision" not in sys.modules else {}
+    return (
+        {"torchvision": torchvision, "torchvision.transforms": transforms} if "torchvision" not in sys.modules else {}
+    )
 
 
 @pytest.mark.parametrize("size", [(640, 480), (480, 640), (500, 500)], ids=["landscape", "portrait", "square"])
