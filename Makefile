@@ -9,7 +9,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.ffrecon-installed
 DEMO_OUT ?= demo_out
 
-.PHONY: demo test test-fast setup clean bench
+.PHONY: demo test test-fast lint setup clean bench
 
 setup: $(STAMP)
 
@@ -29,7 +29,11 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(VENV)/bin/ffrecon demo -o $(DEMO_OUT) --overwrite
 
-test: $(STAMP)
+lint: $(STAMP)
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
+
+test: lint
 	$(PY) -m pytest
 
 test-fast: $(STAMP)

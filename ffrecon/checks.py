@@ -66,18 +66,19 @@ def require_finite(step: str, **arrays: np.ndarray) -> None:
     """Refuse NaN/inf inputs to an iterative or linear-algebra step (they can make LAPACK spin forever).
 
     >>> require_finite("alignment", src=np.zeros((2, 3)))
-    >>> require_finite("alignment", src=np.array([1.0, np.nan]))
+    >>> require_finite("alignment", src=np.array([1.0, np.nan]))  # doctest: +ELLIPSIS
     Traceback (most recent call last):
     ...
     ffrecon.errors.ModelError: alignment: input 'src' has 1 non-finite values (NaN/inf) of 2
-      fix: the values come from an earlier stage (usually the feed-forward model's cameras or depth); check them with `ffrecon inspect-model` and re-export the model
+      fix: the values come from an earlier stage (usually the feed-forward model's cameras or depth); ...
     """
     for name, array in arrays.items():
         bad = ~np.isfinite(np.asarray(array, dtype=np.float64))
         if bad.any():
             raise ModelError(
                 f"{step}: input '{name}' has {int(bad.sum())} non-finite values (NaN/inf) of {bad.size}",
-                "the values come from an earlier stage (usually the feed-forward model's cameras or depth); check them with `ffrecon inspect-model` and re-export the model",
+                "the values come from an earlier stage (usually the feed-forward model's cameras or depth); "
+                "check them with `ffrecon inspect-model` and re-export the model",
             )
 
 

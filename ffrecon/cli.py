@@ -5,11 +5,12 @@ from __future__ import annotations
 import argparse
 import logging
 import shlex
+import signal
 import sys
 from pathlib import Path
 
 from ffrecon import __version__
-from ffrecon.errors import FFReconError
+from ffrecon.errors import FFReconError, Interrupted
 
 log = logging.getLogger("ffrecon")
 
@@ -24,33 +25,36 @@ def _setup_logging(verbose: int) -> None:
 
 
 def _add_run_options(p: argparse.ArgumentParser) -> None:
+    """Options of ``run`` and ``demo``; their defaults live in the stage options classes alone."""
     p.add_argument("-o", "--out", type=Path, required=True, help="output folder (see the README for its layout)")
     p.add_argument("--overwrite", action="store_true", help="replace results already in the output folder")
+    p.add_argument(
+        "--resume",
+        action="store_true",
+        help="reuse the stages OUT (or an interrupted run into OUT) finished, where inputs and options are unchanged",
+    )
+    p.add_argument("--fresh", action="store_true", help="recompute every stage, even those an interrupted run finished")
     p.add_argument(
         "--chunk-size",
         type=int,
         default=None,
-        help="frames per model call (default: as many as fit in 60%% of the free memory, from the model's size; docs/benchmarks.md)",
+        help="frames per model call (default: as many as fit in 60%% of the free memory; docs/benchmarks.md)",
     )
-    p.add_argument("--chunk-overlap", type=int, default=None, help="frames shared by consecutive chunks (default 2)")
+    p.add_argument("--chunk-overlap", type=int, default=None, help="frames shared by consecutive chunks")
     p.add_argument(
         "--preprocess",
         choices=["crop", "pad", "resize"],
         default=None,
         help="preprocessing mode (default: the model family's reference; VGGT: crop or pad, DA3: resize or crop)",
     )
-    p.add_argument("--threads", type=int, default=0, help="CPU threads for inference (0: all)")
+    p.add_argument("--threads", type=int, default=None, help="CPU threads for inference (default: all)")
     p.add_argument("--no-colmap", action="store_true", help="skip the COLMAP cross-check")
     p.add_argument("--no-refine", action="store_true", help="skip the bundle-adjustment refinement")
     p.add_argument("--no-splat", action="store_true", help="skip the Gaussian splat")
     p.add_argument("--force", action="store_true", help="go on past failed verification gates")
     p.add_argument("--min-registration", type=float, default=None, help="registration-ratio gate (default 0.85)")
-    p.add_argument(
-        "--splat-seconds", type=float, default=None, help="splat optimisation budget in seconds (default 120)"
-    )
-    p.add_argument(
-        "--mesh", action="store_true", help="also write a Poisson mesh (mesh.ply, mesh.glb) from the point cloud"
-    )
+    p.add_argument("--splat-seconds", type=float, default=None, help="splat optimisation budget in seconds")
+    p.add_argument("--mesh", action="store_true", help="also write a Poisson mesh (mesh.ply, mesh.glb) of the cloud")
     p.add_argument("--reference", type=Path, default=None, help="a reference COLMAP model to score the cameras against")
     p.add_argument("-v", "--verbose", action="count", default=0)
     p.add_argument("-q", "--quiet", action="store_true")
@@ -94,7 +98,11 @@ def _add_export_parser(sub) -> None:
     export = sub.add_parser(
         "export-model",
         help="turn an upstream checkpoint into an ONNX model file ffrecon runs",
-        description=f"Export a public model to ONNX with ffrecon's contract names, then check onnxruntime against PyTorch.\n\nfamilies:\n{families}\n\nSee docs/models.md for where checkpoints are published and their licenses.",
+        description=(
+            "Export a public model to ONNX with ffrecon's contract names, then check onnxruntime against PyTorch."
+            f"\n\nfamilies:\n{families}\n\n"
+            "See docs/models.md for where checkpoints are published and their licenses."
+        ),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     export.add_argument("family", choices=list(FAMILIES), help="model family")
@@ -153,7 +161,8 @@ def _add_export_parser(sub) -> None:
     export.add_argument(
         "--variant",
         default=None,
-        help="upstream configuration to build with --random-init (da3: da3-small|base|large|giant; monodepth: small|base|large, optionally -metric)",
+        help="upstream configuration to build with --random-init "
+        "(da3: da3-small|base|large|giant; monodepth: small|base|large, optionally -metric)",
     )
     export.add_argument("--seed", type=int, default=0)
     export.add_argument("-v", "--verbose", action="count", default=0)
@@ -194,62 +203,67 @@ def _export(args: argparse.Namespace) -> None:
     print(report.summary())
 
 
+def _given(**values) -> dict:
+    """The options the user gave (None: not given, so the options class's default stands)."""
+    return {k: v for k, v in values.items() if v is not None}
+
+
 def _run_options(args: argparse.Namespace, ground_truth: Path | None = None):
     from ffrecon.capture import CaptureOptions
+    from ffrecon.export.stage import ExportOptions
     from ffrecon.models.adapters import PreprocessMode
     from ffrecon.models.multiview import MultiviewOptions
     from ffrecon.models.stage import FeedForwardOptions
     from ffrecon.pipeline import RunOptions
+    from ffrecon.sfm.crosscheck import ColmapOptions
+    from ffrecon.sfm.gates import GateOptions
+    from ffrecon.sfm.refine import RefineOptions
+    from ffrecon.splat.optimize import OptimizeOptions
+    from ffrecon.splat.stage import SplatOptions
 
-    mv_kwargs = {"mode": PreprocessMode(args.preprocess) if args.preprocess else None}
-    if args.chunk_size:
-        mv_kwargs["chunk_size"] = args.chunk_size
-    if args.chunk_overlap:
-        mv_kwargs["chunk_overlap"] = args.chunk_overlap
+    mode = PreprocessMode(args.preprocess) if args.preprocess else None
+    multiview = MultiviewOptions(mode=mode, **_given(chunk_size=args.chunk_size, chunk_overlap=args.chunk_overlap))
     capture = CaptureOptions(
-        video_frames=getattr(args, "video_frames", 48), skip_bad_images=getattr(args, "skip_bad_images", False)
+        **_given(
+            video_frames=getattr(args, "video_frames", None), skip_bad_images=getattr(args, "skip_bad_images", None)
+        )
     )
-    extra = {}
-    if args.no_colmap:
-        extra["colmap"] = None
-    if args.no_refine:
-        extra["refine"] = None
-    if args.no_splat:
-        extra["splat"] = None
-    else:
-        from ffrecon.splat.stage import SplatOptions
-
-        splat_kwargs = {"mesh": args.mesh}
-        if args.splat_seconds is not None:
-            splat_kwargs["max_seconds"] = args.splat_seconds
-        extra["splat"] = SplatOptions(**splat_kwargs)
-    if args.min_registration is not None:
-        from ffrecon.sfm.gates import GateOptions
-
-        extra["gates"] = GateOptions(min_registration_ratio=args.min_registration)
+    splat = SplatOptions(
+        enabled=not args.no_splat, optimize=OptimizeOptions.brief(**_given(max_seconds=args.splat_seconds))
+    )
     return RunOptions(
         capture=capture,
-        feedforward=FeedForwardOptions(threads=args.threads, multiview=MultiviewOptions(**mv_kwargs)),
+        feedforward=FeedForwardOptions(multiview=multiview, **_given(threads=args.threads)),
+        colmap=ColmapOptions(enabled=not args.no_colmap),
+        gates=GateOptions(**_given(min_registration_ratio=args.min_registration)),
+        refine=RefineOptions(enabled=not args.no_refine),
+        splat=splat,
+        exports=ExportOptions(mesh=args.mesh),
         overwrite=args.overwrite,
+        resume=args.resume,
+        fresh=args.fresh,
         force=args.force,
         ground_truth=ground_truth,
         reference=args.reference,
         command=shlex.join(["ffrecon", *sys.argv[1:]]),
-        **extra,
     )
 
 
-def _print_summary(result) -> None:
-    data = result.report
-    verdict = data.get("verdict", {})
-    print(f"\nffrecon: {verdict.get('status', '?').upper()} - {verdict.get('message', '')}")
-    for row in data.get("summary_rows", []):
-        print(f"  {row['item']:<28} {row['value']}")
-    for item in data.get("skipped_stages", []):
+def _print_summary(results) -> None:
+    """The end-of-run summary, from the same report data as report.html."""
+    from ffrecon.export.report import build_report
+    from ffrecon.export.report_html import summary_rows
+
+    report = build_report(results)
+    verdict = report["verdict"]
+    print(f"\nffrecon: {verdict['status'].upper()} - {verdict['message']}")
+    for item, value in summary_rows(report):
+        print(f"  {item:<28} {value}")
+    for item in report["skipped_stages"]:
         print(f"  skipped {item['stage']}: {item['reason']}")
-    total = sum(v for v in data.get("timings", {}).values() if isinstance(v, (int, float)))
+    total = sum(t["seconds"] for t in report["timings"].values())
     print(f"  {'time':<28} {total:.1f} s")
-    print(f"  report: {result.out_dir / 'report.html'}")
+    print(f"  report: {results.out_dir / 'report.html'}")
 
 
 def _inspect(path: Path) -> None:
@@ -258,14 +272,15 @@ def _inspect(path: Path) -> None:
     from ffrecon.types import ModelFamily
 
     model = OnnxModel(path)
-    print(
-        f"{path.name}: {FAMILY_NAMES[model.family]} ({model.family.value}) model{' (SIMULATED)' if model.simulated else ''}"
-    )
+    simulated = " (SIMULATED)" if model.simulated else ""
+    print(f"{path.name}: {FAMILY_NAMES[model.family]} ({model.family.value}) model{simulated}")
     print("inputs:\n" + "\n".join(f"  {s}" for s in model.inputs))
     print("outputs:\n" + "\n".join(f"  {s}" for s in model.outputs))
     if model.family is ModelFamily.PAIRWISE:
         print(
-            "preprocessing: RGB (x/255 - 0.5) / 0.5; long side 512 (224 checkpoints: short side 224, centre square), sides cropped to multiples of 16, square photos to 4:3; pairs from a pair graph, then global alignment"
+            "preprocessing: RGB (x/255 - 0.5) / 0.5; long side 512 (224 checkpoints: short side 224, centre "
+            "square), sides cropped to multiples of 16, square photos to 4:3; pairs from a pair graph, then "
+            "global alignment"
         )
         if {"desc", "desc_conf"} <= {o.name for o in model.outputs}:
             print("MASt3R descriptors (desc, desc_conf per view) are checked but not used yet")
@@ -277,9 +292,32 @@ def _inspect(path: Path) -> None:
         print(f"  metadata {k}: {v[:200]}")
 
 
+def _terminate(signum, frame) -> None:
+    """SIGTERM ends the run like Ctrl-C: finished stages kept, one line said, no stack trace."""
+    raise KeyboardInterrupt
+
+
+def _run_command(args: argparse.Namespace):
+    from ffrecon.pipeline import run
+
+    if args.command == "demo":
+        from ffrecon.demo import DemoOptions, prepare_demo
+        from ffrecon.synthetic import SceneOptions
+
+        scene = SceneOptions(num_frames=args.frames, width=args.width, height=args.height, seed=args.seed)
+        demo = prepare_demo(DemoOptions(scene=scene))
+        return run(demo.images, args.out, demo.model, _run_options(args, ground_truth=demo.scene_dir))
+    return run(args.input, args.out, args.model, _run_options(args))
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     _setup_logging(-1 if getattr(args, "quiet", False) else getattr(args, "verbose", 0))
+    if args.command in ("run", "demo"):
+        # pycolmap's logging library installs a SIGTERM handler that prints a native stack trace when
+        # pycolmap is imported; importing it first lets ours, installed next, take its place.
+        import ffrecon.pipeline  # noqa: F401
+    previous = signal.signal(signal.SIGTERM, _terminate)
     try:
         if args.command == "inspect-model":
             _inspect(args.model)
@@ -287,21 +325,10 @@ def main(argv: list[str] | None = None) -> int:
         if args.command == "export-model":
             _export(args)
             return 0
-        if args.command == "demo":
-            from ffrecon.demo import DemoOptions, prepare_demo
-            from ffrecon.pipeline import run
-            from ffrecon.synthetic import SceneOptions
-
-            demo = prepare_demo(
-                DemoOptions(
-                    scene=SceneOptions(num_frames=args.frames, width=args.width, height=args.height, seed=args.seed)
-                )
-            )
-            result = run(demo.images, args.out, demo.model, _run_options(args, ground_truth=demo.scene_dir))
-        else:
-            from ffrecon.pipeline import run
-
-            result = run(args.input, args.out, args.model, _run_options(args))
+        results = _run_command(args)
+    except Interrupted as err:
+        print(f"ffrecon: {err.problem}; {err.fix}", file=sys.stderr)
+        return err.exit_code
     except FFReconError as err:
         print(f"ffrecon: error: {err.problem}", file=sys.stderr)
         if err.fix:
@@ -309,7 +336,9 @@ def main(argv: list[str] | None = None) -> int:
         return err.exit_code
     except KeyboardInterrupt:
         print("ffrecon: interrupted; earlier results are untouched", file=sys.stderr)
-        return 130
+        return Interrupted.exit_code
+    finally:
+        signal.signal(signal.SIGTERM, previous)
     if not getattr(args, "quiet", False):
-        _print_summary(result)
-    return result.exit_code
+        _print_summary(results)
+    return results.exit_code

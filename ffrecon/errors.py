@@ -34,3 +34,18 @@ class GateFailed(FFReconError):
     """A verification gate failed and the run stopped before the expensive stages."""
 
     exit_code = 5
+
+
+class Interrupted(FFReconError):
+    """Ctrl-C or SIGTERM: the finished stages are kept in the staging folder for ``--resume``."""
+
+    exit_code = 130
+
+    def __init__(self, stage: str | None, kept: list[str], staging: str, resume_command: str) -> None:
+        self.stage, self.kept, self.staging = stage, kept, staging
+        during = f" during {stage}" if stage else ""
+        kept_text = f"kept {', '.join(kept)} in {staging}" if kept else "no stage had finished"
+        super().__init__(
+            f"interrupted{during}; {kept_text}; the output folder is untouched",
+            f"resume with: {resume_command}",
+        )

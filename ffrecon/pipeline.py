@@ -1,7 +1,9 @@
-"""run(...) chains the stages: Capture -> Pose (feed-forward, COLMAP) -> Refine -> Splat -> Export/Report.
+"""run(...) chains the stages: Capture -> Pose (feed-forward, COLMAP) -> gates -> Refine -> comparisons
+-> Splat -> Export/Report, each a typed call returning a frozen result (:class:`RunResults`).
 
 Every stage writes under the staging folder (see :mod:`ffrecon.workspace`); OUT is replaced only
-when the run ends with a report, so failures never destroy earlier results.
+when the run ends with a report, so failures never destroy earlier results. Finished stages are
+recorded and reused when the run is resumed (:mod:`ffrecon.resume`).
 """
 
 from __future__ import annotations
@@ -9,219 +11,252 @@ from __future__ import annotations
 import dataclasses
 import datetime as dt
 import logging
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from ffrecon import __version__
-from ffrecon import report_sections as sections
 from ffrecon.capture import Capture, CaptureOptions, run_capture
-from ffrecon.errors import GateFailed
-from ffrecon.export.nerfstudio import write_transforms
-from ffrecon.export.pointcloud import fuse_prediction, write_point_cloud
-from ffrecon.export.report import ReportBuilder
+from ffrecon.errors import Interrupted
+from ffrecon.export.report import write_report
+from ffrecon.export.stage import OUTPUTS as EXPORT_OUTPUTS
+from ffrecon.export.stage import ExportOptions, run_exports
 from ffrecon.models.stage import FeedForwardOptions, FeedForwardResult, run_feedforward
+from ffrecon.results import RunResults, Skipped
+from ffrecon.resume import StageRunner, file_key, rebase_paths
+from ffrecon.sfm.comparisons import ComparisonsResult, load_references, run_comparisons
+from ffrecon.sfm.crosscheck import ColmapOptions, ColmapResult, run_colmap
+from ffrecon.sfm.gates import GateOptions, GatesResult, run_gates
+from ffrecon.sfm.refine import RefineOptions, RefineResult, run_refine
+from ffrecon.splat.stage import SplatOptions, SplatResult, run_splat_from_prediction
 from ffrecon.workspace import staged_output
 
 log = logging.getLogger("ffrecon")
 
-
-def _default_colmap():
-    from ffrecon.sfm.crosscheck import ColmapOptions
-
-    return ColmapOptions()
-
-
-def _default_refine():
-    from ffrecon.sfm.refine import RefineOptions
-
-    return RefineOptions()
-
-
-def _default_splat():
-    from ffrecon.splat.stage import SplatOptions
-
-    return SplatOptions()
+# Files and folders each stage writes (relative to the run folder), removed before it runs again.
+STAGE_OUTPUTS = {
+    "capture": ("images",),
+    "feedforward": ("feedforward",),
+    "colmap": ("colmap",),
+    "gates": (),
+    "refine": ("sparse", "refine"),
+    "comparisons": (),
+    "splat": ("splat.ply", "renders", "flythrough.mp4"),
+    "exports": EXPORT_OUTPUTS,
+}
+ONE_VIEW = "needs two or more views; this run has one photo (its depth, camera and point cloud are still produced)"
 
 
 @dataclass(frozen=True, kw_only=True)
 class RunOptions:
-    """What to run. A stage whose options are None is skipped (and the report says so)."""
+    """What to run, one options object per stage; a stage is turned off by its ``enabled`` field."""
 
     capture: CaptureOptions = field(default_factory=CaptureOptions)
     feedforward: FeedForwardOptions = field(default_factory=FeedForwardOptions)
-    colmap: object | None = field(default_factory=_default_colmap)  # sfm.crosscheck.ColmapOptions
-    gates: object | None = None  # sfm.gates.GateOptions (None: defaults)
-    refine: object | None = field(default_factory=_default_refine)  # sfm.refine.RefineOptions
-    splat: object | None = field(default_factory=_default_splat)  # splat.SplatOptions
+    colmap: ColmapOptions = field(default_factory=ColmapOptions)
+    gates: GateOptions = field(default_factory=GateOptions)
+    refine: RefineOptions = field(default_factory=RefineOptions)
+    splat: SplatOptions = field(default_factory=SplatOptions)
+    exports: ExportOptions = field(default_factory=ExportOptions)
     force: bool = False  # go on past failed gates
-    overwrite: bool = False
+    overwrite: bool = False  # replace results already in OUT
+    resume: bool = False  # reuse the finished stages of OUT (and of an interrupted run) whose inputs are unchanged
+    fresh: bool = False  # recompute every stage, ignoring those an interrupted run finished
     ground_truth: Path | None = None  # a synthetic scene folder (ground_truth.json) to score against
     reference: Path | None = None  # a reference COLMAP model to score against
     command: str = ""  # the command line, recorded in the report
 
 
-@dataclass(frozen=True)
-class RunResult:
-    out_dir: Path
-    report: dict
-    exit_code: int = 0
+def run(source: Path, out_dir: Path, model: Path, options: RunOptions | None = None) -> RunResults:
+    """Reconstruct ``source`` (folder of photos or a video) with ``model`` into ``out_dir``.
+
+    Raises :class:`~ffrecon.errors.Interrupted` on Ctrl-C (KeyboardInterrupt), naming the stages
+    kept for ``--resume``; other :class:`~ffrecon.errors.FFReconError` for unusable input.
+    """
+    options = options or RunOptions()
+    created = dt.datetime.now().isoformat(timespec="seconds")
+    with staged_output(Path(out_dir), overwrite=options.overwrite, resume=options.resume, fresh=options.fresh) as work:
+        stages = StageRunner(work, reuse=not options.fresh)
+        try:
+            results = _run_stages(Path(source), Path(model), options, work, stages, created)
+        except KeyboardInterrupt:
+            resume = options.command or "the same command"
+            raise Interrupted(stages.current, stages.finished, str(work), _resume_command(resume)) from None
+        results = rebase_paths(results, work, Path(out_dir).resolve())  # where the files are once swapped in
+        write_report(results, work)
+    return results
 
 
-def _timed(report: ReportBuilder, name: str, fn, *args, **kwargs):
-    start = time.perf_counter()
-    result = fn(*args, **kwargs)
-    report.data["timings"][name] = time.perf_counter() - start
-    return result
+def _resume_command(command: str) -> str:
+    return command if "--resume" in command.split() else f"{command} --resume"
 
 
-def _skip(report: ReportBuilder, stage: str, reason: str) -> None:
-    log.info("skipping %s: %s", stage, reason)
-    report.data["skipped_stages"].append({"stage": stage, "reason": reason})
+def _run_stages(
+    source: Path, model: Path, options: RunOptions, work: Path, stages: StageRunner, created: str
+) -> RunResults:
+    """The whole run: one typed call per stage (those that cannot or should not run are Skipped)."""
+    capture, k_capture = stages.run(
+        "capture",
+        lambda: run_capture(source, options.capture, work),
+        options=options.capture,
+        inputs=[file_key(source)],
+        outputs=STAGE_OUTPUTS["capture"],
+    )
+    ff, k_ff = stages.run(
+        "feedforward",
+        lambda: run_feedforward(capture, model, options.feedforward, work),
+        options=options.feedforward,
+        inputs=[k_capture, file_key(model)],
+        outputs=STAGE_OUTPUTS["feedforward"],
+    )
+    colmap, k_colmap = _colmap(capture, ff, options, work, stages, [k_capture, k_ff])
+    gates, _ = _gates(capture, ff, colmap, options, stages, [k_capture, k_ff, k_colmap])
+    blocked = isinstance(gates, GatesResult) and gates.blocking
+    refine, k_refine = _refine(capture, ff, colmap, blocked, gates, options, work, stages, [k_capture, k_ff, k_colmap])
+    comparisons, _ = _comparisons(capture, ff, colmap, refine, options, stages, [k_capture, k_ff, k_colmap, k_refine])
+    final = _final_cameras(refine)
+    splat, _ = _splat(capture, ff, final, blocked, gates, options, work, stages, [k_capture, k_ff, k_refine])
+    exports, _ = stages.run(
+        "exports",
+        lambda: run_exports(
+            ff.prediction,
+            capture.read_images,
+            final,
+            (ff.points_xyz, ff.points_rgb),
+            options.feedforward.fuse,
+            options.exports,
+            work,
+        ),
+        options=(options.exports, options.feedforward.fuse),
+        inputs=[k_capture, k_ff, k_refine],
+        outputs=STAGE_OUTPUTS["exports"],
+    )
+    return RunResults(
+        out_dir=work,
+        created=created,
+        command=options.command,
+        capture=capture,
+        feedforward=ff,
+        colmap=colmap,
+        gates=gates,
+        comparisons=comparisons,
+        refine=refine,
+        splat=splat,
+        exports=exports,
+        timings=tuple(stages.timings),
+        forced=options.force,
+    )
+
+
+def _skip(stages: StageRunner, stage: str, label: str, reason: str) -> tuple[Skipped, str]:
+    """A typed "skipped, because" result; what the stage wrote in an earlier run is removed."""
+    log.info("skipping %s: %s", label, reason)
+    stages.forget(stage, STAGE_OUTPUTS[stage])
+    return Skipped(label, reason), f"skipped:{stage}"
 
 
 def _focal_prior(capture: Capture, ff: FeedForwardResult) -> list[float]:
     """Per-image focal prior for COLMAP: EXIF where known, else the feed-forward model's."""
-    return [f.focal_prior_px or float(np.sqrt(c.fx * c.fy)) for f, c in zip(capture.frames, ff.prediction.cameras)]
+    cameras = ff.prediction.cameras
+    return [f.focal_prior_px or float(np.sqrt(c.fx * c.fy)) for f, c in zip(capture.frames, cameras)]
 
 
-def _splat_seed(capture: Capture, ff: FeedForwardResult, cam_from_world: np.ndarray, cameras, splat_options):
-    """Seed points from the feed-forward depth of the training views, placed with the final cameras.
-
-    Refined cameras sit in the feed-forward world at its scale, so each depth map is unprojected with
-    its frame's refined pose: points from different frames then agree where the feed-forward poses
-    did not. Held-out views are left out so that their PSNR measures new-view rendering.
-    """
-    import cv2
-
-    from ffrecon.splat.seed import seed_from_prediction
-    from ffrecon.splat.stage import split_views
-
-    pred = dataclasses.replace(ff.prediction, cam_from_world=cam_from_world, cameras=tuple(cameras))
-    images = [
-        f.image if f.image.shape[:2] == d.shape else cv2.resize(f.image, d.shape[::-1], interpolation=cv2.INTER_AREA)
-        for f, d in zip(capture.frames, pred.depth)
-    ]
-    train, _ = split_views(len(pred), splat_options.holdout_every)
-    return seed_from_prediction(
-        pred, images, max_points=splat_options.max_seed_points, frames=train, seed=splat_options.seed
+def _colmap(capture, ff, options: RunOptions, work: Path, stages: StageRunner, inputs) -> tuple:
+    if len(capture.frames) < 2:
+        return _skip(stages, "colmap", "colmap cross-check", ONE_VIEW)
+    if not options.colmap.enabled:
+        return _skip(stages, "colmap", "colmap cross-check", "turned off (--no-colmap)")
+    return stages.run(
+        "colmap",
+        lambda: run_colmap(
+            capture.image_dir, capture.names, options.colmap, work / "colmap", focal_prior_px=_focal_prior(capture, ff)
+        ),
+        options=options.colmap,
+        inputs=inputs,
+        outputs=STAGE_OUTPUTS["colmap"],
     )
 
 
-def run(source: Path, out_dir: Path, model: Path, options: RunOptions | None = None) -> RunResult:
-    """Reconstruct ``source`` (folder of photos or a video) with ``model`` into ``out_dir``."""
-    options = options or RunOptions()
-    report = ReportBuilder()
-    report.data.update(
-        {
-            "ffrecon_version": __version__,
-            "created": dt.datetime.now().isoformat(timespec="seconds"),
-            "command": options.command,
-            "skipped_stages": [],
-            "timings": {},
-            "forced": options.force,
-        }
-    )
-    exit_code = 0
-    with staged_output(Path(out_dir), overwrite=options.overwrite) as work:
-        capture = _timed(report, "capture", run_capture, Path(source), options.capture, work)
-        sections.add_capture(report, capture)
-        ff = run_feedforward(capture, Path(model), options.feedforward, work)
-        report.data["timings"]["feedforward"] = ff.seconds
-        sections.add_feedforward(report, ff)
-        truth = sections.load_references(options.ground_truth, options.reference, capture.names)
+def _gates(capture: Capture, ff, colmap, options: RunOptions, stages: StageRunner, inputs) -> tuple:
+    if len(capture.frames) < 2:
+        return _skip(stages, "gates", "gates", ONE_VIEW)
 
-        final_cam_from_world, final_cameras = ff.prediction.cam_from_world, ff.prediction.cameras
-        multi = len(capture.frames) >= 2
-        if not multi:
-            for stage in ("colmap cross-check", "pose comparison", "refinement", "splat"):
-                _skip(
-                    report,
-                    stage,
-                    "needs two or more views; this run has one photo (its depth, camera and point cloud are still produced)",
-                )
-        colmap = None
-        if multi and options.colmap is not None:
-            from ffrecon.sfm.crosscheck import run_colmap
-
-            colmap = _timed(
-                report,
-                "colmap",
-                run_colmap,
-                capture.image_dir,
-                capture.names,
-                options.colmap,
-                work / "colmap",
-                focal_prior_px=_focal_prior(capture, ff),
-            )
-            sections.add_colmap(report, colmap)
-        elif multi:
-            _skip(report, "colmap cross-check", "turned off (--no-colmap)")
-
-        if multi:
-            verdicts = sections.add_gates(report, capture, ff, colmap, options.gates)
-            failed = [v for v in verdicts if v.failed]
-            if failed and not options.force:
-                for stage in ("refinement", "splat"):
-                    _skip(report, stage, f"gate '{failed[0].name}' failed: {failed[0].reason}")
-                exit_code = GateFailed.exit_code
-        refined = None
-        if multi and exit_code == 0 and options.refine is not None:
-            from ffrecon.sfm.refine import run_refine
-
-            refine_options = options.refine
-            if colmap is not None and refine_options.reuse_features_from is None:  # SIFT once, used twice
-                refine_options = dataclasses.replace(refine_options, reuse_features_from=colmap.database_path)
-            refined = _timed(report, "refine", run_refine, capture.image_dir, ff.prediction, refine_options, work)
-            sections.add_refine(report, refined)
-            keep = refined.registered
-            if keep.sum() >= 2:
-                final_cam_from_world, final_cameras = refined.cam_from_world, refined.cameras
-        elif multi and exit_code == 0:
-            _skip(report, "refinement", "turned off (--no-refine)")
-        sections.add_pose_comparisons(report, capture, ff, colmap, refined, truth)
-
-        if multi and exit_code == 0 and options.splat is not None:
-            from ffrecon.splat.stage import run_splat
-
-            seed_xyz, seed_rgb = _splat_seed(capture, ff, final_cam_from_world, final_cameras, options.splat)
-            splat = _timed(
-                report,
-                "splat",
-                run_splat,
-                [f.image for f in capture.frames],
-                capture.names,
-                final_cam_from_world,
-                final_cameras,
-                seed_xyz,
-                seed_rgb,
-                options.splat,
-                work,
-            )
-            sections.add_splat(report, splat)
-        elif multi and exit_code == 0:
-            _skip(report, "splat", "turned off (--no-splat)")
-
-        points_xyz, points_rgb = ff.points_xyz, ff.points_rgb
-        if refined is not None and final_cam_from_world is refined.cam_from_world:
-            # Re-fuse the depth maps with the refined cameras so points.ply agrees with sparse/0.
-            final_pred = dataclasses.replace(
-                ff.prediction, cam_from_world=final_cam_from_world, cameras=tuple(final_cameras)
-            )
-            points_xyz, points_rgb = fuse_prediction(
-                final_pred, [f.image for f in capture.frames], options.feedforward.fuse
-            )
-        write_point_cloud(work / "points.ply", points_xyz, points_rgb)
-        write_transforms(
-            work / "transforms.json",
-            [f"images/{n}" for n in capture.names],
-            final_cam_from_world,
-            final_cameras,
-            ply_file_path="points.ply",
+    def check() -> GatesResult:
+        colmap_result = colmap if isinstance(colmap, ColmapResult) else None
+        quality = capture.quality
+        return run_gates(
+            colmap=colmap_result, prediction=ff.prediction, quality=quality, options=options.gates, force=options.force
         )
-        sections.add_outputs(report, work)
-        sections.finish_report(report, ok_message=f"{len(capture.frames)} frame(s) reconstructed")
-        report.write(work)
-    return RunResult(Path(out_dir), report.data, exit_code)
+
+    return stages.run("gates", check, options=(options.gates, options.force), inputs=inputs)
+
+
+def _blocked_reason(gates: GatesResult) -> str:
+    first = gates.failed[0]
+    return f"gate '{first.name}' failed: {first.reason}"
+
+
+def _refine(capture, ff, colmap, blocked: bool, gates, options: RunOptions, work, stages, inputs) -> tuple:
+    if len(capture.frames) < 2:
+        return _skip(stages, "refine", "refinement", ONE_VIEW)
+    if blocked:
+        return _skip(stages, "refine", "refinement", _blocked_reason(gates))
+    if not options.refine.enabled:
+        return _skip(stages, "refine", "refinement", "turned off (--no-refine)")
+    refine_options = options.refine
+    if isinstance(colmap, ColmapResult) and refine_options.reuse_features_from is None:  # SIFT once, used twice
+        refine_options = dataclasses.replace(refine_options, reuse_features_from=colmap.database_path)
+    return stages.run(
+        "refine",
+        lambda: run_refine(capture.image_dir, ff.prediction, refine_options, work),
+        options=options.refine,
+        inputs=inputs,
+        outputs=STAGE_OUTPUTS["refine"],
+    )
+
+
+def _comparisons(capture, ff, colmap, refine, options: RunOptions, stages: StageRunner, inputs):
+    if len(capture.frames) < 2:
+        return _skip(stages, "comparisons", "pose comparison", ONE_VIEW)
+    names = capture.names
+    estimates = {"feed-forward": (ff.prediction.cam_from_world, np.ones(len(names), bool))}
+    if isinstance(colmap, ColmapResult) and colmap.num_registered >= 2:
+        estimates["COLMAP"] = (colmap.cam_from_world, colmap.registered)
+    if isinstance(refine, RefineResult):
+        estimates["refined"] = (refine.cam_from_world, refine.registered)
+
+    def compare() -> ComparisonsResult:
+        return run_comparisons(names, estimates, load_references(options.ground_truth, options.reference, names))
+
+    refs = [file_key(p) for p in (options.ground_truth, options.reference) if p is not None]
+    if "COLMAP" not in estimates and not refs:
+        colmap_state = "did not run" if isinstance(colmap, Skipped) else "registered fewer than two images"
+        reason = (
+            f"no reference cameras: the COLMAP cross-check {colmap_state} and no ground truth or --reference was given"
+        )
+        return _skip(stages, "comparisons", "pose comparison", reason)
+    references = (options.ground_truth, options.reference)
+    return stages.run("comparisons", compare, options=references, inputs=[*inputs, *refs])
+
+
+def _final_cameras(refine) -> tuple[np.ndarray, tuple] | None:
+    """The refined cameras when refinement kept at least two frames, else None (feed-forward ones)."""
+    if isinstance(refine, RefineResult) and refine.registered.sum() >= 2:
+        return refine.cam_from_world, tuple(refine.cameras)
+    return None
+
+
+def _splat(capture, ff, final, blocked: bool, gates, options: RunOptions, work, stages, inputs) -> tuple:
+    if len(capture.frames) < 2:
+        return _skip(stages, "splat", "splat", ONE_VIEW)
+    if blocked:
+        return _skip(stages, "splat", "splat", _blocked_reason(gates))
+    if not options.splat.enabled:
+        return _skip(stages, "splat", "splat", "turned off (--no-splat)")
+    cam_from_world, cameras = final or (ff.prediction.cam_from_world, ff.prediction.cameras)
+
+    def splat() -> SplatResult:
+        images = capture.read_images()
+        return run_splat_from_prediction(ff.prediction, images, cam_from_world, cameras, options.splat, work)
+
+    return stages.run("splat", splat, options=options.splat, inputs=inputs, outputs=STAGE_OUTPUTS["splat"])

@@ -49,29 +49,51 @@ class PinholeCamera:
         )
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class Frame:
-    """One input image."""
+    """One input image: where its upright 8-bit copy lies and its size, not its pixels.
+
+    The capture stage writes every frame to ``OUT/images/<name>`` and drops the pixels; stages that
+    need them call :meth:`read_rgb`, so a run never holds all images at once.
+    """
 
     name: str  # file name, kept through the pipeline (COLMAP image name)
-    image: np.ndarray = field(repr=False)  # [H, W, 3] uint8 RGB, EXIF orientation applied
+    path: Path  # OUT/images/<name>: upright 8-bit copy (re-encoded if converted, else the original's bytes)
+    size_wh: tuple[int, int]  # (width, height) of the upright image, pixels
     focal_prior_px: float | None = None  # focal length in pixels of this image (EXIF), if known
-    path: Path | None = None  # where the pixels came from (None for video frames until written)
 
-    @property
-    def size_wh(self) -> tuple[int, int]:
-        return (int(self.image.shape[1]), int(self.image.shape[0]))
+    def read_rgb(self) -> np.ndarray:
+        """``[H, W, 3]`` uint8 RGB, upright, read from :attr:`path`; raises InputError if gone or resized."""
+        import cv2
+
+        from ffrecon.errors import InputError
+
+        # The file is upright already: converted frames (EXIF orientation != 1 among them) were
+        # written by OpenCV without EXIF, and byte-for-byte copies are only made of 8-bit
+        # 3-channel files whose orientation is 1. A copy may still carry EXIF tags, so the
+        # orientation is ignored here rather than applied a second time.
+        bgr = cv2.imread(str(self.path), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
+        fix = "the images folder changed during the run: start again into a fresh output folder"
+        if bgr is None:
+            raise InputError(f"cannot read frame {self.name} from {self.path} (missing or corrupt)", fix)
+        if (bgr.shape[1], bgr.shape[0]) != tuple(self.size_wh):
+            raise InputError(
+                f"frame {self.name} at {self.path} is {bgr.shape[1]}x{bgr.shape[0]}, "
+                f"expected {self.size_wh[0]}x{self.size_wh[1]}",
+                fix,
+            )
+        return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
 
 
 class ModelFamily(enum.Enum):
     """Model contracts ffrecon decodes (docs/models.md). The value is the ``ffrecon.contract`` metadata."""
 
-    MULTIVIEW = "multiview"  # VGGT contract (CONTRACTS.md section 1)
+    MULTIVIEW = "multiview"  # VGGT contract (docs/contracts.md, "Multi-view models")
     DA3 = "da3"  # Depth Anything 3: depth, depth_conf, extrinsics (cam_from_world), intrinsics
     PI3 = "pi3"  # Pi3: local_points, conf (logit), camera_poses (world_from_cam); no reference frame
     MAPANYTHING = "mapanything"  # MapAnything: per-view rays, depth along ray, cam_trans/cam_quats
     MONODEPTH = "monodepth"  # one image in, relative inverse depth or metric depth out
-    PAIRWISE = "pairwise"  # DUSt3R / MASt3R contract (CONTRACTS.md section 2)
+    PAIRWISE = "pairwise"  # DUSt3R / MASt3R contract (docs/contracts.md, "Pairwise models")
 
     @property
     def is_pairwise(self) -> bool:

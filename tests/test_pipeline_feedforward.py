@@ -21,11 +21,17 @@ from ffrecon.models.pairwise import PairwiseOptions
 from ffrecon.models.runner import MULTIVIEW_INPUT, OnnxModel
 from ffrecon.models.stage import FeedForwardOptions
 from ffrecon.pipeline import RunOptions, run
+from ffrecon.results import Skipped
+from ffrecon.sfm.crosscheck import ColmapOptions
+from ffrecon.sfm.refine import RefineOptions
+from ffrecon.splat.stage import SplatOptions
 from ffrecon.synthetic import SceneOptions, make_scene
 from ffrecon.synthetic.simulated_model import SimulationOptions, build_simulated_vggt
 from tests.onnx_builders import vggt_like
 
-FF_ONLY = dict(colmap=None, refine=None, splat=None)
+FF_ONLY = dict(
+    colmap=ColmapOptions(enabled=False), refine=RefineOptions(enabled=False), splat=SplatOptions(enabled=False)
+)
 
 
 @pytest.fixture(scope="module")
@@ -94,8 +100,8 @@ def test_outputs_open_in_colmap_nerfstudio_open3d_trimesh(small_demo, tmp_path):
         assert visible.sum() > 0.1 * len(pts), "the cloud must project into every view as nerfstudio projects it"
     mesh_cloud = trimesh.load(out / "points.ply")
     assert len(mesh_cloud.vertices) == len(pts)
-    report = json.loads((out / "report.json").read_text())
-    assert report["feedforward"]["model"]["simulated"] is True
+    assert result.feedforward.prediction.model.simulated is True
+    assert json.loads((out / "report.json").read_text())["feedforward"]["model"]["simulated"] is True
     assert "Simulated model" in (out / "report.html").read_text()
     assert result.exit_code == 0
 
@@ -105,13 +111,12 @@ def test_single_photo_gives_depth_camera_and_cloud(small_demo, tmp_path):
     one.mkdir()
     shutil.copy(next(iter(sorted(small_demo.images.iterdir()))), one)
     out = tmp_path / "out"
-    run(one, out, small_demo.model, RunOptions())
+    result = run(one, out, small_demo.model, RunOptions())
     rec = pycolmap.Reconstruction(str(out / "feedforward" / "sparse"))
     assert rec.num_images() == 1 and rec.num_points3D() > 100
-    report = json.loads((out / "report.json").read_text())
-    skipped = {s["stage"] for s in report["skipped_stages"]}
-    assert {"colmap cross-check", "refinement", "splat"} <= skipped
-    assert all("one photo" in s["reason"] for s in report["skipped_stages"])
+    for stage in (result.colmap, result.gates, result.comparisons, result.refine, result.splat):
+        assert isinstance(stage, Skipped) and "one photo" in stage.reason
+    assert {"colmap cross-check", "refinement", "splat"} <= {s.stage for s in result.skipped}
     assert len(list((out / "feedforward" / "depth").glob("*.npz"))) == 1
 
 
@@ -164,9 +169,8 @@ def test_tiny_nets_run_through_the_pipeline(net, num_images, tmp_path):
     result = run(src, out, MODELS / net, RunOptions(feedforward=quick, **FF_ONLY))
     rec = pycolmap.Reconstruction(str(out / "feedforward" / "sparse"))
     assert rec.num_images() == num_images
-    report = json.loads((out / "report.json").read_text())
-    assert report["feedforward"]["model"]["family"] == ("multiview" if "vggt" in net else "pairwise")
-    assert report["feedforward"]["num_frames"] == num_images and result.exit_code in (0, 5)
+    assert result.feedforward.prediction.model.family.value == ("multiview" if "vggt" in net else "pairwise")
+    assert len(result.feedforward.prediction) == num_images and result.exit_code in (0, 5)
 
 
 def test_video_input_keeps_the_sharpest_frames(small_demo, tmp_path):
@@ -180,9 +184,9 @@ def test_video_input_keeps_the_sharpest_frames(small_demo, tmp_path):
             writer.write(image if k == 1 else cv2.GaussianBlur(image, (0, 0), 2))
     writer.release()
     out = tmp_path / "out"
-    run(clip, out, small_demo.model, RunOptions(capture=CaptureOptions(video_frames=len(frames)), **FF_ONLY))
-    report = json.loads((out / "report.json").read_text())
-    assert report["inputs"]["kind"] == "video"
-    assert report["inputs"]["names"] == [f"clip_{3 * k + 1:06d}.png" for k in range(len(frames))]
+    options = RunOptions(capture=CaptureOptions(video_frames=len(frames)), **FF_ONLY)
+    result = run(clip, out, small_demo.model, options)
+    assert result.capture.is_video
+    assert list(result.capture.names) == [f"clip_{3 * k + 1:06d}.png" for k in range(len(frames))]
     rec = pycolmap.Reconstruction(str(out / "feedforward" / "sparse"))
     assert rec.num_images() == len(frames) and rec.num_points3D() > 100

@@ -10,6 +10,9 @@ from ffrecon.cli import main
 from ffrecon.demo import DemoOptions, prepare_demo
 from ffrecon.geometry.metrics import auc
 from ffrecon.pipeline import RunOptions, run
+from ffrecon.results import Skipped, Verdict
+from ffrecon.sfm.gates import GatesResult
+from ffrecon.splat.stage import SplatOptions
 from ffrecon.synthetic import load_scene
 
 
@@ -18,7 +21,9 @@ def demo_run(tmp_path_factory, demo_cache, monkeypatch_module):
     monkeypatch_module.setenv("FFRECON_CACHE", str(demo_cache))
     demo = prepare_demo(DemoOptions())  # 24 frames at 320x240, one badly wrong frame
     out = tmp_path_factory.mktemp("demo") / "out"
-    result = run(demo.images, out, demo.model, RunOptions(splat=None, ground_truth=demo.scene_dir))
+    result = run(
+        demo.images, out, demo.model, RunOptions(splat=SplatOptions(enabled=False), ground_truth=demo.scene_dir)
+    )
     return demo, out, result
 
 
@@ -75,22 +80,23 @@ def test_refined_model_reaches_colmap_accuracy(demo_run):
     refined = _poses(pycolmap.Reconstruction(str(out / "sparse" / "0")), scene.names)
     metrics = _independent_metrics(refined, gt)
     assert metrics["AUC@5"] >= 0.98, metrics
-    report = json.loads((out / "report.json").read_text())
-    assert report["pose_errors"]["refined_vs_ground_truth"]["metrics"]["median_rotation_deg"] <= 0.1
+    assert result.comparisons.by_label("refined", "ground truth").errors.median_rotation_deg <= 0.1
     # The badly wrong frame of the simulated model is named as disagreeing with COLMAP.
-    disagreeing = [d["name"] for d in report["pose_errors"]["feedforward_vs_colmap"]["disagreeing"]]
-    assert "frame_007.png" in disagreeing
+    assert "frame_007.png" in result.comparisons.by_label("feed-forward", "COLMAP").disagreeing
 
 
 def test_report_cross_check_equals_independent_computation(demo_run):
-    demo, out, _ = demo_run
+    demo, out, result = demo_run
     names = sorted(p.name for p in (out / "images").iterdir())
     ff = _poses(pycolmap.Reconstruction(str(out / "feedforward" / "sparse")), names)
     colmap = _poses(pycolmap.Reconstruction(str(out / "colmap" / "sparse" / "0")), names)
     expected = _independent_metrics(ff, colmap)
-    reported = json.loads((out / "report.json").read_text())["pose_errors"]["feedforward_vs_colmap"]["metrics"]
+    reported = result.comparisons.by_label("feed-forward", "COLMAP").errors.to_dict()
     for key, value in expected.items():
         assert reported[key] == pytest.approx(value, rel=1e-6, abs=1e-9), key
+    # report.json says the same (written from the same typed results).
+    in_json = json.loads((out / "report.json").read_text())["pose_errors"]["feedforward_vs_colmap"]["metrics"]
+    assert all(in_json[key] == pytest.approx(reported[key]) for key in expected)
 
 
 def test_report_html_shows_plots_and_verdicts(demo_run):
@@ -114,10 +120,14 @@ def test_blurred_capture_fails_the_registration_gate(tmp_path, demo_cache, monke
     out = tmp_path / "out"
     code = main(["run", str(images), "-o", str(out), "--model", str(tmp_path / "sim.onnx"), "--no-splat", "-q"])
     assert code == 5
-    report = json.loads((out / "report.json").read_text())
-    gate = next(g for g in report["gates"] if g["name"] == "registration")
-    assert gate["status"] == "fail" and "blur" in gate["causes"]
-    assert "blur" in (gate["reason"] + gate["fix"]).lower()
-    assert report["verdict"]["status"] == "gate_failed"
-    assert {"refinement", "splat"} <= {s["stage"] for s in report["skipped_stages"]}
+    # The same run through the library, resumed from the CLI's: its stages are reused.
+    options = RunOptions(splat=SplatOptions(enabled=False), resume=True)
+    result = run(images, out, tmp_path / "sim.onnx", options)
+    assert isinstance(result.gates, GatesResult) and result.gates.blocking and result.exit_code == 5
+    gate = next(g for g in result.gates.verdicts if g.name == "registration")
+    assert gate.failed and "blur" in [c.value for c in gate.causes]
+    assert "blur" in (gate.reason + gate.fix).lower()
+    assert result.verdict is Verdict.GATE_FAILED
+    assert isinstance(result.refine, Skipped) and "registration" in result.refine.reason
+    assert json.loads((out / "report.json").read_text())["verdict"]["status"] == "gate_failed"
     assert not (out / "sparse").exists()

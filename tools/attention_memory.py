@@ -47,7 +47,8 @@ def main(frame_counts: list[int]) -> None:
         session.run(None, {"q": x, "k": x, "v": x})
         peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
         print(
-            f"S={frames:3d}  tokens={n:6d}  peak RSS {peak:6.2f} GB   one [H,N,N] fp32 matrix {HEADS * n * n * 4 / 1e9:6.2f} GB"
+            f"S={frames:3d}  tokens={n:6d}  peak RSS {peak:6.2f} GB   "
+            f"one [H,N,N] fp32 matrix {HEADS * n * n * 4 / 1e9:6.2f} GB"
         )
 
 

@@ -6,7 +6,7 @@ limit, so a frame count that does not fit fails cleanly ("does not fit") instead
 kernel's OOM killer. Photos come from a folder (cycled when fewer than the frame count) and go
 through the family's own preprocessing, as in ``ffrecon run``.
 
-    python tools/bench_models.py MODEL.onnx --photos ../shared/data/lund --frames 4 8 24
+    python tools/bench_models.py MODEL.onnx --photos PHOTO_DIR --frames 4 8 24
     python tools/bench_models.py MODEL.onnx --frames 2 4 8 --fit   # also fit peak = a + b S + c S^2
 
 Prints one row per frame count; paste the table into docs/benchmarks.md.
@@ -45,7 +45,9 @@ try:
 except Exception as exc:
     status = "does not fit: " + str(exc).splitlines()[0][:120]
 run = time.perf_counter() - t0
-print(json.dumps({"frames": frames, "status": status, "load_s": load, "run_s": run, "peak_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20, "loaded_gb": rss_loaded, "input_hw": list(batch.shape[2:]), "providers": list(model.providers)}))
+peak_gb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
+print(json.dumps({"frames": frames, "status": status, "load_s": load, "run_s": run, "peak_gb": peak_gb,
+                  "loaded_gb": rss_loaded, "input_hw": list(batch.shape[2:]), "providers": list(model.providers)}))
 """
 
 
@@ -57,10 +59,8 @@ def measure(model: Path, photos: Path, frames: int, limit_gb: float) -> dict:
     )
     lines = [line for line in proc.stdout.splitlines() if line.startswith("{")]
     if not lines:
-        return {
-            "frames": frames,
-            "status": f"failed (exit {proc.returncode}): {proc.stderr.strip().splitlines()[-1][:150] if proc.stderr.strip() else ''}",
-        }
+        last_error = proc.stderr.strip().splitlines()[-1][:150] if proc.stderr.strip() else ""
+        return {"frames": frames, "status": f"failed (exit {proc.returncode}): {last_error}"}
     return json.loads(lines[-1])
 
 
@@ -88,7 +88,8 @@ def main() -> int:
         rows.append(r)
         if r["status"] == "ok":
             print(
-                f"| {frames} | ok | {r['load_s']:.1f} | {r['run_s']:.1f} | {r['run_s'] / frames:.2f} | {r['peak_gb']:.2f} |",
+                f"| {frames} | ok | {r['load_s']:.1f} | {r['run_s']:.1f} | {r['run_s'] / frames:.2f} "
+                f"| {r['peak_gb']:.2f} |",
                 flush=True,
             )
         else:

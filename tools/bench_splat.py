@@ -28,7 +28,7 @@ from ffrecon.geometry.projection import unproject_depth
 from ffrecon.splat.optimize import cpu_threads, optimize, scene_scale, torch_threads
 from ffrecon.splat.render import RasterOptions, render
 from ffrecon.splat.seed import initial_gaussians, reduce_points
-from ffrecon.splat.stage import SplatOptions, image_metrics, split_views
+from ffrecon.splat.stage import SplatOptions, image_metrics, render_view, split_views
 from ffrecon.synthetic import SceneOptions, make_scene
 from ffrecon.synthetic.simulated_model import SimulationOptions, simulate
 
@@ -46,8 +46,9 @@ def noisy_seed(scene, views: list[int], seed: int = 0) -> tuple[np.ndarray, np.n
 def bench_render(xyz: np.ndarray, rgb: np.ndarray, scene, counts: list[int], raster: RasterOptions) -> None:
     K = torch.tensor(scene.camera.K, dtype=torch.float32)
     w, h = scene.camera.width, scene.camera.height
+    threads = torch.get_num_threads()
     print(
-        f"\nrenderer, {w}x{h}, tile {raster.tile_size}, {torch.get_num_threads()} thread(s): forward and forward+backward, median of 5"
+        f"\nrenderer, {w}x{h}, tile {raster.tile_size}, {threads} thread(s): forward and forward+backward, median of 5"
     )
     print(f"{'gaussians':>10} {'pairs':>9} {'evals/px':>9} {'fwd ms':>8} {'fwd+bwd ms':>11} {'it/s':>6}")
     for n in counts:
@@ -69,59 +70,41 @@ def bench_render(xyz: np.ndarray, rgb: np.ndarray, scene, counts: list[int], ras
                 fwd.append(t1 - t0)
                 full.append(t2 - t0)
         med = float(np.median(full))
+        evals = out.layout.padded_evaluations / (w * h)
         print(
-            f"{len(x):>10} {out.layout.num_pairs:>9} {out.layout.padded_evaluations / (w * h):>9.0f} {1e3 * np.median(fwd):>8.0f} {1e3 * med:>11.0f} {1 / med:>6.2f}"
+            f"{len(x):>10} {out.layout.num_pairs:>9} {evals:>9.0f} {1e3 * np.median(fwd):>8.0f} "
+            f"{1e3 * med:>11.0f} {1 / med:>6.2f}"
         )
+
+
+def heldout_psnr(g, scene, poses: np.ndarray, test: list[int]) -> float:
+    """Mean PSNR of ``g`` over the views ``test`` of ``scene`` seen from ``poses``."""
+    values = []
+    for i in test:
+        rendered = render_view(g, poses[i], scene.camera)
+        values.append(image_metrics(rendered, torch.from_numpy(scene.images[i]).float() / 255.0)[0])
+    return float(np.mean(values))
 
 
 def bench_optimize(scene, xyz, rgb, train, test, args) -> None:
     options = SplatOptions()
-    x, c = reduce_points(
-        xyz, rgb, voxel_size=None, max_points=min(options.max_seed_points, options.max_gaussians), seed=0
-    )
-    seed = initial_gaussians(x, c, sh_degree=options.sh_degree)
+    opt = replace(options.optimize, max_seconds=args.seconds, progress=False, threads=args.threads)
+    x, c = reduce_points(xyz, rgb, voxel_size=None, max_points=min(options.max_seed_points, opt.max_gaussians), seed=0)
+    seed = initial_gaussians(x, c, sh_degree=opt.sh_degree)
     targets = [torch.from_numpy(im).float() / 255.0 for im in scene.images]
     Ks = np.stack([scene.camera.K] * len(scene))
-
-    def heldout_psnr(g, poses) -> float:
-        values = []
-        with torch.no_grad():
-            for i in test:
-                out = render(
-                    g.means,
-                    g.quats_wxyz,
-                    g.log_scales,
-                    g.opacity_logits,
-                    g.sh,
-                    torch.tensor(poses[i], dtype=torch.float32),
-                    torch.tensor(Ks[i], dtype=torch.float32),
-                    scene.camera.width,
-                    scene.camera.height,
-                    sh_degree=g.sh_degree,
-                    with_depth=False,
-                )
-                values.append(image_metrics(out.rgb, targets[i])[0])
-        return float(np.mean(values))
-
     print(
-        f"\noptimisation: {len(train)} training / {len(test)} held-out views, seed {len(seed)} Gaussians, budget {args.seconds:.0f} s, "
-        f"{torch.get_num_threads()} thread(s); evaluation time excluded"
+        f"\noptimisation: {len(train)} training / {len(test)} held-out views, seed {len(seed)} Gaussians, "
+        f"budget {args.seconds:.0f} s, {torch.get_num_threads()} thread(s); evaluation time excluded"
     )
     print(f"{'iteration':>9} {'seconds':>8} {'it/s':>6} {'gaussians':>10} {'held-out PSNR':>14}")
-    print(f"{0:>9} {0.0:>8.1f} {'':>6} {len(seed):>10} {heldout_psnr(seed, scene.cam_from_world):>14.2f}")
+    print(f"{0:>9} {0.0:>8.1f} {'':>6} {len(seed):>10} {heldout_psnr(seed, scene, scene.cam_from_world, test):>14.2f}")
 
     def callback(it, seconds, g, poses):
-        print(f"{it:>9} {seconds:>8.1f} {it / seconds:>6.2f} {len(g):>10} {heldout_psnr(g, poses):>14.2f}", flush=True)
+        psnr = heldout_psnr(g, scene, poses, test)
+        print(f"{it:>9} {seconds:>8.1f} {it / seconds:>6.2f} {len(g):>10} {psnr:>14.2f}", flush=True)
 
-    opt = replace(
-        options.optimizer,
-        iterations=options.iterations,
-        max_seconds=args.seconds,
-        sh_degree=options.sh_degree,
-        max_gaussians=options.max_gaussians,
-        progress=False,
-        threads=args.threads,
-    )
+    scale = scene_scale(scene.cam_from_world[train], x)
     result = optimize(
         seed,
         targets,
@@ -129,14 +112,14 @@ def bench_optimize(scene, xyz, rgb, train, test, args) -> None:
         Ks,
         train,
         opt,
-        scale=scene_scale(scene.cam_from_world[train], x),
+        scale=scale,
         callback=callback,
         callback_every=args.eval_every,
     )
-    print(
-        f"{result.iterations:>9} {result.seconds:>8.1f} {result.iterations / result.seconds:>6.2f} {len(result.gaussians):>10} "
-        f"{heldout_psnr(result.gaussians, result.cam_from_world):>14.2f}   (final)"
-    )
+    psnr = heldout_psnr(result.gaussians, scene, result.cam_from_world, test)
+    rate = result.iterations / result.seconds
+    count = len(result.gaussians)
+    print(f"{result.iterations:>9} {result.seconds:>8.1f} {rate:>6.2f} {count:>10} {psnr:>14.2f}   (final)")
 
 
 def main(argv: list[str] | None = None) -> int:

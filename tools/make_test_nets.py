@@ -2,7 +2,7 @@
 
 They exist so that contract tests (names, shapes, ranges, dynamic sizes) run without real weights:
 
-- ``tiny_vggt.onnx``: the VGGT contract (CONTRACTS.md section 1), dynamic S, H, W (multiples of 14);
+- ``tiny_vggt.onnx``: the VGGT contract (docs/contracts.md, "Multi-view models"), dynamic S, H, W (multiples of 14);
 - ``tiny_dust3r.onnx``: ffrecon's pairwise contract (section 2), dynamic B, H, W (multiples of 16).
 
 Usage: ``python tools/make_test_nets.py [--out models] [--seed 0]``. The same seed writes the same bytes.
@@ -24,7 +24,10 @@ log = logging.getLogger("ffrecon.tools.make_test_nets")
 VGGT_PATCH = 14
 DUST3R_PATCH = 16
 WIDTH = 16  # feature channels
-_DOC = "UNTRAINED FIXTURE with random weights (seed {seed}) built by tools/make_test_nets.py: right names, shapes and ranges, meaningless geometry. For contract tests only."
+_DOC = (
+    "UNTRAINED FIXTURE with random weights (seed {seed}) built by tools/make_test_nets.py: "
+    "right names, shapes and ranges, meaningless geometry. For contract tests only."
+)
 
 
 def _conv_weight(rng: np.random.Generator, out_ch: int, in_ch: int, k: int) -> np.ndarray:
@@ -98,7 +101,8 @@ def _pixel_rays(g: GraphBuilder, image: str) -> str:
 
 
 def build_tiny_vggt(seed: int = 0) -> onnx.ModelProto:
-    """VGGT contract: ``input_images [S, 3, H, W]`` -> pose_enc, depth, depth_conf, world_points, world_points_conf, images."""
+    """VGGT contract: ``input_images [S, 3, H, W]`` -> pose_enc, depth, depth_conf, world_points,
+    world_points_conf, images."""
     rng = np.random.default_rng(seed)
     g = GraphBuilder("tiny_vggt")
     x = g.input("input_images", ["S", 3, "H", "W"])
@@ -159,7 +163,8 @@ def build_tiny_vggt(seed: int = 0) -> onnx.ModelProto:
 
 
 def build_tiny_dust3r(seed: int = 0) -> onnx.ModelProto:
-    """Pairwise contract: ``view1, view2 [B, 3, H, W]`` in [-1, 1] -> pts3d, conf, pts3d_in_other_view, conf_in_other_view."""
+    """Pairwise contract: ``view1, view2 [B, 3, H, W]`` in [-1, 1] -> pts3d, conf, pts3d_in_other_view,
+    conf_in_other_view."""
     rng = np.random.default_rng(seed + 1)
     g = GraphBuilder("tiny_dust3r")
     views = [g.input(name, ["B", 3, "H", "W"]) for name in ("view1", "view2")]

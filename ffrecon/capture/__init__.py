@@ -4,14 +4,16 @@ from __future__ import annotations
 
 import logging
 import shutil
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
+import numpy as np
 from tqdm.auto import tqdm
 
 from ffrecon.capture.images import IMAGE_EXTENSIONS, VIDEO_EXTENSIONS, list_images, load_image
-from ffrecon.capture.quality import CaptureQuality, QualityOptions, assess_capture
+from ffrecon.capture.quality import CaptureQuality, FrameMeasures, QualityOptions, assess_capture, measure_frame
 from ffrecon.capture.video import extract_video_frames
 from ffrecon.errors import FFReconError, InputError
 from ffrecon.types import Frame
@@ -29,6 +31,8 @@ class CaptureOptions:
 
 @dataclass(frozen=True)
 class Capture:
+    """The loaded frames (paths and sizes, no pixels: see :meth:`read_images`) and their quality checks."""
+
     frames: tuple[Frame, ...]
     image_dir: Path  # OUT/images: every frame under its name; COLMAP and transforms.json read these
     source: Path
@@ -39,6 +43,11 @@ class Capture:
     @property
     def names(self) -> tuple[str, ...]:
         return tuple(f.name for f in self.frames)
+
+    def read_images(self, indices: Sequence[int] | None = None) -> list[np.ndarray]:
+        """``[H_i, W_i, 3]`` uint8 RGB upright images of the frames at ``indices`` (all by default), read from disk."""
+        chosen = range(len(self.frames)) if indices is None else indices
+        return [self.frames[i].read_rgb() for i in chosen]
 
     def to_report(self) -> dict:
         return {
@@ -53,14 +62,16 @@ class Capture:
         }
 
 
-def _load_folder(folder: Path, options: CaptureOptions, image_dir: Path) -> tuple[list[Frame], list[tuple[str, str]]]:
+def _list_inputs(folder: Path, options: CaptureOptions) -> tuple[list[Path], list[tuple[str, str]]]:
+    """The image files to load (at most ``max_images``, evenly spaced) and the files left out, with why."""
     paths, others = list_images(folder)
     skipped: list[tuple[str, str]] = []
     if others:
         listed = ", ".join(p.name for p in others[:5]) + (" ..." if len(others) > 5 else "")
         if not options.skip_bad_images:
             raise InputError(
-                f"{folder} holds {len(others)} file(s) that are not images ({listed}); supported: {', '.join(IMAGE_EXTENSIONS)}",
+                f"{folder} holds {len(others)} file(s) that are not images ({listed}); "
+                f"supported: {', '.join(IMAGE_EXTENSIONS)}",
                 "move them out of the folder, or pass --skip-bad-images to leave them out",
             )
         skipped += [(p.name, "not an image") for p in others]
@@ -72,7 +83,32 @@ def _load_folder(folder: Path, options: CaptureOptions, image_dir: Path) -> tupl
     if options.max_images and len(paths) > options.max_images:
         step = len(paths) / options.max_images
         paths = [paths[int(k * step)] for k in range(options.max_images)]
-    frames = []
+    return paths, skipped
+
+
+def _store_frame(
+    rgb: np.ndarray, target: Path, focal: float | None, original: Path | None
+) -> tuple[Frame, FrameMeasures]:
+    """Measure one loaded frame (``[H, W, 3]`` uint8 RGB, upright) and put its file at ``target``.
+
+    ``original`` is the source file when its bytes already hold these pixels (it is copied as is);
+    None writes the pixels with OpenCV (converted photos, video frames): an upright 8-bit RGB file
+    for tools that read files directly (COLMAP, nerfstudio). The caller then drops the pixels.
+    """
+    if original is None:
+        if not cv2.imwrite(str(target), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)):
+            raise FFReconError(f"cannot write {target}", "check that the output folder is writable and has space")
+    elif not target.exists() or target.stat().st_size != original.stat().st_size:
+        shutil.copyfile(original, target)
+    frame = Frame(name=target.name, path=target, size_wh=(int(rgb.shape[1]), int(rgb.shape[0])), focal_prior_px=focal)
+    return frame, measure_frame(rgb)
+
+
+def _load_folder(
+    folder: Path, options: CaptureOptions, image_dir: Path
+) -> tuple[list[Frame], list[FrameMeasures], list[tuple[str, str]]]:
+    paths, skipped = _list_inputs(folder, options)
+    frames, measures = [], []
     for path in tqdm(paths, desc="loading images", unit="img", disable=None):
         try:
             rgb, focal, converted = load_image(path)
@@ -82,18 +118,26 @@ def _load_folder(folder: Path, options: CaptureOptions, image_dir: Path) -> tupl
             skipped.append((path.name, err.problem))
             log.warning("skipping %s: %s", path.name, err.problem)
             continue
-        target = image_dir / path.name
-        if converted:  # upright 8-bit RGB copy for tools that read files directly (COLMAP, nerfstudio)
-            cv2.imwrite(str(target), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
-        elif not target.exists() or target.stat().st_size != path.stat().st_size:
-            shutil.copyfile(path, target)
-        frames.append(Frame(path.name, rgb, focal, target))
-    return frames, skipped
+        frame, measured = _store_frame(rgb, image_dir / path.name, focal, None if converted else path)
+        frames.append(frame)
+        measures.append(measured)
+    return frames, measures, skipped
+
+
+def _load_video(source: Path, options: CaptureOptions, image_dir: Path) -> tuple[list[Frame], list[FrameMeasures]]:
+    frames, measures = [], []
+    for name, rgb in extract_video_frames(source, options.video_frames):
+        frame, measured = _store_frame(rgb, image_dir / name, None, None)
+        frames.append(frame)
+        measures.append(measured)
+    return frames, measures
 
 
 def run_capture(source: Path, options: CaptureOptions, out_dir: Path) -> Capture:
     """Load ``source`` (a folder of images or a video) into frames under ``out_dir/images``.
 
+    Each image is decoded once: measured for the capture checks, written (or copied) upright and
+    8-bit to ``out_dir/images``, and dropped; :meth:`Frame.read_rgb` reads it back when needed.
     Raises :class:`InputError` with the problem and the fix for unusable input.
     """
     source = Path(source)
@@ -108,19 +152,15 @@ def run_capture(source: Path, options: CaptureOptions, out_dir: Path) -> Capture
                 f"{source.name} is neither a folder nor a video ({', '.join(VIDEO_EXTENSIONS)})",
                 "pass a folder of images or a video file",
             )
-        frames = []
-        for name, rgb in extract_video_frames(source, options.video_frames):
-            target = image_dir / name
-            cv2.imwrite(str(target), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
-            frames.append(Frame(name, rgb, None, target))
+        frames, measures = _load_video(source, options, image_dir)
     else:
-        frames, skipped = _load_folder(source, options, image_dir)
+        frames, measures, skipped = _load_folder(source, options, image_dir)
     if not frames:
         raise InputError(f"no readable images in {source}", "check the files open in an image viewer")
     names = [f.name for f in frames]
     if len(set(names)) != len(names):
         raise FFReconError("two input files share a name", "rename them so every image name is unique")
-    quality = assess_capture(names, [f.image for f in frames], options.quality)
+    quality = assess_capture(names, measures, options.quality)
     for flag in quality.flags:
         log.warning(flag.message)
     return Capture(tuple(frames), image_dir, source, source.is_file(), tuple(skipped), quality)

@@ -1,4 +1,4 @@
-"""nerfstudio ``transforms.json`` (CONTRACTS.md section 4).
+"""nerfstudio ``transforms.json`` (docs/contracts.md, "Formats written").
 
 ``transform_matrix`` is world_from_cam in the OpenGL camera convention (x right, y up, z back):
 the OpenCV camera's y and z axes flipped. nerfstudio's rays use pixel centres at +0.5, the same

@@ -1,62 +1,25 @@
-"""report.json (machines) and a self-contained report.html (people; opens offline).
+"""report.json (machines) and report.html (people), both built from a run's typed results.
 
-Figures are PNG bytes embedded as base64, so the HTML file is one file that works anywhere.
+``build_report(results)`` is a pure function of :class:`~ffrecon.results.RunResults` and returns
+data only (numbers, names, paths relative to the run folder). ``render_html(report, run_dir)``
+turns that data into one self-contained page: it computes the table rows and draws the figures,
+reading the pictures it shows (frames, depth maps, renders) from the run folder, so a report can be
+rebuilt from ``report.json`` and the folder alone. The command-line summary uses
+:func:`ffrecon.export.report_html.summary_rows`, as the page does.
 """
 
 from __future__ import annotations
 
-import base64
-import html
 import json
 import math
-from dataclasses import dataclass, field
 from pathlib import Path
 
-import cv2
 import numpy as np
 
-from ffrecon.export.plots import thumbnail_png
-
-
-@dataclass
-class Figure:
-    title: str
-    png: bytes
-    caption: str = ""
-
-
-@dataclass
-class ReportBuilder:
-    """Collects the run's machine-readable record and the figures for people."""
-
-    data: dict = field(default_factory=dict)
-    figures: dict[str, list[Figure]] = field(default_factory=dict)  # section -> figures
-    galleries: dict[str, list[tuple[str, bytes]]] = field(default_factory=dict)  # section -> (caption, png)
-
-    def add_figure(self, section: str, figure: Figure) -> None:
-        self.figures.setdefault(section, []).append(figure)
-
-    def add_image(self, section: str, caption: str, rgb: np.ndarray, max_side: int = 240) -> None:
-        self.galleries.setdefault(section, []).append((caption, thumbnail_png(rgb, max_side=max_side)))
-
-    def write(self, out_dir: Path) -> tuple[Path, Path]:
-        json_path = out_dir / "report.json"
-        json_path.write_text(json.dumps(_jsonable(self.data), indent=2))
-        html_path = out_dir / "report.html"
-        html_path.write_text(render_html(self.data, self.figures, self.galleries))
-        return json_path, html_path
-
-
-def depth_preview(depth: np.ndarray) -> np.ndarray:
-    """A colour-mapped depth map (near = bright) for people; unknown pixels black."""
-    valid = depth > 0
-    out = np.zeros(depth.shape + (3,), np.uint8)
-    if valid.any():
-        lo, hi = np.quantile(depth[valid], [0.02, 0.98])
-        norm = np.clip((hi - depth) / max(hi - lo, 1e-9), 0, 1)
-        colour = cv2.applyColorMap((norm * 255).astype(np.uint8), cv2.COLORMAP_TURBO)
-        out[valid] = cv2.cvtColor(colour, cv2.COLOR_BGR2RGB)[valid]
-    return out
+from ffrecon import __version__
+from ffrecon.export.report_html import render_html
+from ffrecon.results import RunResults, Skipped
+from ffrecon.sfm.gates import GatesResult
 
 
 def _jsonable(obj):
@@ -68,142 +31,118 @@ def _jsonable(obj):
         return _jsonable(obj.tolist())
     if isinstance(obj, (np.floating, float)):
         return None if not math.isfinite(float(obj)) else float(obj)
-    if isinstance(obj, np.integer):
-        return int(obj)
+    if isinstance(obj, (np.integer, np.bool_)):
+        return obj.item()
     if isinstance(obj, Path):
         return str(obj)
     return obj
 
 
-_CSS = """
-body{font-family:system-ui,-apple-system,Segoe UI,Roboto,sans-serif;max-width:1100px;margin:2em auto;padding:0 1em;color:#222}
-h1{margin-bottom:.2em} h2{border-bottom:1px solid #ddd;padding-bottom:.2em;margin-top:1.6em}
-table{border-collapse:collapse;margin:.6em 0} td,th{border:1px solid #ddd;padding:.25em .6em;text-align:left;font-size:.92em}
-th{background:#f5f5f5} .pass{color:#137333;font-weight:600} .fail{color:#c5221f;font-weight:600} .skipped{color:#80868b;font-weight:600}
-.banner{padding:.7em 1em;border-radius:6px;margin:.8em 0} .ok{background:#e6f4ea} .bad{background:#fce8e6} .warn{background:#fef7e0}
-.gallery{display:flex;flex-wrap:wrap;gap:.5em} .gallery figure{margin:0;font-size:.8em;text-align:center} img{max-width:100%}
-.muted{color:#666;font-size:.9em} .scroll{overflow-x:auto} .g3 figure{width:32%} .g3 img{width:100%}
-"""
+def _section(result, to_report=lambda r: r.to_report()):
+    """A stage's data, or ``{"skipped": reason}``."""
+    return {"skipped": result.reason} if isinstance(result, Skipped) else to_report(result)
 
 
-def _fmt(v) -> str:
-    if isinstance(v, float):
-        return f"{v:.4g}"
-    if v is None or v == [] or v == "":
-        return "—"
-    if isinstance(v, list):
-        return html.escape(", ".join(str(x) for x in v))
-    return html.escape(str(v))
+def _verdict(results: RunResults) -> dict:
+    gates = results.gates
+    failed = gates.failed if isinstance(gates, GatesResult) else ()
+    if isinstance(gates, GatesResult) and gates.blocking:
+        message = "; ".join(f"{g.name}: {g.reason} — {g.fix}" for g in failed)
+        return {"status": results.verdict.value, "message": message}
+    message = f"{len(results.capture.frames)} frame(s) reconstructed"
+    return {"status": results.verdict.value, "message": message + (" (failed gates forced past)" if failed else "")}
 
 
-def _table(rows: list[dict]) -> str:
-    if not rows:
-        return ""
-    keys = list(dict.fromkeys(k for r in rows for k in r))
-    head = "".join(f"<th>{html.escape(k)}</th>" for k in keys)
-    body = "".join("<tr>" + "".join(f"<td>{_cell(k, r.get(k))}</td>" for k in keys) + "</tr>" for r in rows)
-    return f"<div class='scroll'><table><tr>{head}</tr>{body}</table></div>"
+def _pose_section(results: RunResults) -> tuple[dict, dict | None]:
+    """``(pose_errors by key, data for the pose plots)``; the plot data follows the primary reference."""
+    comps = results.comparisons
+    if isinstance(comps, Skipped):
+        return {}, None
+    errors = {
+        f"{c.estimate}_vs_{c.reference}".replace(" ", "_").replace("-", "").lower(): c.to_report()
+        for c in comps.comparisons
+    }
+    if not comps.primary:
+        return errors, None
+    ref = comps.primary[0]
+    plot = {
+        "reference": ref.reference,
+        "up": comps.up,
+        "names": list(ref.names),
+        "reference_centers": ref.reference_centers,
+        "aligned_centers": {c.estimate: c.aligned_centers for c in comps.primary},
+        "rotation_deg": {c.estimate: c.per_image_rotation_deg for c in comps.primary},
+        "center_error": {c.estimate: c.per_image_center_error for c in comps.primary},
+        "disagreeing": sorted({d for c in comps.primary for d in c.disagreeing}, key=list(ref.names).index),
+    }
+    return errors, plot
 
 
-def _cell(key: str, value) -> str:
-    if key == "status" and isinstance(value, str):
-        return f'<span class="{value.lower()}">{html.escape(value)}</span>'
-    return _fmt(value)
+def _outputs(results: RunResults) -> dict[str, str]:
+    """Files for people, relative to the run folder (only those the run wrote)."""
+    out = results.out_dir
+    ex = results.exports
+    candidates = {
+        "refined COLMAP model (use this)": getattr(results.refine, "model_path", None),
+        "COLMAP cross-check model": getattr(results.colmap, "model_path", None),
+        "feed-forward COLMAP model": results.feedforward.sparse_dir,
+        "feed-forward depth maps": out / "feedforward" / "depth",
+        "nerfstudio transforms": ex.transforms_json,
+        "point cloud": ex.points_ply,
+        "Gaussian splat": getattr(results.splat, "ply_path", None),
+        "fly-through video": getattr(results.splat, "video_path", None),
+        "mesh": ex.mesh_glb,
+        "held-out renders": getattr(results.splat, "renders_dir", None),
+        "images": results.capture.image_dir,
+    }
+    return {k: str(Path(v).relative_to(out)) for k, v in candidates.items() if v is not None}
 
 
-def _img(png: bytes, alt: str) -> str:
-    return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{base64.b64encode(png).decode()}">'
+def build_report(results: RunResults) -> dict:
+    """The run's machine-readable record (JSON-serialisable; numbers, names, relative paths)."""
+    pose_errors, pose_plot = _pose_section(results)
+    out = results.out_dir
+    ex = results.exports
+
+    def rel(p: Path | None) -> str | None:
+        return None if p is None else str(Path(p).relative_to(out))
+
+    report = {
+        "ffrecon_version": __version__,
+        "created": results.created,
+        "command": results.command,
+        "forced": results.forced,
+        "verdict": _verdict(results),
+        "inputs": results.capture.to_report(),
+        "feedforward": results.feedforward.to_report(),
+        "colmap": _section(results.colmap),
+        "gates": _section(results.gates, lambda g: [v.to_report() for v in g.verdicts]),
+        "refine": _section(results.refine),
+        "pose_errors": pose_errors,
+        "pose_plot": pose_plot,
+        "splat": _section(results.splat),
+        "exports": {
+            "points_ply": rel(ex.points_ply),
+            "num_points": ex.num_points,
+            "transforms_json": rel(ex.transforms_json),
+            "mesh": {"ply": rel(ex.mesh_ply), "glb": rel(ex.mesh_glb)} if ex.mesh_ply else None,
+            "cameras": ex.cameras_from,
+        },
+        "skipped_stages": [{"stage": s.stage, "reason": s.reason} for s in results.skipped],
+        "timings": {
+            t.stage: {"seconds": t.seconds, "reused": t.reused, "first_seconds": t.first_seconds}
+            for t in results.timings
+        },
+        "outputs": _outputs(results),
+    }
+    return _jsonable(report)
 
 
-def _feedforward_rows(ff: dict) -> list[dict]:
-    """What the model's cameras mean: world frame, decoding assumptions, changes made at export."""
-    rows = [
-        ("world frame", ff.get("world_frame")),
-        ("assumptions", ff.get("assumptions")),
-        ("model notes", ff.get("model", {}).get("notes")),
-        ("model", ff.get("model", {}).get("description")),
-    ]
-    return [{"item": k, "value": v} for k, v in rows if v]
-
-
-def render_html(data: dict, figures: dict[str, list[Figure]], galleries: dict[str, list[tuple[str, bytes]]]) -> str:
-    """The whole page: verdict banner, summary, then one section per stage with figures and tables."""
-    parts = [
-        f"<!doctype html><html><head><meta charset='utf-8'><title>ffrecon report</title><style>{_CSS}</style></head><body>"
-    ]
-    parts.append(
-        f"<h1>ffrecon report</h1><p class='muted'>{_fmt(data.get('created'))} · ffrecon {_fmt(data.get('ffrecon_version'))} · input {_fmt(data.get('inputs', {}).get('source'))}</p>"
-    )
-    verdict = data.get("verdict", {})
-    ok = verdict.get("status") == "ok"
-    parts.append(
-        f"<div class='banner {'ok' if ok else 'bad'}'><b>{html.escape(verdict.get('status', '?').upper())}</b> — {html.escape(verdict.get('message', ''))}</div>"
-    )
-    model = data.get("feedforward", {}).get("model", {})
-    if model.get("simulated"):
-        parts.append(
-            "<div class='banner warn'><b>Simulated model.</b> The feed-forward cameras and depth come from ffrecon's simulated model (ground truth plus injected error), not a trained network. Numbers show the pipeline working, not a model's accuracy.</div>"
-        )
-    for item in data.get("skipped_stages", []):
-        parts.append(
-            f"<div class='banner warn'>Skipped <b>{html.escape(item['stage'])}</b>: {html.escape(item['reason'])}</div>"
-        )
-    summary = data.get("summary_rows", [])
-    if summary:
-        parts.append("<h2>Summary</h2>" + _table(summary))
-    sections = [
-        ("capture", "Capture", data.get("capture_flags", [])),
-        ("feedforward", "Feed-forward cameras and depth", _feedforward_rows(data.get("feedforward", {}))),
-        ("gates", "Verification gates", data.get("gates", [])),
-        ("poses", "Pose error", data.get("pose_error_rows", [])),
-        ("refine", "Refinement", data.get("refine_rows", [])),
-        ("splat", "Gaussian splat", data.get("splat_rows", [])),
-        ("timings", "Timings", data.get("timing_rows", [])),
-    ]
-    for key, title, rows in sections:
-        figs, gallery = figures.get(key, []), galleries.get(key, [])
-        if not (rows or figs or gallery):
-            continue
-        parts.append(f"<h2>{html.escape(title)}</h2>")
-        parts.append(_table(rows))
-        for fig in figs:
-            parts.append(
-                f"<figure>{_img(fig.png, fig.title)}<figcaption class='muted'>{html.escape(fig.caption or fig.title)}</figcaption></figure>"
-            )
-        if gallery:
-            parts.append(
-                f"<div class='gallery{' g3' if key == 'splat' else ''}'>"
-                + "".join(
-                    f"<figure>{_img(png, cap)}<figcaption>{html.escape(cap)}</figcaption></figure>"
-                    for cap, png in gallery
-                )
-                + "</div>"
-            )
-    parts.append("<h2>Files</h2>" + _table([{"file": k, "path": v} for k, v in data.get("outputs", {}).items()]))
-    parts.append("<p class='muted'>Full machine-readable record: report.json</p></body></html>")
-    return "".join(parts)
-
-
-def timings_png(timings: dict[str, float]) -> bytes:
-    """Horizontal bars of seconds per stage (matplotlib Agg, no global pyplot state)."""
-    import io
-
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure as MplFigure
-
-    names = list(timings)
-    fig = MplFigure(figsize=(6.0, 0.45 * len(names) + 0.9))
-    FigureCanvasAgg(fig)
-    ax = fig.add_subplot()
-    ax.barh(names[::-1], [timings[n] for n in names][::-1], color="#1f77b4")
-    for y, n in enumerate(names[::-1]):
-        ax.annotate(
-            f"{timings[n]:.1f} s", (timings[n], y), xytext=(4, 0), textcoords="offset points", va="center", fontsize=8
-        )
-    ax.set_xlabel("seconds")
-    ax.set_title("Time per stage", fontsize=10)
-    ax.margins(x=0.15)
-    fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=100)
-    return buf.getvalue()
+def write_report(results: RunResults, run_dir: Path) -> tuple[Path, Path]:
+    """Write ``report.json`` and ``report.html`` into ``run_dir`` (the folder ``results`` describe)."""
+    report = build_report(results)
+    json_path = Path(run_dir) / "report.json"
+    json_path.write_text(json.dumps(report, indent=2))
+    html_path = Path(run_dir) / "report.html"
+    html_path.write_text(render_html(report, run_dir))
+    return json_path, html_path

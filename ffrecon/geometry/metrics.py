@@ -1,4 +1,4 @@
-"""Pose error as the field reports it (CONTRACTS.md section 5).
+"""Pose error as the field reports it (docs/contracts.md, "Pose error").
 
 Relative errors over all pairs i < j: rotation error is the angle of ``R_ij_est^T R_ij_ref``;
 translation error the angle between unit relative translations (sign-sensitive, in degrees).
@@ -101,7 +101,7 @@ def pose_errors(
     registered: np.ndarray | None = None,
     thresholds: tuple[int, ...] = THRESHOLDS_DEG,
 ) -> PoseErrors:
-    """All metrics of CONTRACTS.md section 5 for ``[N, 3, 4]`` estimate vs reference.
+    """All metrics of docs/contracts.md ("Pose error") for ``[N, 3, 4]`` estimate vs reference.
 
     ``registered`` marks estimated frames that exist; unregistered ones fail every pair and are left
     out of the Sim(3) fit and the ATE (which is then over registered frames, as is usual).

@@ -142,7 +142,8 @@ def _squeeze_batch(name: str, array: np.ndarray, rank: int) -> np.ndarray:
         name,
         array,
         (None,) * rank,
-        fix="export the model with `ffrecon export-model da3` (outputs depth, depth_conf [1,S,H,W], extrinsics [1,S,3,4], intrinsics [1,S,3,3])",
+        fix="export the model with `ffrecon export-model da3` "
+        "(outputs depth, depth_conf [1,S,H,W], extrinsics [1,S,3,4], intrinsics [1,S,3,3])",
     )
 
 
@@ -166,7 +167,8 @@ def decode_da3_outputs(
     require_outputs(
         outputs,
         OUTPUT_NAMES,
-        fix="a Depth Anything 3 model must output depth, depth_conf, extrinsics and intrinsics (export it with `ffrecon export-model da3`)",
+        fix="a Depth Anything 3 model must output depth, depth_conf, extrinsics and intrinsics "
+        "(export it with `ffrecon export-model da3`)",
     )
     for key in OUTPUT_NAMES:
         check_finite(key, np.asarray(outputs[key]), model=model.path)
@@ -185,7 +187,8 @@ def decode_da3_outputs(
         or K_net.shape != (s, 3, 3)
     ):
         raise ModelError(
-            f"model outputs disagree with the {s} input frames: depth {depth.shape}, depth_conf {conf.shape}, extrinsics {cam_from_ref.shape}, intrinsics {K_net.shape}",
+            f"model outputs disagree with the {s} input frames: depth {depth.shape}, depth_conf {conf.shape}, "
+            f"extrinsics {cam_from_ref.shape}, intrinsics {K_net.shape}",
             "check that the model follows the da3 contract (`ffrecon inspect-model`)",
         )
     focal = K_net[:, [0, 1], [0, 1]]
@@ -211,5 +214,6 @@ ADAPTER = MultiviewAdapter(
     ),
     modes=tuple(MODE_METHODS),
     world_frame="the first frame's camera (DA3's poses, relative to the reference view it picks, re-expressed)",
-    description="Depth Anything 3: depth, depth_conf (1 + exp), extrinsics (cam_from_world), intrinsics; 504-px processing",
+    description="Depth Anything 3: depth, depth_conf (1 + exp), extrinsics (cam_from_world), intrinsics; "
+    "504-px processing",
 )

@@ -244,22 +244,69 @@ def initialise(
     pairs: Sequence[PairPrediction], num_views: int, size_hw: tuple[int, int], kind: ConfidenceWeight
 ) -> _Init:
     """Spanning-tree initialisation (see the module docstring); world = view 0's camera frame."""
+    own, own_w = _own_frame_points(pairs, num_views, size_hw, kind)
+    world_pts, world_w, sims = _walk_spanning_tree(pairs, num_views, own, own_w, kind)
+    h, w = size_hw
+    world_from_cam = np.zeros((num_views, 3, 4))
+    depth = np.zeros((num_views, h, w))
+    focal = np.zeros(num_views)
+    for v in range(num_views):
+        sim = Sim3.identity() if v == 0 else _fit_sim3(own[v], world_pts[v], own_w[v])
+        world_from_cam[v] = np.concatenate([sim.rotation, sim.translation[:, None]], axis=1)
+        depth[v] = sim.scale * own[v][..., 2]
+        focal[v] = estimate_focal(own[v], own_w[v], size_hw)
+    for e, p in enumerate(pairs):  # pairs off the tree: fit both views at once
+        if e not in sims:
+            src = np.concatenate([p.pts_i_in_i.reshape(-1, 3), p.pts_j_in_i.reshape(-1, 3)])
+            dst = np.concatenate([world_pts[p.i].reshape(-1, 3), world_pts[p.j].reshape(-1, 3)])
+            wts = np.concatenate(
+                [
+                    (_weights(p.conf_i, kind) * world_w[p.i]).reshape(-1),
+                    (_weights(p.conf_j, kind) * world_w[p.j]).reshape(-1),
+                ]
+            )
+            sims[e] = _fit_sim3(src, dst, wts)
+    return _Init(world_from_cam, focal, depth, [sims[e] for e in range(len(pairs))])
+
+
+def _own_frame_points(
+    pairs: Sequence[PairPrediction], num_views: int, size_hw: tuple[int, int], kind: ConfidenceWeight
+) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Each view's points ``[H, W, 3]`` in its own camera frame, with their weights ``[H, W]``.
+
+    From the view's most confident pair as view i; a view that is never first in a pair is placed
+    in its most confident pair's frame by PnP and its points moved into its own camera frame.
+    """
     scores = [float(p.conf_i.mean() * p.conf_j.mean()) for p in pairs]
-    # Each view's points in its own camera frame, from its most confident pair as view i.
+    by_confidence = sorted(range(len(pairs)), key=lambda k: -scores[k])
     own: list[np.ndarray | None] = [None] * num_views
     own_w: list[np.ndarray | None] = [None] * num_views
-    for e in sorted(range(len(pairs)), key=lambda k: -scores[k]):
+    for e in by_confidence:
         p = pairs[e]
         if own[p.i] is None:
             own[p.i], own_w[p.i] = p.pts_i_in_i.astype(np.float64), _weights(p.conf_i, kind)
-    for e in sorted(range(len(pairs)), key=lambda k: -scores[k]):
+    for e in by_confidence:
         p = pairs[e]
         if own[p.j] is None:  # never first in a pair: place it in the pair frame by PnP
             w = _weights(p.conf_j, kind)
             cam_from_pair = _camera_from_foreign_points(p.pts_j_in_i, w, size_hw)
             own[p.j], own_w[p.j] = p.pts_j_in_i @ cam_from_pair[:, :3].T + cam_from_pair[:, 3], w
             log.debug("view %d is never first in a pair: placed by PnP in pair (%d, %d)", p.j, p.i, p.j)
+    return own, own_w
 
+
+def _walk_spanning_tree(
+    pairs: Sequence[PairPrediction],
+    num_views: int,
+    own: list[np.ndarray],
+    own_w: list[np.ndarray],
+    kind: ConfidenceWeight,
+) -> tuple[list[np.ndarray], list[np.ndarray], dict[int, Sim3]]:
+    """Every view's points in the world (view 0's frame), walking the maximum spanning tree from view 0.
+
+    Returns ``(world points [H, W, 3] per view, their weights [H, W], world_from_pair by pair index)``;
+    the similarities cover the tree's pairs only.
+    """
     tree = maximum_spanning_tree(num_views, pairs)
     neighbours: dict[int, list[int]] = {v: [] for v in range(num_views)}
     for e in tree:
@@ -282,28 +329,7 @@ def initialise(
             pts_b, conf_b = p.points_of(b)
             world_pts[b], world_w[b] = sims[e].apply(pts_b.astype(np.float64)), _weights(conf_b, kind)
             queue.append(b)
-
-    h, w = size_hw
-    world_from_cam = np.zeros((num_views, 3, 4))
-    depth = np.zeros((num_views, h, w))
-    focal = np.zeros(num_views)
-    for v in range(num_views):
-        sim = Sim3.identity() if v == 0 else _fit_sim3(own[v], world_pts[v], own_w[v])
-        world_from_cam[v] = np.concatenate([sim.rotation, sim.translation[:, None]], axis=1)
-        depth[v] = sim.scale * own[v][..., 2]
-        focal[v] = estimate_focal(own[v], own_w[v], size_hw)
-    for e, p in enumerate(pairs):  # pairs off the tree: fit both views at once
-        if e not in sims:
-            src = np.concatenate([p.pts_i_in_i.reshape(-1, 3), p.pts_j_in_i.reshape(-1, 3)])
-            dst = np.concatenate([world_pts[p.i].reshape(-1, 3), world_pts[p.j].reshape(-1, 3)])
-            wts = np.concatenate(
-                [
-                    (_weights(p.conf_i, kind) * world_w[p.i]).reshape(-1),
-                    (_weights(p.conf_j, kind) * world_w[p.j]).reshape(-1),
-                ]
-            )
-            sims[e] = _fit_sim3(src, dst, wts)
-    return _Init(world_from_cam, focal, depth, [sims[e] for e in range(len(pairs))])
+    return world_pts, world_w, sims
 
 
 def _check_pairs(pairs: Sequence[PairPrediction], size_hw: tuple[int, int]) -> int:
@@ -359,6 +385,38 @@ def global_align(
     with torch.no_grad():
         initial_loss = problem.loss().item() * unit
     initial_cam_from_world, initial_focal = problem.export()[:2]
+    best_loss, best_step = _optimise(problem, options)
+    cam_from_world, focal, depth = problem.export()
+    final_loss = best_loss * unit
+    log.info(
+        "global alignment of %d views, %d pairs: loss %.4g -> %.4g (best at step %d of %d)",
+        num_views,
+        len(pairs),
+        initial_loss,
+        final_loss,
+        best_step,
+        options.iterations,
+    )
+    return AlignmentResult(
+        cam_from_world,
+        focal,
+        depth,
+        _best_confidence(pairs, num_views, size_hw),
+        size_hw,
+        final_loss,
+        initial_loss,
+        options.iterations,
+        best_step,
+        initial_cam_from_world,
+        initial_focal,
+    )
+
+
+def _optimise(problem: _Problem, options: AlignmentOptions) -> tuple[float, int]:
+    """Adam on ``problem.loss()`` with a cosine learning-rate schedule; leaves ``problem`` at the kept iterate.
+
+    Returns ``(loss, step)`` of the kept iterate, the loss in normalised units.
+    """
     optimiser = torch.optim.Adam(problem.parameters(), lr=options.lr)
     schedule = torch.optim.lr_scheduler.CosineAnnealingLR(
         optimiser, T_max=max(options.iterations, 1), eta_min=options.lr_min
@@ -381,7 +439,7 @@ def global_align(
         optimiser.step()
         schedule.step()
         if step % 100 == 0:
-            log.debug("global alignment step %d: loss %.6g", step, loss.item() * unit)
+            log.debug("global alignment step %d: loss %.6g", step, loss.item() * problem.unit)
     if best_state is None:
         raise ModelError(
             "global alignment failed: the initial alignment of the pairs is not finite",
@@ -390,34 +448,16 @@ def global_align(
     with torch.no_grad():
         for name, value in problem.named_parameters():
             value.copy_(best_state[name])
-    cam_from_world, focal, depth = problem.export()
-    final_loss = best_loss * unit
-    log.info(
-        "global alignment of %d views, %d pairs: loss %.4g -> %.4g (best at step %d of %d)",
-        num_views,
-        len(pairs),
-        initial_loss,
-        final_loss,
-        best_step,
-        options.iterations,
-    )
+    return best_loss, best_step
+
+
+def _best_confidence(pairs: Sequence[PairPrediction], num_views: int, size_hw: tuple[int, int]) -> np.ndarray:
+    """``[N, H, W]`` float32: the best confidence any pair gave each pixel of each view."""
     conf = np.zeros((num_views, *size_hw), np.float32)
     for p in pairs:
         conf[p.i] = np.maximum(conf[p.i], p.conf_i)
         conf[p.j] = np.maximum(conf[p.j], p.conf_j)
-    return AlignmentResult(
-        cam_from_world,
-        focal,
-        depth,
-        conf,
-        size_hw,
-        final_loss,
-        initial_loss,
-        options.iterations,
-        best_step,
-        initial_cam_from_world,
-        initial_focal,
-    )
+    return conf
 
 
 class _Problem(torch.nn.Module):

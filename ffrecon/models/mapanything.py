@@ -9,10 +9,12 @@ leading batch axis of 1 (names as upstream's ``model.infer`` outputs):
 | ``ray_directions`` | ``[1, S, H, W, 3]`` | unit ray per pixel, camera frame (OpenCV axes) |
 | ``depth_along_ray`` | ``[1, S, H, W, 1]`` | distance along the ray (metric: scaling already applied) |
 | ``cam_trans`` | ``[1, S, 3]`` | **world_from_cam** translation (metric) |
-| ``cam_quats`` | ``[1, S, 4]`` | **world_from_cam** rotation, quaternion **xyzw** (scalar last, upstream's ``quaternion_to_rotation_matrix``) |
+| ``cam_quats`` | ``[1, S, 4]`` | **world_from_cam** rotation, quaternion **xyzw** (scalar last) |
 | ``conf`` | ``[1, S, H, W]`` | confidence, ``1 + exp(.)`` (upstream's ``confidence_type: exp``, ``vmin: 1``) |
 | optional ``pts3d``, ``pts3d_cam`` | ``[1, S, H, W, 3]`` | world / camera points (not needed to decode) |
 | optional ``metric_scaling_factor`` | ``[1, S]`` or ``[1]`` | the scale already applied to the metric outputs |
+
+``cam_quats`` is read the way upstream's ``quaternion_to_rotation_matrix`` reads it (xyzw).
 
 H and W come from MapAnything's ``load_images`` (``resize_mode="fixed_mapping"``, resolution set
 518): the aspect ratio closest to the call's mean aspect picks a size from a fixed table (4:3 ->
@@ -151,7 +153,8 @@ def _without_batch(name: str, array: np.ndarray, shape: tuple[int | None, ...]) 
         name,
         array,
         shape,
-        fix="export the model with ffrecon's MapAnything contract (docs/models.md): per-view outputs stacked over views",
+        fix="export the model with ffrecon's MapAnything contract (docs/models.md): "
+        "per-view outputs stacked over views",
     )
 
 
@@ -226,7 +229,9 @@ ADAPTER = MultiviewAdapter(
         outputs, transforms, names, model, max_depth_side=max_side
     ),
     modes=(PreprocessMode.CROP,),
-    world_frame="the first frame of each model call (MapAnything's reference view 0; its world_from_cam poses are re-expressed relative to it)",
+    world_frame="the first frame of each model call "
+    "(MapAnything's reference view 0; its world_from_cam poses are re-expressed relative to it)",
     camera_outputs="cam_trans/cam_quats (poses) and ray_directions (intrinsics)",
-    description="MapAnything contract: ray_directions, depth_along_ray, cam_trans/cam_quats (world_from_cam, xyzw), conf",
+    description="MapAnything contract: ray_directions, depth_along_ray, "
+    "cam_trans/cam_quats (world_from_cam, xyzw), conf",
 )

@@ -40,7 +40,10 @@ INPUT_NAME = "pixel_values"
 OUTPUT_NAMES = ("predicted_depth",)
 DEPTH_KINDS = ("relative_inverse", "metric")
 DEFAULT_HFOV_DEG = 60.0  # horizontal field of view assumed when the photo has no EXIF focal length
-RELATIVE_DEPTH_ASSUMPTION = "relative inverse depth d turned into depth as median(d) / d: shift assumed 0, scale chosen so that the median depth is 1 (arbitrary units); d below 1/1000 of the median (sky) left unknown"
+RELATIVE_DEPTH_ASSUMPTION = (
+    "relative inverse depth d turned into depth as median(d) / d: shift assumed 0, "
+    "scale chosen so that the median depth is 1 (arbitrary units); d below 1/1000 of the median (sky) left unknown"
+)
 MIN_INVERSE_FRACTION = 1e-3  # relative inverse depth below this fraction of the median: "at infinity" (sky), unknown
 REFERENCE_MODE = PreprocessMode.CROP  # the family's one (reference) preprocessing, the processor's resize
 
@@ -200,12 +203,14 @@ def decode_monodepth(
     if kind not in DEPTH_KINDS:
         raise ModelError(
             f"unknown depth kind '{kind}'",
-            f"the model's ffrecon.depth_kind must be one of {', '.join(DEPTH_KINDS)}; re-export with `ffrecon export-model monodepth`",
+            f"the model's ffrecon.depth_kind must be one of {', '.join(DEPTH_KINDS)}; "
+            "re-export with `ffrecon export-model monodepth`",
         )
     if OUTPUT_NAMES[0] not in outputs:
         raise ModelError(
             f"model outputs lack 'predicted_depth'; got {sorted(outputs)}",
-            "a monocular depth model must output predicted_depth [B, H, W] (export it with `ffrecon export-model monodepth`)",
+            "a monocular depth model must output predicted_depth [B, H, W] "
+            "(export it with `ffrecon export-model monodepth`)",
         )
     raw = np.asarray(outputs[OUTPUT_NAMES[0]], dtype=np.float32)
     check_finite(OUTPUT_NAMES[0], raw, model=model.path)
@@ -259,5 +264,6 @@ ADAPTER = MultiviewAdapter(
     ),
     modes=(REFERENCE_MODE,),
     world_frame="the photo's camera (one photo; identity pose)",
-    description=f"monocular depth: predicted_depth (relative inverse or metric); camera from EXIF or a {DEFAULT_HFOV_DEG:.0f}-degree guess",
+    description="monocular depth: predicted_depth (relative inverse or metric); "
+    f"camera from EXIF or a {DEFAULT_HFOV_DEG:.0f}-degree guess",
 )

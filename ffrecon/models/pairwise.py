@@ -1,4 +1,4 @@
-"""The DUSt3R-style pairwise path (CONTRACTS.md section 2): pair graph, inference, global alignment.
+"""The DUSt3R-style pairwise path (docs/contracts.md, "Pairwise models"): pair graph, inference, global alignment.
 
 A pairwise model sees two images at a time and returns both views' points in the first view's
 camera frame. :func:`predict_pairwise` preprocesses the photos, runs the model over a pair graph,
@@ -19,9 +19,9 @@ from tqdm.auto import tqdm
 
 from ffrecon.checks import check_finite, require_outputs
 from ffrecon.errors import FFReconError, InputError, ModelError
-from ffrecon.models.global_alignment import AlignmentOptions, PairPrediction, global_align
+from ffrecon.models.global_alignment import AlignmentOptions, AlignmentResult, PairPrediction, global_align
 from ffrecon.models.resize import ResizeTransform
-from ffrecon.types import ModelFamily, ModelInfo, Prediction
+from ffrecon.types import ModelFamily, ModelInfo, PinholeCamera, Prediction
 
 log = logging.getLogger("ffrecon.models.pairwise")
 
@@ -106,7 +106,8 @@ def network_size_hw(height: int, width: int, long_side: int = LONG_SIDE) -> tupl
     multiple of 16; a square photo is cropped to 4:3 landscape (upstream's ``square_ok=False``).
     ``long_side`` 224 is upstream's square mode: the short side goes to 224, centre square crop.
 
-    >>> network_size_hw(3024, 4032), network_size_hw(1000, 700), network_size_hw(800, 800), network_size_hw(480, 640, 224)
+    >>> (network_size_hw(3024, 4032), network_size_hw(1000, 700), network_size_hw(800, 800),
+    ...  network_size_hw(480, 640, 224))
     ((384, 512), (512, 352), (384, 512), (224, 224))
     """
     if long_side == SQUARE_SIDE:
@@ -146,14 +147,7 @@ def preprocess_pairwise(
     Returns:
         ``(batch [N, 3, Hn, Wn] float32 RGB in [-1, 1], N transforms original -> network)``.
     """
-    if not images:
-        raise InputError("no images to preprocess", "pass at least two images")
-    for k, image in enumerate(images):
-        if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
-            raise InputError(
-                f"image {k} has shape {image.shape} and dtype {image.dtype}; expected [H, W, 3] uint8 RGB",
-                "load images as 8-bit RGB",
-            )
+    _check_rgb8(images)
     if size_hw is None:
         size_hw = network_size_hw(*images[0].shape[:2], long_side)
     else:
@@ -167,31 +161,51 @@ def preprocess_pairwise(
     out = np.empty((len(images), 3, net_h, net_w), np.float32)
     transforms = []
     for k, image in enumerate(images):
-        h, w = image.shape[:2]
-        new_w, new_h = _reference_resize_wh(w, h, long_side)
-        if new_w < net_w or new_h < net_h:  # not the reference: scale to cover the network size
-            if abs(w / h - net_w / net_h) > 0.1 * net_w / net_h:
-                log.warning(
-                    "image %d (%dx%d) has another aspect ratio than the network input %dx%d: its margins are cropped away",
-                    k,
-                    w,
-                    h,
-                    net_w,
-                    net_h,
-                )
-            s = max(net_w / w, net_h / h)
-            new_w, new_h = max(net_w, round(w * s)), max(net_h, round(h * s))
-        resample = (
-            Image.Resampling.LANCZOS if max(new_w, new_h) < max(w, h) else Image.Resampling.BICUBIC
-        )  # upstream: Lanczos when shrinking
-        resized = np.asarray(Image.fromarray(image).resize((new_w, new_h), resample), dtype=np.float32)
-        left, top = new_w // 2 - net_w // 2, new_h // 2 - net_h // 2  # upstream's box: centre at size // 2
-        crop = resized[top : top + net_h, left : left + net_w]
-        out[k] = ((crop / np.float32(255) - np.float32(0.5)) / np.float32(0.5)).transpose(
-            2, 0, 1
-        )  # torchvision ToTensor + Normalize
-        transforms.append(ResizeTransform((w, h), (net_w, net_h), new_w / w, new_h / h, -float(left), -float(top)))
+        out[k], transform = _resize_and_crop(image, k, size_hw, long_side)
+        transforms.append(transform)
     return out, tuple(transforms)
+
+
+def _check_rgb8(images: Sequence[np.ndarray]) -> None:
+    """Raise :class:`InputError` unless there are images and each is ``[H, W, 3]`` uint8."""
+    if not images:
+        raise InputError("no images to preprocess", "pass at least two images")
+    for k, image in enumerate(images):
+        if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
+            raise InputError(
+                f"image {k} has shape {image.shape} and dtype {image.dtype}; expected [H, W, 3] uint8 RGB",
+                "load images as 8-bit RGB",
+            )
+
+
+def _resize_and_crop(
+    image: np.ndarray, k: int, size_hw: tuple[int, int], long_side: int
+) -> tuple[np.ndarray, ResizeTransform]:
+    """One photo (image ``k``) to ``[3, Hn, Wn]`` float32 in [-1, 1], and its transform (see
+    :func:`preprocess_pairwise`)."""
+    net_h, net_w = size_hw
+    h, w = image.shape[:2]
+    new_w, new_h = _reference_resize_wh(w, h, long_side)
+    if new_w < net_w or new_h < net_h:  # not the reference: scale to cover the network size
+        if abs(w / h - net_w / net_h) > 0.1 * net_w / net_h:
+            log.warning(
+                "image %d (%dx%d) has another aspect ratio than the network input %dx%d: its margins are cropped away",
+                k,
+                w,
+                h,
+                net_w,
+                net_h,
+            )
+        s = max(net_w / w, net_h / h)
+        new_w, new_h = max(net_w, round(w * s)), max(net_h, round(h * s))
+    # upstream: Lanczos when shrinking
+    resample = Image.Resampling.LANCZOS if max(new_w, new_h) < max(w, h) else Image.Resampling.BICUBIC
+    resized = np.asarray(Image.fromarray(image).resize((new_w, new_h), resample), dtype=np.float32)
+    left, top = new_w // 2 - net_w // 2, new_h // 2 - net_h // 2  # upstream's box: centre at size // 2
+    crop = resized[top : top + net_h, left : left + net_w]
+    # torchvision ToTensor + Normalize
+    chw = ((crop / np.float32(255) - np.float32(0.5)) / np.float32(0.5)).transpose(2, 0, 1)
+    return chw, ResizeTransform((w, h), (net_w, net_h), new_w / w, new_h / h, -float(left), -float(top))
 
 
 def run_pairs(
@@ -237,7 +251,7 @@ def _check_outputs(
     require_outputs(
         outputs,
         OUTPUT_NAMES,
-        fix=f"a DUSt3R-contract model must output {', '.join(OUTPUT_NAMES)} (CONTRACTS.md section 2)",
+        fix=f"a DUSt3R-contract model must output {', '.join(OUTPUT_NAMES)} (docs/contracts.md, 'Pairwise models')",
     )
     checked = {}
     for name in OUTPUT_NAMES:
@@ -246,7 +260,7 @@ def _check_outputs(
         if value.shape != expected:
             raise ModelError(
                 f"pairwise model output '{name}' has shape {value.shape}; expected {expected}",
-                "outputs must have the input's resolution (CONTRACTS.md section 2)",
+                "outputs must have the input's resolution (docs/contracts.md, 'Pairwise models')",
             )
         check_finite(name, value, model=model_name)
         if name.startswith("conf") and value.min() < 1.0 - 1e-3:
@@ -260,7 +274,8 @@ def _check_outputs(
         is_desc = name in ("desc", "desc_in_other_view")
         if value.shape[:3] != (b, *size_hw) or value.ndim != (4 if is_desc else 3):
             raise ModelError(
-                f"pairwise model output '{name}' has shape {value.shape}; expected {(b, *size_hw, 'D') if is_desc else (b, *size_hw)}",
+                f"pairwise model output '{name}' has shape {value.shape}; "
+                f"expected {(b, *size_hw, 'D') if is_desc else (b, *size_hw)}",
                 "export MASt3R with `ffrecon export-model mast3r`",
             )
         check_finite(name, value, model=model_name)
@@ -312,7 +327,8 @@ class PairwiseOptions:
             or self.long_side < PATCH_SIZE
         ):
             raise FFReconError(
-                f"unusable pairwise options: batch_size {self.batch_size}, align_stride {self.align_stride}, long_side {self.long_side}",
+                f"unusable pairwise options: batch_size {self.batch_size}, align_stride {self.align_stride}, "
+                f"long_side {self.long_side}",
                 f"use batch_size >= 1, an align_stride dividing {PATCH_SIZE} and long_side >= {PATCH_SIZE}",
             )
 
@@ -363,6 +379,15 @@ def predict_pairwise(
         predictions = [downsample_pair(p, stride) for p in predictions]
     size_hw = (batch.shape[2] // stride, batch.shape[3] // stride)
     result = global_align(predictions, size_hw, options.alignment)
+    cameras, depths, confs = _alignment_in_original_pixels(result, transforms, stride, options.max_depth_side)
+    return Prediction(tuple(names), result.cam_from_world, cameras, depths, confs, model)
+
+
+def _alignment_in_original_pixels(
+    result: AlignmentResult, transforms: Sequence[ResizeTransform], stride: int, max_depth_side: int | None
+) -> tuple[tuple[PinholeCamera, ...], tuple[np.ndarray, ...], tuple[np.ndarray, ...]]:
+    """Each view's camera, depth and confidence from the alignment grid back to original-photo pixels."""
+    size_hw = result.size_hw
     cameras, depths, confs = [], [], []
     for k, t in enumerate(transforms):
         # The alignment grid is the network grid scaled by 1 / stride (no half-pixel terms).
@@ -375,6 +400,6 @@ def predict_pairwise(
             t.offset_y / stride,
         )
         cameras.append(grid.camera_to_original(result.K(k)))
-        depths.append(grid.map_to_original(result.depth[k], max_side=options.max_depth_side))
-        confs.append(grid.map_to_original(result.conf[k], max_side=options.max_depth_side))
-    return Prediction(tuple(names), result.cam_from_world, tuple(cameras), tuple(depths), tuple(confs), model)
+        depths.append(grid.map_to_original(result.depth[k], max_side=max_depth_side))
+        confs.append(grid.map_to_original(result.conf[k], max_side=max_depth_side))
+    return tuple(cameras), tuple(depths), tuple(confs)

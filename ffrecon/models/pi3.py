@@ -185,7 +185,9 @@ ADAPTER = MultiviewAdapter(
         outputs, transforms, names, model, max_depth_side=max_side
     ),
     modes=(PreprocessMode.CROP,),
-    world_frame="the first frame of each model call (Pi3 has no reference frame; its world_from_cam poses are re-expressed relative to frame 0)",
+    world_frame="the first frame of each model call "
+    "(Pi3 has no reference frame; its world_from_cam poses are re-expressed relative to frame 0)",
     camera_outputs="camera_poses (poses) and local_points (focal, fitted as upstream's recover_intrinsic_from_rays_d)",
-    description="Pi3 contract: local_points (camera frame), conf (logit; depth_conf = 1 + exp), camera_poses (world_from_cam)",
+    description="Pi3 contract: local_points (camera frame), conf (logit; depth_conf = 1 + exp), "
+    "camera_poses (world_from_cam)",
 )

@@ -138,15 +138,19 @@ def detect_family(
         family = next((f for f in ModelFamily if f.value == claimed), None)
         if family is None:
             raise ModelError(
-                f"{Path(path).name} says it follows the '{claimed}' contract, which this ffrecon does not know. Found: {found}.",
-                f"supported contracts: {', '.join(f.value for f in ModelFamily)}; update ffrecon or re-export the model",
+                f"{Path(path).name} says it follows the '{claimed}' contract, which this ffrecon does not know. "
+                f"Found: {found}.",
+                f"supported contracts: {', '.join(f.value for f in ModelFamily)}; "
+                "update ffrecon or re-export the model",
             )
         if _matches(family, in_names, out_names):
             return family
         want_in, want_out = SIGNATURES[family]
         raise ModelError(
-            f"{Path(path).name} says it follows the {FAMILY_NAMES[family]} contract but declares other names. Found: {found}.",
-            f"{FAMILY_NAMES[family]} needs inputs {', '.join(want_in)} and outputs {', '.join(want_out)}; re-export with `ffrecon export-model`",
+            f"{Path(path).name} says it follows the {FAMILY_NAMES[family]} contract but declares other names. "
+            f"Found: {found}.",
+            f"{FAMILY_NAMES[family]} needs inputs {', '.join(want_in)} and outputs {', '.join(want_out)}; "
+            "re-export with `ffrecon export-model`",
         )
     for family in SIGNATURES:
         if _matches(family, in_names, out_names):
@@ -156,5 +160,6 @@ def detect_family(
     )
     raise ModelError(
         f"{Path(path).name} matches no supported model contract. Found: {found}.",
-        f"supported families and the names they declare: {expected}. Export models with `ffrecon export-model FAMILY` (docs/models.md)",
+        f"supported families and the names they declare: {expected}. "
+        "Export models with `ffrecon export-model FAMILY` (docs/models.md)",
     )

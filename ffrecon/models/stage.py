@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -16,6 +15,7 @@ from ffrecon.export.pointcloud import FuseOptions, fuse_prediction, write_depth_
 from ffrecon.models.adapters import adapter_for
 from ffrecon.models.memory import default_chunk_size
 from ffrecon.models.multiview import MultiviewOptions, predict_multiview
+from ffrecon.models.pairwise import PairwiseOptions
 from ffrecon.models.runner import OnnxModel
 from ffrecon.models.validate import validate_prediction
 from ffrecon.sfm.colmap_io import reconstruction_from_cameras, write_reconstruction
@@ -28,7 +28,7 @@ log = logging.getLogger("ffrecon.models")
 class FeedForwardOptions:
     threads: int = 0  # onnxruntime intra-op threads (0: all cores)
     multiview: MultiviewOptions = field(default_factory=MultiviewOptions)
-    pairwise: object | None = None  # ffrecon.models.pairwise.PairwiseOptions (None: its defaults)
+    pairwise: PairwiseOptions = field(default_factory=PairwiseOptions)
     fuse: FuseOptions = field(default_factory=FuseOptions)
 
 
@@ -38,7 +38,6 @@ class FeedForwardResult:
     points_xyz: np.ndarray  # [M, 3] fused, world frame of the model
     points_rgb: np.ndarray  # [M, 3] float in [0, 1]
     sparse_dir: Path
-    seconds: float
     providers: tuple[str, ...]
     assumptions: str = ""  # what decoding had to assume (monocular depth), for the report
 
@@ -57,7 +56,6 @@ class FeedForwardResult:
             "assumptions": self.assumptions,
             "num_frames": len(self.prediction),
             "num_points": int(len(self.points_xyz)),
-            "seconds": self.seconds,
             "cameras": [
                 {"name": n, "fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy, "width": c.width, "height": c.height}
                 for n, c in zip(self.prediction.names, self.prediction.cameras)
@@ -84,9 +82,8 @@ def _assumptions(model: ModelInfo, capture: Capture) -> str:
     )
 
 
-def predict(model: OnnxModel, capture: Capture, options: FeedForwardOptions) -> Prediction:
+def predict(model: OnnxModel, capture: Capture, images: list[np.ndarray], options: FeedForwardOptions) -> Prediction:
     """Run the model's family adapter on every frame of the capture; the result is validated."""
-    images = [f.image for f in capture.frames]
     names = list(capture.names)
     if model.family is ModelFamily.PAIRWISE:
         prediction = _predict_pairwise(model, images, names, options)
@@ -99,8 +96,10 @@ def predict(model: OnnxModel, capture: Capture, options: FeedForwardOptions) -> 
 
         if len(images) != 1:
             raise InputError(
-                f"{model.path.name} is a monocular depth model (one image in, depth out), but the input has {len(images)} images",
-                "pass one photo, or use a multi-view model (VGGT, Depth Anything 3, Pi3) or a pairwise one (DUSt3R, MASt3R) for several",
+                f"{model.path.name} is a monocular depth model (one image in, depth out), "
+                f"but the input has {len(images)} images",
+                "pass one photo, or use a multi-view model (VGGT, Depth Anything 3, Pi3) "
+                "or a pairwise one (DUSt3R, MASt3R) for several",
             )
         adapter = monodepth.ADAPTER
         infer = lambda batch: _run_checked(model, adapter.input_name, {adapter.input_name: batch})  # noqa: E731
@@ -129,9 +128,9 @@ def predict(model: OnnxModel, capture: Capture, options: FeedForwardOptions) -> 
 
 
 def _predict_pairwise(model: OnnxModel, images: list, names: list, options: FeedForwardOptions) -> Prediction:
-    from ffrecon.models import pairwise  # imported lazily: the pairwise path pulls in the torch aligner
+    from ffrecon.models import pairwise
 
-    pw_options = options.pairwise or pairwise.PairwiseOptions()
+    pw_options = options.pairwise
     fixed = model.fixed_size_hw("view1")
     if fixed is not None and pw_options.size_hw is None:  # exports bake H and W in: resize to them
         pw_options = dataclasses.replace(pw_options, size_hw=fixed)
@@ -152,8 +151,10 @@ def _run_checked(model: OnnxModel, image_input: str, feeds: dict) -> dict:
     got = tuple(feeds[image_input].shape[-2:])
     if fixed is not None and got != fixed:
         raise ModelError(
-            f"{model.path.name} was exported for {fixed[1]}x{fixed[0]} inputs, but these photos preprocess to {got[1]}x{got[0]}",
-            f"re-export the model for these photos (`ffrecon export-model ... --photos DIR`, or --height {got[0]} --width {got[1]}), or use photos of the aspect ratio it was exported for",
+            f"{model.path.name} was exported for {fixed[1]}x{fixed[0]} inputs, "
+            f"but these photos preprocess to {got[1]}x{got[0]}",
+            "re-export the model for these photos (`ffrecon export-model ... --photos DIR`, or "
+            f"--height {got[0]} --width {got[1]}), or use photos of the aspect ratio it was exported for",
         )
     return model.run(feeds)
 
@@ -161,8 +162,10 @@ def _run_checked(model: OnnxModel, image_input: str, feeds: dict) -> dict:
 def run_feedforward(
     capture: Capture, model_path: Path, options: FeedForwardOptions, out_dir: Path
 ) -> FeedForwardResult:
-    """Predict, then write ``out_dir/feedforward/{sparse,depth}`` and return the prediction."""
-    start = time.perf_counter()
+    """Predict, then write ``out_dir/feedforward/{sparse,depth}`` and return the prediction.
+
+    The frames are read from the capture's ``images/`` here and released when the stage ends.
+    """
     model = OnnxModel(model_path, threads=options.threads)
     log.info(
         "feed-forward model %s (%s%s) on %d frames",
@@ -171,8 +174,9 @@ def run_feedforward(
         ", SIMULATED" if model.simulated else "",
         len(capture.frames),
     )
-    prediction = predict(model, capture, options)
-    xyz, rgb = fuse_prediction(prediction, [f.image for f in capture.frames], options.fuse)
+    images = capture.read_images()  # held only while this stage runs
+    prediction = predict(model, capture, images, options)
+    xyz, rgb = fuse_prediction(prediction, images, options.fuse)
     ff_dir = Path(out_dir) / "feedforward"
     rec = reconstruction_from_cameras(prediction.names, prediction.cam_from_world, prediction.cameras, xyz, rgb)
     sparse_dir = write_reconstruction(rec, ff_dir / "sparse")
@@ -182,7 +186,6 @@ def run_feedforward(
         xyz,
         rgb,
         sparse_dir,
-        time.perf_counter() - start,
         model.providers,
         _assumptions(model.info(), capture),
     )

@@ -54,7 +54,8 @@ def camera_problems(prediction: Prediction) -> list[FrameProblem]:
             problems.append(
                 FrameProblem(
                     name,
-                    f"focal length fx = {cam.fx:.4g} px gives a field of view of {fov_w:.2f} x {fov_h:.2f} deg, outside {MIN_FOV_DEG:g}-{MAX_FOV_DEG:g} deg",
+                    f"focal length fx = {cam.fx:.4g} px gives a field of view of {fov_w:.2f} x {fov_h:.2f} deg, "
+                    f"outside {MIN_FOV_DEG:g}-{MAX_FOV_DEG:g} deg",
                 )
             )
     return problems
@@ -91,7 +92,8 @@ def depth_problems(prediction: Prediction) -> list[FrameProblem]:
             problems.append(
                 FrameProblem(
                     name,
-                    f"confidence down to {float(conf.min()):.3g} (expected >= 0; a logit exported without its activation?)",
+                    f"confidence down to {float(conf.min()):.3g} "
+                    "(expected >= 0; a logit exported without its activation?)",
                 )
             )
             continue
@@ -116,14 +118,17 @@ def validate_prediction(
     if cams:
         raise ModelError(
             f"model output '{camera_outputs}' of {model} decodes to an unusable focal length in {_frames(cams, total)}",
-            "an untrained or wrongly exported camera head does this (VGGT's untrained field-of-view ReLU outputs 0, i.e. an infinite focal): "
-            "export the model from a trained checkpoint with `ffrecon export-model`, and check it with `ffrecon inspect-model`",
+            "an untrained or wrongly exported camera head does this "
+            "(VGGT's untrained field-of-view ReLU outputs 0, i.e. an infinite focal): "
+            "export the model from a trained checkpoint with `ffrecon export-model`, "
+            "and check it with `ffrecon inspect-model`",
         )
     poses = pose_problems(prediction)
     if poses:
         raise ModelError(
             f"model output '{camera_outputs}' of {model} decodes to invalid poses in {_frames(poses, total)}",
-            "check that the model follows its family's contract (docs/models.md) and was exported from a trained checkpoint",
+            "check that the model follows its family's contract (docs/models.md) "
+            "and was exported from a trained checkpoint",
         )
     depths = depth_problems(prediction)
     if depths:

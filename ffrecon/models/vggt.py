@@ -1,4 +1,4 @@
-"""The VGGT contract (CONTRACTS.md section 1): preprocessing, pose encoding, decoding.
+"""The VGGT contract (docs/contracts.md, "Multi-view models"): preprocessing, pose encoding, decoding.
 
 All functions work on plain numpy arrays; :mod:`ffrecon.models.multiview` runs them around a model.
 """
@@ -159,7 +159,7 @@ def decode_vggt_outputs(
     require_outputs(
         outputs,
         OUTPUT_NAMES,
-        fix="a VGGT-contract model must output pose_enc, depth and depth_conf (CONTRACTS.md section 1)",
+        fix="a VGGT-contract model must output pose_enc, depth and depth_conf (docs/contracts.md, 'Multi-view models')",
     )
     for key in OUTPUT_NAMES:
         check_finite(key, np.asarray(outputs[key]), model=model.path)
@@ -170,7 +170,8 @@ def decode_vggt_outputs(
     s = len(transforms)
     if pose_enc.shape != (s, 9) or depth.shape[0] != s or conf.shape != depth.shape:
         raise ModelError(
-            f"model outputs disagree with the {s} input frames: pose_enc {pose_enc.shape}, depth {depth.shape}, depth_conf {conf.shape}",
+            f"model outputs disagree with the {s} input frames: pose_enc {pose_enc.shape}, depth {depth.shape}, "
+            f"depth_conf {conf.shape}",
             "check that the model follows the VGGT contract",
         )
     size_hw = depth.shape[1:3]

@@ -3,14 +3,14 @@
 Stage functions (one per stage, typed in and out):
 
 - :func:`ffrecon.sfm.crosscheck.run_colmap`: plain COLMAP on the images -> ``OUT/colmap/sparse/0``.
-- :func:`ffrecon.sfm.gates.evaluate_gates` / :func:`ffrecon.sfm.gates.check_gates`: verdicts, and the stop.
+- :func:`ffrecon.sfm.gates.run_gates`: verdicts, and whether they stop the run (``GatesResult.blocking``).
 - :func:`ffrecon.sfm.compare.compare_poses`: section-5 metrics and the images that disagree.
 - :func:`ffrecon.sfm.refine.run_refine`: refinement seeded by the prediction -> ``OUT/sparse/0``.
 """
 
 from ffrecon.sfm.compare import DisagreementOptions, PoseComparison, compare_models, compare_poses
 from ffrecon.sfm.crosscheck import ColmapOptions, ColmapResult, ColmapStatus, MapperKind, PairingMode, run_colmap
-from ffrecon.sfm.gates import FailureCause, GateOptions, GateStatus, GateVerdict, check_gates, evaluate_gates
+from ffrecon.sfm.gates import FailureCause, GateOptions, GatesResult, GateStatus, GateVerdict, evaluate_gates, run_gates
 from ffrecon.sfm.refine import RefineOptions, RefineResult, RefineStatus, WeakFrame, WeakReason, run_refine
 
 __all__ = [
@@ -22,6 +22,7 @@ __all__ = [
     "GateOptions",
     "GateStatus",
     "GateVerdict",
+    "GatesResult",
     "MapperKind",
     "PairingMode",
     "PoseComparison",
@@ -30,10 +31,10 @@ __all__ = [
     "RefineStatus",
     "WeakFrame",
     "WeakReason",
-    "check_gates",
     "compare_models",
     "compare_poses",
     "evaluate_gates",
+    "run_gates",
     "run_colmap",
     "run_refine",
 ]

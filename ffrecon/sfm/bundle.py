@@ -263,50 +263,12 @@ def refine_tracks(
     Returns ``(rec, summary, [(name, observations) of the weak frames])``; the summary is None if
     no adjustment ran.
     """
-    cache_options = pycolmap.DatabaseCacheOptions()
-    cache_options.min_num_matches = 1
-    db = pycolmap.Database.open(str(db_path))
-    try:
-        cache = pycolmap.DatabaseCache.create(db, cache_options)
-    finally:
-        db.close()
+    cache = _database_cache(db_path)
     for image in list(rec.images.values()):
         if image.name not in usable and image.has_pose:
             rec.deregister_frame(image.frame_id)
-    centers = {i: rec.image(i).projection_center() for i in rec.reg_image_ids()}
-    prior_centers = None
-    prior_std = 0.0
-    if options.use_pose_priors and len(centers) >= 3:
-        pts = np.array(list(centers.values()))
-        prior_std = options.prior_position_std * float(np.linalg.norm(pts.max(0) - pts.min(0)))
-        prior_centers = centers
-    adjust = _Adjuster(options, prior_centers, prior_std)
-    focal = float(np.mean([rec.camera(rec.image(i).camera_id).mean_focal_length() for i in centers]))
-    coarse_px = focal * np.tan(np.radians(options.coarse_error_deg))
-    # Coarse: tolerances wide enough for the feed-forward errors, a robust loss, loose convergence.
-    mapper, _ = _pass(
-        cache,
-        rec,
-        adjust,
-        options,
-        angle_deg=options.coarse_error_deg,
-        reproj_px=coarse_px,
-        loss=pycolmap.LossFunctionType.CAUCHY,
-        max_refinements=options.coarse_refinements,
-        function_tolerance=options.coarse_function_tolerance,
-        max_iterations=options.coarse_max_iterations,
-        end_adjusted=False,
-    )  # the fine pass triangulates afresh anyway
-    retry = [i for i in rec.reg_image_ids() if rec.image(i).num_points3D < min_observations]
-    for image_id in retry:
-        mapper.observation_manager.deregister_frame(rec.image(image_id).frame_id)
-    mapper.end_reconstruction(False)
-    logger.debug(
-        "coarse pass: %d points, %d observations, %d frames to register again",
-        rec.num_points3D(),
-        rec.compute_num_observations(),
-        len(retry),
-    )
+    adjust = _adjuster_for(rec, options)
+    retry = _coarse_pass(cache, rec, adjust, options, min_observations)
     # Fine: fresh tracks from the coarse cameras, COLMAP's tolerances, converged to the end.
     mapper, added = _pass(
         cache,
@@ -323,16 +285,91 @@ def refine_tracks(
     if added:
         logger.info("registered %d frames again whose feed-forward pose was far off", len(added))
     weak = [(rec.image(i).name, 0) for i in retry if i not in added]
-    for image_id in sorted(rec.reg_image_ids()):
-        image = rec.image(image_id)
-        if image.num_points3D < min_observations:
-            weak.append((image.name, int(image.num_points3D)))
-            mapper.observation_manager.deregister_frame(image.frame_id)
+    weak += _deregister_weak_frames(rec, mapper, min_observations)
     if len(weak) > len(retry) - len(added) and rec.num_reg_images() >= 2:
         adjust(rec, pycolmap.LossFunctionType.TRIVIAL)
     mapper.end_reconstruction(False)
     summary = _summary(adjust.last, adjust.count) if adjust.last is not None else None
     return rec, summary, weak
+
+
+def _coarse_pass(
+    cache: pycolmap.DatabaseCache,
+    rec: pycolmap.Reconstruction,
+    adjust: _Adjuster,
+    options: BundleOptions,
+    min_observations: int,
+) -> list[int]:
+    """Tolerances wide enough for the feed-forward errors, a robust loss, loose convergence.
+
+    It does not end adjusted (the fine pass triangulates afresh anyway). Returns the ids of the
+    frames left with fewer than ``min_observations`` points, which are deregistered.
+    """
+    mapper, _ = _pass(
+        cache,
+        rec,
+        adjust,
+        options,
+        angle_deg=options.coarse_error_deg,
+        reproj_px=_coarse_reproj_px(rec, options),
+        loss=pycolmap.LossFunctionType.CAUCHY,
+        max_refinements=options.coarse_refinements,
+        function_tolerance=options.coarse_function_tolerance,
+        max_iterations=options.coarse_max_iterations,
+        end_adjusted=False,
+    )
+    retry = [i for i in rec.reg_image_ids() if rec.image(i).num_points3D < min_observations]
+    for image_id in retry:
+        mapper.observation_manager.deregister_frame(rec.image(image_id).frame_id)
+    mapper.end_reconstruction(False)
+    logger.debug(
+        "coarse pass: %d points, %d observations, %d frames to register again",
+        rec.num_points3D(),
+        rec.compute_num_observations(),
+        len(retry),
+    )
+    return retry
+
+
+def _database_cache(db_path: Path) -> pycolmap.DatabaseCache:
+    """The database's images, cameras and correspondence graph (every matched pair kept)."""
+    cache_options = pycolmap.DatabaseCacheOptions()
+    cache_options.min_num_matches = 1
+    db = pycolmap.Database.open(str(db_path))
+    try:
+        return pycolmap.DatabaseCache.create(db, cache_options)
+    finally:
+        db.close()
+
+
+def _adjuster_for(rec: pycolmap.Reconstruction, options: BundleOptions) -> _Adjuster:
+    """The bundle adjuster for ``rec``: position priors at the current (feed-forward) camera centres when
+    ``options.use_pose_priors`` and there are three or more frames, with a std relative to their extent."""
+    centers = {i: rec.image(i).projection_center() for i in rec.reg_image_ids()}
+    if not (options.use_pose_priors and len(centers) >= 3):
+        return _Adjuster(options, None, 0.0)
+    pts = np.array(list(centers.values()))
+    prior_std = options.prior_position_std * float(np.linalg.norm(pts.max(0) - pts.min(0)))
+    return _Adjuster(options, centers, prior_std)
+
+
+def _coarse_reproj_px(rec: pycolmap.Reconstruction, options: BundleOptions) -> float:
+    """The reprojection error (pixels, at the mean focal length) of a ``coarse_error_deg`` pose error."""
+    focal = float(np.mean([rec.camera(rec.image(i).camera_id).mean_focal_length() for i in rec.reg_image_ids()]))
+    return focal * np.tan(np.radians(options.coarse_error_deg))
+
+
+def _deregister_weak_frames(
+    rec: pycolmap.Reconstruction, mapper: pycolmap.IncrementalMapper, min_observations: int
+) -> list[tuple[str, int]]:
+    """Deregister the frames that see fewer than ``min_observations`` points; ``[(name, observations)]``."""
+    weak = []
+    for image_id in sorted(rec.reg_image_ids()):
+        image = rec.image(image_id)
+        if image.num_points3D < min_observations:
+            weak.append((image.name, int(image.num_points3D)))
+            mapper.observation_manager.deregister_frame(image.frame_id)
+    return weak
 
 
 def sim3_to_ff_frame(rec: pycolmap.Reconstruction, names: Sequence[str], ff_cam_from_world: np.ndarray) -> Sim3:

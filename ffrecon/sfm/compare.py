@@ -1,4 +1,4 @@
-"""Pose comparison of two camera sets (CONTRACTS.md section 5) and the images where they disagree.
+"""Pose comparison of two camera sets (docs/contracts.md, "Pose error") and the images where they disagree.
 
 Used for feed-forward vs COLMAP (the cross-check), and for any estimate vs ground truth (the
 synthetic demo, or a reference COLMAP model passed with ``--reference``).

@@ -30,7 +30,7 @@ from ffrecon.sfm.features import (
     feature_stats,
     matching_options,
 )
-from ffrecon.sfm.timing import StageTimer, Timings
+from ffrecon.timing import StageTimer, Timings
 from ffrecon.types import PinholeCamera
 
 logger = logging.getLogger("ffrecon.sfm")
@@ -56,6 +56,7 @@ class ColmapStatus(enum.Enum):
 
 @dataclass(frozen=True, kw_only=True)
 class ColmapOptions:
+    enabled: bool = True  # False: the stage is skipped (and the report says so)
     pairing: PairingMode = PairingMode.AUTO
     exhaustive_max_images: int = 150
     sequential_overlap: int = 10
@@ -210,6 +211,48 @@ def run_colmap(
     timer = StageTimer()
     db_path = out_dir / "database.db"
     pairing = resolve_pairing(options, len(names))
+    stats = _features_and_matches(db_path, image_dir, names, options, pairing, focal_prior_px, timer)
+    work_dir = out_dir / "mapper"
+    shutil.rmtree(work_dir, ignore_errors=True)
+    with timer.stage("mapping"), colmap_log_level():
+        models = _map(db_path, image_dir, work_dir, options, len(names)) if stats.num_pairs_verified else {}
+    shutil.rmtree(work_dir, ignore_errors=True)
+    model_dir = out_dir / "sparse" / "0"
+    shutil.rmtree(model_dir, ignore_errors=True)
+    best = max(models.values(), key=lambda r: (r.num_reg_images(), r.num_points3D()), default=None)
+    provenance = dict(
+        num_models=len(models),
+        pairing=pairing,
+        mapper=options.mapper,
+        features=stats,
+        timings=timer.freeze(),
+        database_path=db_path,
+    )
+    if best is None or best.num_reg_images() == 0:
+        logger.warning("COLMAP built no model from %d images (%d verified pairs)", len(names), stats.num_pairs_verified)
+        return _no_model_result(names, **provenance)
+    result = _model_result(best, names, model_dir, **provenance)
+    logger.info(
+        "COLMAP registered %d/%d images, %d points, %.2f px reprojection error (%.1f s)",
+        result.num_registered,
+        len(names),
+        result.num_points,
+        result.mean_reprojection_error_px,
+        result.timings.total_s,
+    )
+    return result
+
+
+def _features_and_matches(
+    db_path: Path,
+    image_dir: Path,
+    names: tuple[str, ...],
+    options: ColmapOptions,
+    pairing: PairingMode,
+    focal_prior_px: float | Sequence[float | None] | None,
+    timer: StageTimer,
+) -> FeatureStats:
+    """Create the database (cameras with the focal priors), extract SIFT and match with ``pairing``."""
     pycolmap.set_random_seed(options.seed)
     create_database(
         db_path,
@@ -226,62 +269,41 @@ def run_colmap(
         extract_sift(db_path, image_dir, names, options.sift)
     with timer.stage("matching"), colmap_log_level():
         _match(db_path, pairing, options)
-    stats = feature_stats(db_path, names)
-    work_dir = out_dir / "mapper"
-    shutil.rmtree(work_dir, ignore_errors=True)
-    with timer.stage("mapping"), colmap_log_level():
-        models = _map(db_path, image_dir, work_dir, options, len(names)) if stats.num_pairs_verified else {}
-    shutil.rmtree(work_dir, ignore_errors=True)
-    model_dir = out_dir / "sparse" / "0"
-    shutil.rmtree(model_dir, ignore_errors=True)
-    best = max(models.values(), key=lambda r: (r.num_reg_images(), r.num_points3D()), default=None)
-    if best is None or best.num_reg_images() == 0:
-        logger.warning("COLMAP built no model from %d images (%d verified pairs)", len(names), stats.num_pairs_verified)
-        n = len(names)
-        return ColmapResult(
-            ColmapStatus.NO_MODEL,
-            names,
-            np.tile(np.eye(3, 4), (n, 1, 1)),
-            np.zeros(n, bool),
-            (None,) * n,
-            0,
-            float("nan"),
-            len(models),
-            pairing,
-            options.mapper,
-            stats,
-            timer.freeze(),
-            db_path,
-            None,
-            None,
-        )
+    return feature_stats(db_path, names)
+
+
+def _no_model_result(names: tuple[str, ...], **provenance) -> ColmapResult:
+    """The NO_MODEL result: nothing registered (identity poses), no points, no model written."""
+    n = len(names)
+    return ColmapResult(
+        status=ColmapStatus.NO_MODEL,
+        names=names,
+        cam_from_world=np.tile(np.eye(3, 4), (n, 1, 1)),
+        registered=np.zeros(n, bool),
+        cameras=(None,) * n,
+        num_points=0,
+        mean_reprojection_error_px=float("nan"),
+        model_path=None,
+        reconstruction=None,
+        **provenance,
+    )
+
+
+def _model_result(best: pycolmap.Reconstruction, names: tuple[str, ...], model_dir: Path, **provenance) -> ColmapResult:
+    """Write ``best`` to ``model_dir`` and read its cameras and errors back by image name."""
     write_reconstruction(best, model_dir)
     cam_from_world, registered = cam_from_world_by_name(best, names)
     cameras = tuple(c if r else None for c, r in zip(cameras_by_name(best, names), registered))
     best.update_point_3d_errors()
-    result = ColmapResult(
-        ColmapStatus.SUCCESS,
-        names,
-        cam_from_world,
-        registered,
-        cameras,
-        best.num_points3D(),
-        float(best.compute_mean_reprojection_error()),
-        len(models),
-        pairing,
-        options.mapper,
-        stats,
-        timer.freeze(),
-        db_path,
-        model_dir,
-        best,
+    return ColmapResult(
+        status=ColmapStatus.SUCCESS,
+        names=names,
+        cam_from_world=cam_from_world,
+        registered=registered,
+        cameras=cameras,
+        num_points=best.num_points3D(),
+        mean_reprojection_error_px=float(best.compute_mean_reprojection_error()),
+        model_path=model_dir,
+        reconstruction=best,
+        **provenance,
     )
-    logger.info(
-        "COLMAP registered %d/%d images, %d points, %.2f px reprojection error (%.1f s)",
-        result.num_registered,
-        len(names),
-        result.num_points,
-        result.mean_reprojection_error_px,
-        result.timings.total_s,
-    )
-    return result

@@ -1,8 +1,9 @@
 """Verification gates: cheap checks that stop a run before the expensive stages.
 
 Each gate returns a :class:`GateVerdict` with its value, threshold, reason and fix. A failed
-registration gate names the likely cause (blur, lack of texture, too little overlap), measured on
-the images themselves, so the user knows what to change.
+registration gate names the likely cause (blur, lack of texture, too little overlap) from the
+capture checks' per-frame measures (:class:`ffrecon.capture.quality.CaptureQuality`), so the user
+knows what to change; the images are not read again.
 """
 
 from __future__ import annotations
@@ -11,13 +12,11 @@ import enum
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
-from pathlib import Path
 
-import cv2
 import numpy as np
 import pycolmap
 
-from ffrecon.errors import GateFailed
+from ffrecon.capture.quality import CaptureQuality
 from ffrecon.sfm.crosscheck import ColmapResult
 from ffrecon.types import Prediction
 
@@ -62,6 +61,21 @@ class GateVerdict:
         }
 
 
+@dataclass(frozen=True)
+class GatesResult:
+    verdicts: tuple[GateVerdict, ...]
+    forced: bool  # --force: failed gates do not stop the run
+
+    @property
+    def failed(self) -> tuple[GateVerdict, ...]:
+        return tuple(v for v in self.verdicts if v.failed)
+
+    @property
+    def blocking(self) -> bool:
+        """Whether a failed gate stops the run: the one place this is decided."""
+        return bool(self.failed) and not self.forced
+
+
 @dataclass(frozen=True, kw_only=True)
 class GateOptions:
     min_registration_ratio: float = 0.85
@@ -71,40 +85,10 @@ class GateOptions:
     max_cloud_tail: float = 1000.0  # p99 / p50 of point distances from the median point
     min_depth_conf: float = 1.5
     min_depth_coverage: float = 0.5  # mean share of pixels with confident feed-forward depth
-    blur_ratio: float = 0.12  # mean |Laplacian| / mean |gradient| below this: blurred
-    min_gradient: float = 0.05  # mean Sobel gradient magnitude (grey in [0, 1]) below this: textureless
-    min_keypoints: int = 300  # without the images to measure: fewer median SIFT features = blur or texture
-    cause_share: float = 0.3  # a cause is named when this share of the images shows it
-    quality_max_side: int = 640  # images are measured at this longest side (downscaled only)
-
-
-@dataclass(frozen=True)
-class ImageQuality:
-    """Per-image sharpness and texture, measured at a common resolution."""
-
-    names: tuple[str, ...]
-    blur_ratio: np.ndarray  # [N] mean |Laplacian| / mean |Sobel gradient|; low = blurred
-    gradient: np.ndarray  # [N] mean Sobel gradient magnitude of grey in [0, 1]; low = textureless
-
-
-def measure_image_quality(image_dir: Path, names: Sequence[str], *, max_side: int = 640) -> ImageQuality:
-    """Blur and texture measures of each image (read from ``image_dir``)."""
-    ratio, grad = [], []
-    for name in names:
-        grey = cv2.imread(str(Path(image_dir) / name), cv2.IMREAD_GRAYSCALE)
-        if grey is None:
-            ratio.append(np.nan)
-            grad.append(np.nan)
-            continue
-        scale = max_side / max(grey.shape)
-        if scale < 1:
-            grey = cv2.resize(grey, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
-        g = grey.astype(np.float32) / 255.0
-        magnitude = np.hypot(cv2.Sobel(g, cv2.CV_32F, 1, 0), cv2.Sobel(g, cv2.CV_32F, 0, 1)).mean()
-        lap = np.abs(cv2.Laplacian(g, cv2.CV_32F)).mean()
-        grad.append(float(magnitude))
-        ratio.append(float(lap / max(magnitude, 1e-6)))
-    return ImageQuality(tuple(names), np.array(ratio), np.array(grad))
+    min_keypoints: int = 300  # without capture measures: fewer median SIFT features = blur or texture
+    # A cause is named when this share of the images carries its capture flag ("blur", "texture";
+    # thresholds in ffrecon.capture.quality.QualityOptions).
+    cause_share: float = 0.3
 
 
 _FIXES = {
@@ -118,26 +102,37 @@ _FIXES = {
 
 
 def diagnose_registration(
-    quality: ImageQuality | None, median_keypoints: int, options: GateOptions
+    quality: CaptureQuality | None, names: Sequence[str], median_keypoints: int, options: GateOptions
 ) -> tuple[FailureCause, ...]:
-    """Likely causes of poor registration, most likely first; OVERLAP when the images look fine.
+    """Likely causes of poor registration of ``names``, most likely first; OVERLAP when the images look fine.
 
-    Blur lowers the Laplacian relative to the gradient (edges get wide); a textureless image has
-    sharp but faint detail (low gradient, normal ratio). Blur is named first because heavy blur
-    also lowers the gradient.
+    Blur and lack of texture come from the capture flags on those images (blur lowers the edge
+    sharpness; a textureless image has a low mean gradient but sharp edges). Without capture
+    measures for them, few SIFT features point at blur or texture.
     """
+    measured = set(names) & set(quality.names) if quality is not None else set()
+    if not measured:
+        if median_keypoints < options.min_keypoints:
+            return (FailureCause.BLUR, FailureCause.TEXTURE)
+        return (FailureCause.OVERLAP,)
     causes = []
-    if quality is None and median_keypoints < options.min_keypoints:
-        return (FailureCause.BLUR, FailureCause.TEXTURE)  # few features, images not measured
-    if quality is not None and len(quality.names):
-        if np.nanmean(quality.blur_ratio < options.blur_ratio) >= options.cause_share:
-            causes.append(FailureCause.BLUR)
-        if np.nanmean(quality.gradient < options.min_gradient) >= options.cause_share:
-            causes.append(FailureCause.TEXTURE)
+    for cause in (FailureCause.BLUR, FailureCause.TEXTURE):
+        if len(measured & set(quality.flagged(cause.value))) >= options.cause_share * len(measured):
+            causes.append(cause)
     return tuple(causes) or (FailureCause.OVERLAP,)
 
 
-def registration_gate(colmap: ColmapResult, options: GateOptions, *, image_dir: Path | None = None) -> GateVerdict:
+_LIKELY = {
+    FailureCause.BLUR: "blur",
+    FailureCause.TEXTURE: "lack of texture",
+    FailureCause.OVERLAP: "too little overlap",
+}
+
+
+def registration_gate(
+    colmap: ColmapResult, options: GateOptions, *, quality: CaptureQuality | None = None
+) -> GateVerdict:
+    """Share of images COLMAP registered; on failure the likely causes, from ``quality`` when given."""
     ratio = colmap.registration_ratio
     if ratio >= options.min_registration_ratio:
         return GateVerdict(
@@ -147,23 +142,13 @@ def registration_gate(colmap: ColmapResult, options: GateOptions, *, image_dir: 
             options.min_registration_ratio,
             f"COLMAP registered {colmap.num_registered} of {len(colmap.names)} images",
         )
-    quality = None
-    if image_dir is not None:
-        quality = measure_image_quality(image_dir, colmap.names, max_side=options.quality_max_side)
     kps = int(np.median(colmap.features.num_keypoints)) if len(colmap.names) else 0
-    causes = diagnose_registration(quality, kps, options)
-    likely = " or ".join(
-        {
-            FailureCause.BLUR: "blur",
-            FailureCause.TEXTURE: "lack of texture",
-            FailureCause.OVERLAP: "too little overlap",
-        }[c]
-        for c in causes
-    )
+    causes = diagnose_registration(quality, colmap.names, kps, options)
     reason = (
         f"COLMAP registered only {colmap.num_registered} of {len(colmap.names)} images ({ratio:.0%} < "
         f"{options.min_registration_ratio:.0%}); median {kps} SIFT features per image, "
-        f"{colmap.features.num_pairs_verified} verified image pairs; likely cause: {likely}"
+        f"{colmap.features.num_pairs_verified} verified image pairs; "
+        f"likely cause: {' or '.join(_LIKELY[c] for c in causes)}"
     )
     return GateVerdict(
         "registration",
@@ -186,15 +171,13 @@ def _cloud_checks(rec: pycolmap.Reconstruction, options: GateOptions) -> tuple[f
     if len(xyz) >= 3:
         dist = np.linalg.norm(xyz - np.median(xyz, axis=0), axis=1)
         cam_extent = float(np.linalg.norm(np.ptp(centers, axis=0))) if len(centers) >= 2 else 0.0
-        if cam_extent > 0 and np.percentile(dist, 90) / cam_extent < options.min_cloud_spread:
-            problems.append(
-                f"the cloud is degenerate: 90% of points lie within {np.percentile(dist, 90) / cam_extent:.2%} of the camera extent"
-            )
+        spread = np.percentile(dist, 90) / cam_extent if cam_extent > 0 else np.inf
+        if spread < options.min_cloud_spread:
+            problems.append(f"the cloud is degenerate: 90% of points lie within {spread:.2%} of the camera extent")
         p50 = np.percentile(dist, 50)
-        if p50 > 0 and np.percentile(dist, 99) / p50 > options.max_cloud_tail:
-            problems.append(
-                f"the cloud explodes: the farthest 1% of points are {np.percentile(dist, 99) / p50:.0f}x the median distance away"
-            )
+        tail = np.percentile(dist, 99) / p50 if p50 > 0 else 0.0
+        if tail > options.max_cloud_tail:
+            problems.append(f"the cloud explodes: the farthest 1% of points are {tail:.0f}x the median distance away")
     in_front = total = 0
     for image_id in rec.reg_image_ids():
         image = rec.image(image_id)
@@ -268,12 +251,13 @@ def evaluate_gates(
     *,
     colmap: ColmapResult | None,
     prediction: Prediction | None,
-    image_dir: Path | None = None,
+    quality: CaptureQuality | None = None,
     options: GateOptions = GateOptions(),
 ) -> list[GateVerdict]:
     """Registration, sparse-cloud sanity (COLMAP model) and feed-forward depth coverage, in that order.
 
-    ``image_dir`` lets a failed registration gate measure blur and texture to name the cause.
+    ``quality`` (the capture stage's measures and flags) lets a failed registration gate name blur
+    or lack of texture as the cause.
     """
     verdicts = []
     if colmap is None:
@@ -283,7 +267,7 @@ def evaluate_gates(
             )
         )
     else:
-        verdicts.append(registration_gate(colmap, options, image_dir=image_dir))
+        verdicts.append(registration_gate(colmap, options, quality=quality))
     verdicts.append(sparse_cloud_gate(None if colmap is None else colmap.reconstruction, options))
     verdicts.append(depth_coverage_gate(prediction, options))
     for v in verdicts:
@@ -291,17 +275,19 @@ def evaluate_gates(
     return verdicts
 
 
-def check_gates(verdicts: Sequence[GateVerdict], *, force: bool = False) -> None:
-    """Raise :class:`GateFailed` (exit code 5) if any gate failed, unless ``force``."""
-    failed = [v for v in verdicts if v.failed]
-    if not failed:
-        return
-    if force:
-        logger.warning(
-            "continuing despite %d failed gates (forced): %s", len(failed), ", ".join(v.name for v in failed)
-        )
-        return
-    raise GateFailed(
-        "; ".join(f"gate '{v.name}' failed: {v.reason}" for v in failed),
-        "; ".join(v.fix for v in failed if v.fix) + " (or pass --force to continue anyway)",
+def run_gates(
+    *,
+    colmap: ColmapResult | None,
+    prediction: Prediction | None,
+    quality: CaptureQuality | None,
+    options: GateOptions = GateOptions(),
+    force: bool = False,
+) -> GatesResult:
+    """The gates stage: :func:`evaluate_gates`, and whether a failure stops the run (not with ``force``)."""
+    result = GatesResult(
+        tuple(evaluate_gates(colmap=colmap, prediction=prediction, quality=quality, options=options)), force
     )
+    if result.failed and force:
+        names = ", ".join(v.name for v in result.failed)
+        logger.warning("continuing despite %d failed gates (forced): %s", len(result.failed), names)
+    return result

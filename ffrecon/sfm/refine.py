@@ -46,7 +46,7 @@ from ffrecon.sfm.features import (
 )
 from ffrecon.sfm.guided import GuidanceOptions, GuidanceStats, MatchGuidance, filter_matches, guided_matches
 from ffrecon.sfm.overlap import OverlapOptions, overlap_graph
-from ffrecon.sfm.timing import StageTimer, Timings
+from ffrecon.timing import StageTimer, Timings
 from ffrecon.types import PinholeCamera, Prediction
 
 logger = logging.getLogger("ffrecon.sfm")
@@ -82,6 +82,7 @@ class WeakFrame:
 
 @dataclass(frozen=True, kw_only=True)
 class RefineOptions:
+    enabled: bool = True  # False: the stage is skipped (and the report says so)
     overlap: OverlapOptions = OverlapOptions()
     sift: SiftOptions = SiftOptions()
     bundle: BundleOptions = BundleOptions()
@@ -315,35 +316,67 @@ def run_refine(image_dir: Path, prediction: Prediction, options: RefineOptions, 
             )
             flagged += [WeakFrame(n, WeakReason.FEW_OBSERVATIONS, k, options.min_observations) for n, k in weak_obs]
     refined_names = {img.name for img in rec.images.values() if img.has_pose} if summary is not None else set()
+    provenance = dict(
+        flagged=tuple(flagged), num_pairs=len(graph.pairs), features=stats, guidance=guidance, bundle=summary
+    )
     if len(refined_names) < 2:
         logger.warning("refinement failed: %d usable frames; keeping the feed-forward cameras", len(refined_names))
-        n = len(names)
-        return RefineResult(
-            RefineStatus.FAILED,
-            names,
-            prediction.cam_from_world.copy(),
-            np.zeros(n, bool),
-            tuple(prediction.cameras),
-            tuple(flagged),
-            np.zeros((0, 3)),
-            np.zeros((0, 3), np.uint8),
-            len(graph.pairs),
-            stats,
-            guidance,
-            summary,
-            float("nan"),
-            Sim3.identity(),
-            timer.freeze(),
-            None,
-            None,
-        )
+        return _unrefined_result(prediction, timings=timer.freeze(), **provenance)
+    model_dir = out_dir / "sparse" / "0"
     with timer.stage("export"):
-        ff_from_refined = sim3_to_ff_frame(rec, names, prediction.cam_from_world)
-        with colmap_log_level():
-            rec.extract_colors_for_all_images(str(image_dir))
-        model_dir = out_dir / "sparse" / "0"
-        shutil.rmtree(model_dir, ignore_errors=True)
-        write_reconstruction(rec, model_dir)
+        ff_from_refined = _export_in_ff_frame(rec, prediction, image_dir, model_dir)
+    result = _refined_result(rec, prediction, ff_from_refined, model_dir, timings=timer.freeze(), **provenance)
+    logger.info(
+        "refined %d/%d frames, %d points, %.2f px reprojection error (%.1f s)",
+        int(result.registered.sum()),
+        len(names),
+        len(result.points_xyz),
+        result.mean_reprojection_error_px,
+        result.timings.total_s,
+    )
+    return result
+
+
+def _export_in_ff_frame(rec: pycolmap.Reconstruction, prediction: Prediction, image_dir: Path, model_dir: Path) -> Sim3:
+    """Move ``rec`` into the prediction's world frame, colour its points and write it to ``model_dir``.
+
+    Returns ``ff_from_refined``, the similarity that moved it.
+    """
+    ff_from_refined = sim3_to_ff_frame(rec, prediction.names, prediction.cam_from_world)
+    with colmap_log_level():
+        rec.extract_colors_for_all_images(str(image_dir))
+    shutil.rmtree(model_dir, ignore_errors=True)
+    write_reconstruction(rec, model_dir)
+    return ff_from_refined
+
+
+def _unrefined_result(prediction: Prediction, **provenance) -> RefineResult:
+    """The FAILED result: the feed-forward cameras, unrefined, and no points or model."""
+    n = len(prediction.names)
+    return RefineResult(
+        status=RefineStatus.FAILED,
+        names=tuple(prediction.names),
+        cam_from_world=prediction.cam_from_world.copy(),
+        registered=np.zeros(n, bool),
+        cameras=tuple(prediction.cameras),
+        points_xyz=np.zeros((0, 3)),
+        points_rgb=np.zeros((0, 3), np.uint8),
+        mean_reprojection_error_px=float("nan"),
+        ff_from_refined=Sim3.identity(),
+        model_path=None,
+        reconstruction=None,
+        **provenance,
+    )
+
+
+def _refined_result(
+    rec: pycolmap.Reconstruction, prediction: Prediction, ff_from_refined: Sim3, model_dir: Path, **provenance
+) -> RefineResult:
+    """The refined model ``rec`` (already in the prediction's world frame) read back by image name.
+
+    Frames that ``rec`` does not hold keep their feed-forward pose and camera.
+    """
+    names = tuple(prediction.names)
     cam_from_world, registered = cam_from_world_by_name(rec, names)
     cam_from_world[~registered] = prediction.cam_from_world[~registered]
     refined_cams = tuple(c if r else p for c, r, p in zip(cameras_by_name(rec, names), registered, prediction.cameras))
@@ -351,34 +384,19 @@ def run_refine(image_dir: Path, prediction: Prediction, options: RefineOptions, 
     xyz = np.array([p.xyz for p in points.values()], dtype=np.float64).reshape(-1, 3)
     rgb = np.array([p.color for p in points.values()], dtype=np.uint8).reshape(-1, 3)
     rec.update_point_3d_errors()
-    status = RefineStatus.SUCCESS if registered.all() else RefineStatus.PARTIAL
-    for weak in flagged:
+    for weak in provenance["flagged"]:
         logger.warning("weak frame %s", weak.describe())
-    result = RefineResult(
-        status,
-        names,
-        cam_from_world,
-        registered,
-        refined_cams,
-        tuple(flagged),
-        xyz,
-        rgb,
-        len(graph.pairs),
-        stats,
-        guidance,
-        summary,
-        float(rec.compute_mean_reprojection_error()),
-        ff_from_refined,
-        timer.freeze(),
-        model_dir,
-        rec,
+    return RefineResult(
+        status=RefineStatus.SUCCESS if registered.all() else RefineStatus.PARTIAL,
+        names=names,
+        cam_from_world=cam_from_world,
+        registered=registered,
+        cameras=refined_cams,
+        points_xyz=xyz,
+        points_rgb=rgb,
+        mean_reprojection_error_px=float(rec.compute_mean_reprojection_error()),
+        ff_from_refined=ff_from_refined,
+        model_path=model_dir,
+        reconstruction=rec,
+        **provenance,
     )
-    logger.info(
-        "refined %d/%d frames, %d points, %.2f px reprojection error (%.1f s)",
-        int(registered.sum()),
-        len(names),
-        len(xyz),
-        result.mean_reprojection_error_px,
-        result.timings.total_s,
-    )
-    return result

@@ -1,9 +1,11 @@
-"""Gaussian splat: seeding, differentiable CPU rendering, brief optimisation, cleaning.
+"""Gaussian splat: seeding, differentiable CPU rendering, brief optimisation, cleaning, PLY and video.
 
-Import from the modules, e.g. ``from ffrecon.splat.stage import SplatOptions, run_splat``:
+Import from the modules, e.g. ``from ffrecon.splat.stage import SplatOptions, run_splat_from_prediction``:
 
-- :mod:`ffrecon.splat.stage`: ``run_splat`` (the stage), ``SplatOptions``, ``SplatResult``
+- :mod:`ffrecon.splat.stage`: ``run_splat_from_prediction`` (the stage), ``run_splat`` (explicit seed),
+  ``SplatOptions``, ``SplatResult``, ``split_views``
 - :mod:`ffrecon.splat.seed`: ``seed_from_prediction``, ``seed_from_reconstruction``
 - :mod:`ffrecon.splat.render`: ``render`` (CPU, differentiable); :mod:`ffrecon.splat.render_gsplat` (CUDA)
 - :mod:`ffrecon.splat.optimize`, :mod:`ffrecon.splat.densify`, :mod:`ffrecon.splat.clean`
+- :mod:`ffrecon.splat.ply`: 3DGS ``splat.ply`` read and write; :mod:`ffrecon.splat.video`: the fly-through
 """

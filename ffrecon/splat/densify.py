@@ -1,8 +1,8 @@
-"""A small Adam and the 3DGS densify-and-prune policy, with their state kept explicit.
+"""The 3DGS densify-and-prune policy, and the optimiser-state surgery that goes with it.
 
-The optimiser is written here (a dozen lines) rather than taken from ``torch.optim`` so that
-densification can grow and shrink its moment buffers along with the Gaussians without reaching
-into private optimiser state.
+:class:`Densifier` decides which Gaussians to clone, split and prune; :func:`replace_rows` then
+swaps the resized tensors into the ``torch.optim.Adam`` that optimises them, keeping the moments of
+the surviving rows and starting the new rows from zero.
 """
 
 from __future__ import annotations
@@ -19,51 +19,55 @@ from ffrecon.splat.gaussians import Gaussians
 logger = logging.getLogger("ffrecon.splat")
 
 
-class Adam:
-    """Adam over named tensors, each with its own learning rate (changed between steps)."""
+def replace_rows(
+    optimizer: torch.optim.Optimizer, params: dict[str, torch.Tensor], keep: torch.Tensor, num_new: int
+) -> None:
+    """Swap resized tensors into ``optimizer`` and carry their Adam moments along.
 
-    def __init__(
-        self,
-        params: dict[str, torch.Tensor],
-        lrs: dict[str, float],
-        *,
-        betas: tuple[float, float] = (0.9, 0.999),
-        eps: float = 1e-15,
-    ) -> None:
-        self.params = params
-        self.lrs = dict(lrs)
-        self.betas, self.eps = betas, eps
-        self.m = {k: torch.zeros_like(v) for k, v in params.items()}
-        self.v = {k: torch.zeros_like(v) for k, v in params.items()}
-        self.steps = {k: 0 for k in params}
+    Densification replaces each per-Gaussian tensor ``old [N, ...]`` with ``new [keep.sum() + num_new, ...]``
+    whose rows are ``old[keep]`` followed by ``num_new`` fresh rows. For every param group whose
+    ``"name"`` is a key of ``params``, this puts the new tensor in the group and rebuilds the moment
+    buffers the same way: kept rows keep their ``exp_avg`` and ``exp_avg_sq``, fresh rows start at zero.
+    The ``step`` count is kept as it is (one per tensor, as ``torch.optim.Adam`` keeps it). Groups whose
+    name is not in ``params`` (the camera corrections) are left alone. The same surgery as gsplat's
+    strategy operations, on ``torch.optim.Adam`` state.
 
-    @torch.no_grad()
-    def step(self) -> None:
-        b1, b2 = self.betas
-        for k, p in self.params.items():
-            if p.grad is None or self.lrs[k] == 0.0:
-                continue
-            self.steps[k] += 1
-            self.m[k].lerp_(p.grad, 1 - b1)
-            self.v[k].mul_(b2).addcmul_(p.grad, p.grad, value=1 - b2)
-            t = self.steps[k]
-            step_size = self.lrs[k] / (1 - b1**t)
-            denom = (self.v[k] / (1 - b2**t)).sqrt_().add_(self.eps)
-            p.addcdiv_(self.m[k], denom, value=-step_size)
+    Args:
+        optimizer: built with one param group per named tensor, each with a ``"name"`` key.
+        params: name -> new leaf tensor (requires grad).
+        keep: ``[N]`` bool mask of the old rows that survive, in order.
+        num_new: rows appended after the kept ones.
 
-    def zero_grad(self) -> None:
-        for p in self.params.values():
-            p.grad = None
-
-    def rebuild(self, params: dict[str, torch.Tensor], keep: torch.Tensor, num_new: int) -> None:
-        """Switch to new tensors whose rows are ``old[keep]`` followed by ``num_new`` fresh rows."""
-        for k, p in params.items():
-            if k not in self.params or p.shape[1:] != self.params[k].shape[1:] or k.startswith("pose"):
-                continue
-            for buf in (self.m, self.v):
-                old = buf[k][keep]
-                buf[k] = torch.cat([old, old.new_zeros((num_new,) + tuple(old.shape[1:]))])
-        self.params = params
+    >>> old = torch.ones(3, 2, requires_grad=True)
+    >>> adam = torch.optim.Adam([{"params": [old], "lr": 0.1, "name": "means"}])
+    >>> old.grad = torch.ones(3, 2)
+    >>> adam.step()
+    >>> new = torch.zeros(4, 2, requires_grad=True)
+    >>> replace_rows(adam, {"means": new}, torch.tensor([True, False, True]), num_new=2)
+    >>> adam.state[new]["exp_avg"][:, 0]
+    tensor([0.1000, 0.1000, 0.0000, 0.0000])
+    >>> int(adam.state[new]["step"])
+    1
+    """
+    kept = int(keep.sum())
+    for group in optimizer.param_groups:
+        name = group.get("name")
+        if name not in params:
+            continue
+        old, new = group["params"][0], params[name]
+        if len(new) != kept + num_new or new.shape[1:] != old.shape[1:]:
+            raise ValueError(
+                f"replace_rows: {name} has shape {tuple(new.shape)}, expected {kept} kept + {num_new} new rows "
+                f"of shape {tuple(old.shape[1:])}"
+            )
+        state = optimizer.state.pop(old, {})
+        for key in ("exp_avg", "exp_avg_sq"):
+            if key in state:
+                rows = state[key][keep]
+                state[key] = torch.cat([rows, rows.new_zeros((num_new, *rows.shape[1:]))])
+        group["params"] = [new]
+        if state:
+            optimizer.state[new] = state
 
 
 @dataclass(frozen=True, kw_only=True)

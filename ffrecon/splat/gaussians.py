@@ -1,6 +1,6 @@
 """The Gaussian splat model: parameter tensors and real spherical harmonics.
 
-Parameters are stored the way optimisers and the 3DGS PLY format want them (CONTRACTS.md section 4):
+Parameters are stored the way optimisers and the 3DGS PLY format want them (docs/contracts.md):
 log scales, opacity logits, unnormalised rotation quaternions ``quat_wxyz`` (scalar first) and SH
 coefficients whose band 0 is the DC term, ``rgb = 0.5 + SH_C0 * dc``. The basis and its signs are
 the ones every 3DGS viewer uses, so a file written from these tensors looks the same everywhere.

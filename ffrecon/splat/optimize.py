@@ -20,7 +20,7 @@ from kornia.geometry.liegroup import So3
 from tqdm import tqdm
 
 from ffrecon.geometry.poses import camera_centers
-from ffrecon.splat.densify import Adam, Densifier, DensifyOptions
+from ffrecon.splat.densify import Densifier, DensifyOptions, replace_rows
 from ffrecon.splat.gaussians import Gaussians
 from ffrecon.splat.render import RasterOptions, render
 
@@ -29,8 +29,12 @@ logger = logging.getLogger("ffrecon.splat")
 
 @dataclass(frozen=True, kw_only=True)
 class OptimizeOptions:
-    """Optimiser settings. The learning rates default to the 3DGS ones (CONTRACTS.md), which are
-    tuned for ~30k iterations; :meth:`brief` scales them for the few hundred a CPU does in minutes."""
+    """Optimiser settings. The learning rates default to the ones of the 3DGS paper (Kerbl et al. 2023),
+    tuned for ~30k iterations; :meth:`brief` scales them for the few hundred a CPU does in minutes.
+
+    Adam (``torch.optim.Adam``, betas 0.9 and 0.999, eps 1e-15) has one learning rate per tensor:
+    positions (times the scene scale), SH DC, SH rest, opacity, scales, rotations and, with
+    ``refine_poses``, the camera corrections."""
 
     iterations: int = 3000  # upper bound; the time budget usually ends the run first on a CPU
     max_seconds: float = 120.0
@@ -185,19 +189,8 @@ def optimize(
         callback: called as ``callback(iteration, seconds, gaussians, cam_from_world)`` every
             ``callback_every`` iterations (its time is not counted in the budget).
     """
-    if options.device != "cpu":
-        return _optimize(
-            gaussians,
-            images,
-            cam_from_world,
-            Ks,
-            train,
-            options,
-            scale=scale,
-            callback=callback,
-            callback_every=callback_every,
-        )
-    with torch_threads(cpu_threads(options.threads)):
+    threads = torch_threads(cpu_threads(options.threads)) if options.device == "cpu" else contextlib.nullcontext()
+    with threads:
         return _optimize(
             gaussians,
             images,
@@ -211,23 +204,47 @@ def optimize(
         )
 
 
-def _optimize(
-    gaussians, images, cam_from_world, Ks, train, options: OptimizeOptions, *, scale, callback, callback_every
-) -> OptimizeResult:
-    o = options
-    train = list(train)
-    if not train:
-        raise ValueError("optimize: no training views")
-    torch.manual_seed(o.seed)
-    rng = np.random.default_rng(o.seed)
-    dev = torch.device(o.device)
+@dataclass(frozen=True)
+class _TrainingViews:
+    """What every iteration reads and never changes: the views on the optimisation device."""
+
+    images: list[torch.Tensor]  # per view [H_i, W_i, 3] float32 RGB in [0, 1]
+    poses: torch.Tensor  # [N, 3, 4] float32 cam_from_world, as given
+    k_mats: torch.Tensor  # [N, 3, 3] float32
+    background: torch.Tensor  # [3] float32
+    cam_from_world: np.ndarray  # [N, 3, 4] float64, as given
+    train: list[int]
+    render: Callable  # ffrecon's CPU renderer, or gsplat's on CUDA (same signature)
+
+
+def _training_views(images, cam_from_world, Ks, train: list[int], options: OptimizeOptions) -> _TrainingViews:
+    dev = torch.device(options.device)
     render_fn = render
     if dev.type == "cuda":
         from ffrecon.splat.render_gsplat import render_gsplat as render_fn
-    poses = torch.as_tensor(np.asarray(cam_from_world, np.float32), device=dev)
-    k_mats = torch.as_tensor(np.asarray(Ks, np.float32), device=dev)
-    bg = torch.tensor(o.background, dtype=torch.float32, device=dev)
-    images = [im.to(dev) for im in images]
+    return _TrainingViews(
+        images=[im.to(dev) for im in images],
+        poses=torch.as_tensor(np.asarray(cam_from_world, np.float32), device=dev),
+        k_mats=torch.as_tensor(np.asarray(Ks, np.float32), device=dev),
+        background=torch.tensor(options.background, dtype=torch.float32, device=dev),
+        cam_from_world=np.asarray(cam_from_world, np.float64),
+        train=train,
+        render=render_fn,
+    )
+
+
+def _trainable(
+    gaussians: Gaussians, options: OptimizeOptions, scale: float, num_views: int
+) -> tuple[dict[str, torch.Tensor], torch.optim.Adam]:
+    """Leaf tensors by name and their Adam, one param group (and learning rate) per name.
+
+    The SH coefficients are split into ``sh_dc [N, 1, 3]`` and ``sh_rest [N, B - 1, 3]``, which
+    3DGS trains at different rates. With ``refine_poses``, ``pose_rotation`` and ``pose_translation``
+    (``[num_views, 3]``, zero) hold a correction per view (see :func:`refined_pose`). A tensor whose
+    rate is 0 stays exactly as it is: Adam's update is then ``-0 * m / (sqrt(v) + eps)``.
+    """
+    o = options
+    dev = torch.device(o.device)
     g = gaussians.with_sh_degree(o.sh_degree)
     params = {k: getattr(g, k).to(dev).clone().requires_grad_(True) for k in Gaussians.PARAMS}
     params["sh_dc"] = params["sh"][:, :1].detach().clone().requires_grad_(True)
@@ -241,105 +258,149 @@ def _optimize(
         "sh_rest": o.lr_sh_rest,
     }
     if o.refine_poses:
-        params["pose_rotation"] = torch.zeros(len(poses), 3, device=dev, requires_grad=True)
-        params["pose_translation"] = torch.zeros(len(poses), 3, device=dev, requires_grad=True)
+        params["pose_rotation"] = torch.zeros(num_views, 3, device=dev, requires_grad=True)
+        params["pose_translation"] = torch.zeros(num_views, 3, device=dev, requires_grad=True)
         lrs.update(pose_rotation=o.lr_pose_rotation, pose_translation=o.lr_pose_translation * scale)
-    adam = Adam(params, lrs)
-    densifier = (
-        Densifier(len(g), o.densify, scale, o.max_gaussians, o.seed, o.device) if o.densify is not None else None
+    groups = [{"params": [params[name]], "lr": lr, "name": name} for name, lr in lrs.items()]
+    return params, torch.optim.Adam(groups, betas=(0.9, 0.999), eps=1e-15)
+
+
+def _set_lr(optimizer: torch.optim.Optimizer, name: str, lr: float) -> None:
+    for group in optimizer.param_groups:
+        if group["name"] == name:
+            group["lr"] = lr
+
+
+def _as_gaussians(params: dict[str, torch.Tensor]) -> Gaussians:
+    """The Gaussians the trainable tensors describe (SH bands joined again; shares their storage)."""
+    return Gaussians(
+        params["means"],
+        params["quats_wxyz"],
+        params["log_scales"],
+        params["opacity_logits"],
+        torch.cat([params["sh_dc"], params["sh_rest"]], dim=1),
     )
 
-    def current() -> Gaussians:
-        return Gaussians(
-            params["means"],
-            params["quats_wxyz"],
-            params["log_scales"],
-            params["opacity_logits"],
-            torch.cat([params["sh_dc"], params["sh_rest"]], dim=1),
-        )
 
-    def current_poses() -> np.ndarray:
-        if not o.refine_poses:
-            return np.asarray(cam_from_world, np.float64)
-        with torch.no_grad():
-            out = np.asarray(cam_from_world, np.float64).copy()
-            for i in train[1:]:
-                out[i] = refined_pose(poses[i], params["pose_rotation"][i], params["pose_translation"][i]).cpu().numpy()
-            return out
+def _view_pose(params: dict[str, torch.Tensor], views: _TrainingViews, view: int) -> torch.Tensor:
+    """``[3, 4]`` cam_from_world of ``view`` with its correction (the first training view has none: gauge)."""
+    pose = views.poses[view]
+    if "pose_rotation" in params and view != views.train[0]:
+        pose = refined_pose(pose, params["pose_rotation"][view], params["pose_translation"][view])
+    return pose
 
+
+def _current_poses(params: dict[str, torch.Tensor], views: _TrainingViews) -> np.ndarray:
+    """``[N, 3, 4]`` float64: the input poses with the training views' corrections applied."""
+    if "pose_rotation" not in params:
+        return views.cam_from_world
+    with torch.no_grad():
+        out = views.cam_from_world.copy()
+        for i in views.train[1:]:
+            out[i] = _view_pose(params, views, i).cpu().numpy()
+        return out
+
+
+def _train_step(
+    params: dict[str, torch.Tensor],
+    optimizer: torch.optim.Optimizer,
+    views: _TrainingViews,
+    view: int,
+    sh_degree: int,
+    options: OptimizeOptions,
+    densifier: Densifier | None,
+) -> torch.Tensor:
+    """One iteration on one view: render, loss, backward, densification statistics, Adam step.
+
+    Returns the loss (detached).
+    """
+    target = views.images[view]
+    height, width = target.shape[:2]
+    g = _as_gaussians(params)
+    out = views.render(
+        g.means,
+        g.quats_wxyz,
+        g.log_scales,
+        g.opacity_logits,
+        g.sh,
+        _view_pose(params, views, view),
+        views.k_mats[view],
+        width,
+        height,
+        background=views.background,
+        sh_degree=sh_degree,
+        with_depth=False,
+        options=options.raster,
+    )
+    out.means2d.retain_grad()
+    loss = photometric_loss(out.rgb, target, options.ssim_weight)
+    loss.backward()
+    if densifier is not None and out.means2d.grad is not None:
+        densifier.accumulate(out.means2d.grad, out.visible, width, height)
+    optimizer.step()
+    optimizer.zero_grad()
+    return loss.detach()
+
+
+def _densify(
+    densifier: Densifier, params: dict[str, torch.Tensor], optimizer: torch.optim.Optimizer
+) -> dict[str, torch.Tensor]:
+    """Clone, split and prune; returns the new tensors (already swapped into ``optimizer``)."""
+    new, keep, num_new = densifier.step(_as_gaussians(params))
+    resized = {
+        k: getattr(new, k).detach().clone().requires_grad_(True)
+        for k in ("means", "quats_wxyz", "log_scales", "opacity_logits")
+    }
+    resized["sh_dc"] = new.sh[:, :1].detach().clone().requires_grad_(True)
+    resized["sh_rest"] = new.sh[:, 1:].detach().clone().requires_grad_(True)
+    replace_rows(optimizer, resized, keep, num_new)
+    return {**resized, **{k: v for k, v in params.items() if k.startswith("pose")}}
+
+
+def _optimize(
+    gaussians, images, cam_from_world, Ks, train, options: OptimizeOptions, *, scale, callback, callback_every
+) -> OptimizeResult:
+    """The loop: visit the training views in shuffled rounds until the iteration or time budget is spent."""
+    o = options
+    train = list(train)
+    if not train:
+        raise ValueError("optimize: no training views")
+    torch.manual_seed(o.seed)
+    rng = np.random.default_rng(o.seed)
+    views = _training_views(images, cam_from_world, Ks, train, o)
+    params, adam = _trainable(gaussians, o, scale, len(views.poses))
+    densifier = None
+    if o.densify is not None:
+        densifier = Densifier(len(params["means"]), o.densify, scale, o.max_gaussians, o.seed, o.device)
     history: list[tuple[int, float, float]] = []
     order: list[int] = []
     elapsed, it = 0.0, 0
-    bar = tqdm(
-        total=o.iterations, desc="splat", unit="it", disable=None if o.progress else True, leave=False
-    )  # None: off when not a terminal
+    disable = None if o.progress else True  # None: off when not a terminal
+    bar = tqdm(total=o.iterations, desc="splat", unit="it", disable=disable, leave=False)
     while it < o.iterations and elapsed < o.max_seconds:
         start = time.perf_counter()
         fraction = max(it / o.iterations, elapsed / o.max_seconds)
-        adam.lrs["means"] = _log_lerp(o.lr_means * scale, o.lr_means_final * scale, fraction)
+        _set_lr(adam, "means", _log_lerp(o.lr_means * scale, o.lr_means_final * scale, fraction))
         if not order:
             order = [train[j] for j in rng.permutation(len(train))]
-        view = order.pop()
-        target = images[view]
-        height, width = target.shape[:2]
-        pose = poses[view]
-        if o.refine_poses and view != train[0]:
-            pose = refined_pose(pose, params["pose_rotation"][view], params["pose_translation"][view])
-        cur = current()
         degree = min(o.sh_degree, it // max(o.sh_band_every, 1))
-        out = render_fn(
-            cur.means,
-            cur.quats_wxyz,
-            cur.log_scales,
-            cur.opacity_logits,
-            cur.sh,
-            pose,
-            k_mats[view],
-            width,
-            height,
-            background=bg,
-            sh_degree=degree,
-            with_depth=False,
-            options=o.raster,
-        )
-        out.means2d.retain_grad()
-        loss = photometric_loss(out.rgb, target, o.ssim_weight)
-        loss.backward()
-        loss = loss.detach()
+        loss = _train_step(params, adam, views, order.pop(), degree, o, densifier)
         it += 1
-        if densifier is not None and out.means2d.grad is not None:
-            densifier.accumulate(out.means2d.grad, out.visible, width, height)
-        adam.step()
-        adam.zero_grad()
         if densifier is not None and densifier.due(it, fraction):
-            new, keep, num_new = densifier.step(current())
-            new_params = {
-                k: getattr(new, k).detach().clone().requires_grad_(True)
-                for k in ("means", "quats_wxyz", "log_scales", "opacity_logits")
-            }
-            new_params["sh_dc"] = new.sh[:, :1].detach().clone().requires_grad_(True)
-            new_params["sh_rest"] = new.sh[:, 1:].detach().clone().requires_grad_(True)
-            new_params.update({k: v for k, v in params.items() if k.startswith("pose")})
-            adam.rebuild(new_params, keep, num_new)
-            params = new_params
+            params = _densify(densifier, params, adam)
         elapsed += time.perf_counter() - start
         if it % 10 == 0:
             history.append((it, elapsed, loss.item()))
             bar.set_postfix(loss=f"{loss.item():.4f}", n=len(params["means"]))
         bar.update(1)
         if callback is not None and callback_every and it % callback_every == 0:
-            callback(it, elapsed, current().detached().to("cpu"), current_poses())
+            callback(it, elapsed, _as_gaussians(params).detached().to("cpu"), _current_poses(params, views))
     bar.close()
-    logger.info(
-        "splat: %d iterations in %.1f s (%.2f it/s), %d Gaussians",
-        it,
-        elapsed,
-        it / max(elapsed, 1e-9),
-        len(params["means"]),
-    )
+    rate = it / max(elapsed, 1e-9)
+    logger.info("splat: %d iterations in %.1f s (%.2f it/s), %d Gaussians", it, elapsed, rate, len(params["means"]))
     return OptimizeResult(
-        gaussians=current().detached().to("cpu"),
-        cam_from_world=current_poses(),
+        gaussians=_as_gaussians(params).detached().to("cpu"),
+        cam_from_world=_current_poses(params, views),
         iterations=it,
         seconds=elapsed,
         history=tuple(history),

@@ -109,84 +109,130 @@ def bin_gaussians(
             just the bounding box: about a quarter fewer pairs for round Gaussians).
         chunk_elements: target size of one chunk's ``[b, K, P]`` work arrays (memory vs overhead).
     """
-    n = means2d.shape[0]
     tiles_x, tiles_y = math.ceil(width / tile_size), math.ceil(height / tile_size)
     with torch.no_grad():
-        # Range of pixel columns whose centre (u + 0.5) lies within [x - e, x + e], clipped to the image.
-        lo = torch.ceil(means2d - extent - 0.5)
-        hi = torch.floor(means2d + extent - 0.5)
-        lo_x, lo_y = lo[:, 0].clamp(0, width - 1), lo[:, 1].clamp(0, height - 1)
-        hi_x, hi_y = hi[:, 0].clamp(0, width - 1), hi[:, 1].clamp(0, height - 1)
-        hits = visible & (hi[:, 0] >= lo_x) & (lo[:, 0] <= hi_x) & (hi[:, 1] >= lo_y) & (lo[:, 1] <= hi_y)
-        hits &= (hi[:, 0] >= 0) & (lo[:, 0] <= width - 1) & (hi[:, 1] >= 0) & (lo[:, 1] <= height - 1)
-        gid = torch.nonzero(hits).squeeze(1)
-        gid = _take(gid, torch.argsort(_take(depth, gid), stable=True))  # front to back
-        tx0 = (_take(lo_x, gid) // tile_size).long()
-        ty0 = (_take(lo_y, gid) // tile_size).long()
-        nx = (_take(hi_x, gid) // tile_size).long() - tx0 + 1
-        ny = (_take(hi_y, gid) // tile_size).long() - ty0 + 1
-        counts = nx * ny
-        total = int(counts.sum())
-        pair_g = torch.repeat_interleave(gid, counts)
-        first = torch.repeat_interleave(torch.cumsum(counts, 0) - counts, counts)
-        local = torch.arange(total) - first
-        nx_rep = torch.repeat_interleave(nx, counts)
-        tile = (
-            (torch.repeat_interleave(ty0, counts) + local // nx_rep) * tiles_x
-            + torch.repeat_interleave(tx0, counts)
-            + local % nx_rep
-        )
-        if conics is not None and log_opacity is not None and total:
-            corner = torch.stack([tile % tiles_x, tile // tiles_x], 1) * tile_size
-            box_lo = corner + 0.5  # first and last pixel centres of the tile, clipped to the image
-            box_hi = torch.minimum(corner + tile_size, torch.tensor([width, height])) - 0.5
-            q = _min_quadratic_over_box(
-                _take(means2d, pair_g), _take(conics, pair_g), box_lo.to(means2d.dtype), box_hi.to(means2d.dtype)
-            )
-            level = _take(log_opacity, pair_g) - math.log(ALPHA_MIN)  # alpha >= 1/255  <=>  q / 2 <= level
-            meets = 0.5 * q <= level * (1 + 1e-4) + 1e-4
-            meets = torch.nonzero(meets).squeeze(1)
+        pair_g, tile = _box_pairs(means2d, extent, depth, visible, width, height, tile_size)
+        if conics is not None and log_opacity is not None and len(tile):
+            meets = _ellipse_meets_tile(means2d, conics, log_opacity, pair_g, tile, width, height, tiles_x, tile_size)
             pair_g, tile = _take(pair_g, meets), _take(tile, meets)
-            total = len(tile)
         order = torch.argsort(tile, stable=True)  # by tile, then depth (pairs were depth-ordered)
         pair_g, tile = _take(pair_g, order), _take(tile, order)
-        per_tile = torch.bincount(tile, minlength=tiles_x * tiles_y)
-        tile_start = torch.cumsum(per_tile, 0) - per_tile
-        busy = torch.argsort(per_tile, descending=True, stable=True)
-        busy_counts = per_tile[busy].tolist()
-        num_busy = sum(1 for c in busy_counts if c > 0)
-        busy = busy[:num_busy]
-        # Greedy chunks over the tiles sorted by count: each padded to its first (largest) count.
-        p = tile_size * tile_size
-        bounds, i = [], 0
-        while i < num_busy:
-            k = busy_counts[i]
-            j = min(num_busy, i + max(1, chunk_elements // (k * p)))
-            bounds.append((i, j, k))
-            i = j
-        sizes = [j - i for i, j, _ in bounds]
-        ks = [k for _, _, k in bounds]
-        starts = [sum(a * b for a, b in zip(sizes[:c], ks[:c])) for c in range(len(bounds))]
-        padded = torch.repeat_interleave(
-            torch.tensor(ks, dtype=torch.long), torch.tensor(sizes, dtype=torch.long)
-        )  # per busy tile
-        row = torch.repeat_interleave(torch.arange(num_busy), padded)
-        slot = torch.arange(int(padded.sum())) - torch.repeat_interleave(torch.cumsum(padded, 0) - padded, padded)
-        pad_index = torch.where(
-            slot < _take(_take(per_tile, busy), row), _take(_take(tile_start, busy), row) + slot, total
-        )  # `total` = padding
-        chunks_tiles = [busy[i:j] for i, j, _ in bounds]
-        pair_g_ext = torch.cat([pair_g, torch.tensor([n])])
-        tile_ext = torch.cat([tile, torch.tensor([0])])
-        pair_gauss = _take(pair_g_ext, pad_index)
-        tile_of_pair = _take(tile_ext, pad_index)
-        origin = (
-            torch.stack([(tile_of_pair % tiles_x).float(), (tile_of_pair // tiles_x).float()], 1) * tile_size
-            + tile_size / 2
-        )
-    return TileLayout(
-        tile_size, tiles_x, tiles_y, pair_gauss, origin, tuple(chunks_tiles), tuple(starts), tuple(ks), total
+        return _padded_chunks(pair_g, tile, means2d.shape[0], tiles_x, tiles_y, tile_size, chunk_elements)
+
+
+def _box_pairs(
+    means2d: torch.Tensor,
+    extent: torch.Tensor,
+    depth: torch.Tensor,
+    visible: torch.Tensor,
+    width: int,
+    height: int,
+    tile_size: int,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(gaussian [L], tile [L])`` int64: one pair per tile that a visible Gaussian's box overlaps.
+
+    Pairs come Gaussian by Gaussian, front to back (stable sort on ``depth``); tiles are row-major.
+    """
+    # Range of pixel columns whose centre (u + 0.5) lies within [x - e, x + e], clipped to the image.
+    lo = torch.ceil(means2d - extent - 0.5)
+    hi = torch.floor(means2d + extent - 0.5)
+    lo_x, lo_y = lo[:, 0].clamp(0, width - 1), lo[:, 1].clamp(0, height - 1)
+    hi_x, hi_y = hi[:, 0].clamp(0, width - 1), hi[:, 1].clamp(0, height - 1)
+    hits = visible & (hi[:, 0] >= lo_x) & (lo[:, 0] <= hi_x) & (hi[:, 1] >= lo_y) & (lo[:, 1] <= hi_y)
+    hits &= (hi[:, 0] >= 0) & (lo[:, 0] <= width - 1) & (hi[:, 1] >= 0) & (lo[:, 1] <= height - 1)
+    gid = torch.nonzero(hits).squeeze(1)
+    gid = _take(gid, torch.argsort(_take(depth, gid), stable=True))  # front to back
+    tx0 = (_take(lo_x, gid) // tile_size).long()
+    ty0 = (_take(lo_y, gid) // tile_size).long()
+    nx = (_take(hi_x, gid) // tile_size).long() - tx0 + 1
+    ny = (_take(hi_y, gid) // tile_size).long() - ty0 + 1
+    counts = nx * ny
+    total = int(counts.sum())
+    pair_g = torch.repeat_interleave(gid, counts)
+    first = torch.repeat_interleave(torch.cumsum(counts, 0) - counts, counts)
+    local = torch.arange(total) - first
+    nx_rep = torch.repeat_interleave(nx, counts)
+    tiles_x = math.ceil(width / tile_size)
+    tile = (
+        (torch.repeat_interleave(ty0, counts) + local // nx_rep) * tiles_x
+        + torch.repeat_interleave(tx0, counts)
+        + local % nx_rep
     )
+    return pair_g, tile
+
+
+def _ellipse_meets_tile(
+    means2d: torch.Tensor,
+    conics: torch.Tensor,
+    log_opacity: torch.Tensor,
+    pair_g: torch.Tensor,
+    tile: torch.Tensor,
+    width: int,
+    height: int,
+    tiles_x: int,
+    tile_size: int,
+) -> torch.Tensor:
+    """Indices of the pairs whose ellipse ``alpha >= 1/255`` contains one of the tile's pixel centres
+    (or nearly: a relative tolerance of 1e-4 keeps borderline pairs)."""
+    corner = torch.stack([tile % tiles_x, tile // tiles_x], 1) * tile_size
+    box_lo = corner + 0.5  # first and last pixel centres of the tile, clipped to the image
+    box_hi = torch.minimum(corner + tile_size, torch.tensor([width, height])) - 0.5
+    q = _min_quadratic_over_box(
+        _take(means2d, pair_g), _take(conics, pair_g), box_lo.to(means2d.dtype), box_hi.to(means2d.dtype)
+    )
+    level = _take(log_opacity, pair_g) - math.log(ALPHA_MIN)  # alpha >= 1/255  <=>  q / 2 <= level
+    meets = 0.5 * q <= level * (1 + 1e-4) + 1e-4
+    return torch.nonzero(meets).squeeze(1)
+
+
+def _padded_chunks(
+    pair_g: torch.Tensor,
+    tile: torch.Tensor,
+    num_gaussians: int,
+    tiles_x: int,
+    tiles_y: int,
+    tile_size: int,
+    chunk_elements: int,
+) -> TileLayout:
+    """Group the tiles into chunks padded to a common pair count (see :class:`TileLayout`).
+
+    ``pair_g`` and ``tile`` are sorted by tile, then front to back. Tiles are taken from the busiest
+    down and cut greedily into chunks of about ``chunk_elements`` evaluations, each padded to its
+    first (largest) count with the index ``num_gaussians``.
+    """
+    total = len(tile)
+    per_tile = torch.bincount(tile, minlength=tiles_x * tiles_y)
+    tile_start = torch.cumsum(per_tile, 0) - per_tile
+    busy = torch.argsort(per_tile, descending=True, stable=True)
+    busy_counts = per_tile[busy].tolist()
+    num_busy = sum(1 for c in busy_counts if c > 0)
+    busy = busy[:num_busy]
+    p = tile_size * tile_size
+    bounds, i = [], 0
+    while i < num_busy:
+        k = busy_counts[i]
+        j = min(num_busy, i + max(1, chunk_elements // (k * p)))
+        bounds.append((i, j, k))
+        i = j
+    sizes = [j - i for i, j, _ in bounds]
+    ks = [k for _, _, k in bounds]
+    starts = [sum(a * b for a, b in zip(sizes[:c], ks[:c])) for c in range(len(bounds))]
+    padded = torch.repeat_interleave(
+        torch.tensor(ks, dtype=torch.long), torch.tensor(sizes, dtype=torch.long)
+    )  # per busy tile
+    row = torch.repeat_interleave(torch.arange(num_busy), padded)
+    slot = torch.arange(int(padded.sum())) - torch.repeat_interleave(torch.cumsum(padded, 0) - padded, padded)
+    pad_index = torch.where(
+        slot < _take(_take(per_tile, busy), row), _take(_take(tile_start, busy), row) + slot, total
+    )  # `total` = padding
+    pair_gauss = _take(torch.cat([pair_g, torch.tensor([num_gaussians])]), pad_index)
+    tile_of_pair = _take(torch.cat([tile, torch.tensor([0])]), pad_index)
+    origin = (
+        torch.stack([(tile_of_pair % tiles_x).float(), (tile_of_pair // tiles_x).float()], 1) * tile_size
+        + tile_size / 2
+    )
+    chunks_tiles = tuple(busy[i:j] for i, j, _ in bounds)
+    return TileLayout(tile_size, tiles_x, tiles_y, pair_gauss, origin, chunks_tiles, tuple(starts), tuple(ks), total)
 
 
 def tile_basis(tile_size: int, dtype: torch.dtype = torch.float32) -> torch.Tensor:

@@ -1,18 +1,22 @@
 """The splat stage: seed, optimise briefly, clean, export, measure.
 
-``run_splat`` writes, under ``out_dir``: ``splat.ply`` (3DGS layout), ``renders/<view>_{truth,seed,splat}.png``
-for a few held-out views, ``flythrough.mp4`` and, on request, ``mesh.ply`` + ``mesh.glb``.
-Held-out views (every ``holdout_every``-th frame, starting with the first) are never trained on;
-PSNR and SSIM are measured on them for the seed, the optimised and the cleaned (exported) splat.
+Two entries share one implementation. :func:`run_splat_from_prediction` (what the pipeline calls)
+seeds from the feed-forward depth maps of the training views; :func:`run_splat` takes an explicit
+seed cloud. Both write, under ``out_dir``: ``splat.ply`` (3DGS layout, see :mod:`ffrecon.splat.ply`),
+``renders/<view>_{truth,seed,splat}.png`` for a few held-out views and ``flythrough.mp4``.
+
+The held-out views (every ``holdout_every``-th frame, starting with the first) are chosen once, by
+:func:`split_views`, in each entry: they are never trained on nor seeded from, and PSNR and SSIM
+are measured on them for the seed, the optimised and the cleaned (exported) splat.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import logging
-import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
@@ -22,21 +26,23 @@ import torch
 
 from ffrecon.checks import check_shape, require_finite
 from ffrecon.errors import InputError
-from ffrecon.export.splat_ply import write_splat_ply
-from ffrecon.geometry.poses import camera_centers
 from ffrecon.splat.clean import CleanOptions, CleanReport, clean_gaussians
 from ffrecon.splat.gaussians import Gaussians
 from ffrecon.splat.optimize import (
     OptimizeOptions,
+    OptimizeResult,
     cpu_threads,
     optimize,
     scene_scale,
     torch_threads,
 )
+from ffrecon.splat.ply import write_splat_ply
 from ffrecon.splat.render import RasterOptions, render
 from ffrecon.splat.render_gsplat import gsplat_available
-from ffrecon.splat.seed import initial_gaussians, reduce_points
-from ffrecon.types import PinholeCamera
+from ffrecon.splat.seed import initial_gaussians, reduce_points, seed_from_prediction
+from ffrecon.splat.video import write_flythrough
+from ffrecon.timing import StageTimer, Timings
+from ffrecon.types import PinholeCamera, Prediction
 
 logger = logging.getLogger("ffrecon.splat")
 
@@ -49,26 +55,23 @@ class SplatDevice(enum.Enum):
 
 @dataclass(frozen=True, kw_only=True)
 class SplatOptions:
-    iterations: int = 3000  # upper bound; on a CPU the time budget usually ends the run first
-    max_seconds: float = 120.0  # optimisation budget (seed, cleaning and export not included)
+    """Settings of the splat stage; each setting lives in one place.
+
+    The optimisation's settings (iterations, time budget, SH degree, Gaussian cap, pose refinement,
+    background, rasteriser, seed, CPU threads, progress bar, learning rates) are in ``optimize``, the
+    cleaning's (crop box included) in ``clean``. ``optimize.device`` is not read: the stage resolves
+    ``device`` (see :func:`resolve_device`) and gives the optimiser the result.
+    """
+
+    enabled: bool = True  # read by the pipeline (False: skip the stage); the functions here ignore it
     holdout_every: int = 8  # frames 0, k, 2k, ... are held out for evaluation; 0 = none
-    sh_degree: int = 3  # SH degree optimised and written to splat.ply
-    max_gaussians: int = 100_000  # cap on the count (seed and densification)
-    max_seed_points: int = 60_000  # the seed is voxel-downsampled to at most this many points
-    refine_poses: bool = False  # jointly refine the training cameras (first one fixed)
-    crop_box: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None  # (lo, hi); None = automatic
-    mesh: bool = False  # Poisson mesh of the seed cloud: mesh.ply and mesh.glb
+    max_seed_points: int = 60_000  # the seed is voxel-downsampled to at most this (and optimize.max_gaussians)
     video: bool = True  # flythrough.mp4 along a smooth path through the cameras
     video_frames: int = 90
     report_views: int = 3  # held-out views rendered into renders/ for the report
-    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    seed: int = 0
     device: SplatDevice | str = SplatDevice.AUTO
-    threads: int | None = None  # torch CPU threads; None = all available cores but one (see optimize.cpu_threads)
-    progress: bool = True
-    optimizer: OptimizeOptions = field(default_factory=OptimizeOptions.brief)  # advanced; the fields above override it
-    clean: CleanOptions = field(default_factory=CleanOptions)  # crop_box above overrides its crop_box
-    raster: RasterOptions = field(default_factory=RasterOptions)
+    optimize: OptimizeOptions = field(default_factory=OptimizeOptions.brief)
+    clean: CleanOptions = field(default_factory=CleanOptions)
 
 
 @dataclass(frozen=True)
@@ -89,10 +92,10 @@ class SplatResult:
     renders_dir: Path
     render_paths: tuple[tuple[str, Path, Path, Path], ...]  # (view, truth, seed, splat) PNGs
     video_path: Path | None
-    mesh_ply_path: Path | None
-    mesh_glb_path: Path | None
-    heldout: tuple[ViewMetrics, ...]
-    timings: dict[str, float]  # seconds per step
+    train: tuple[int, ...]  # frame indices optimised on (and, from a prediction, seeded from)
+    heldout: tuple[int, ...]  # frame indices held out for evaluation
+    heldout_metrics: tuple[ViewMetrics, ...]  # one per held-out frame, in the order of `heldout`
+    timings: Timings  # seconds per step (seed, optimize, clean, evaluate, write_ply, video)
     iterations: int
     iterations_per_second: float
     count_seed: int
@@ -104,11 +107,12 @@ class SplatResult:
 
     def mean(self, key: str) -> float:
         """Mean over held-out views of a :class:`ViewMetrics` field (nan without held-out views)."""
-        return float(np.mean([getattr(v, key) for v in self.heldout])) if self.heldout else float("nan")
+        values = [getattr(v, key) for v in self.heldout_metrics]
+        return float(np.mean(values)) if values else float("nan")
 
     def report_images(self) -> list[tuple[str, Path]]:
         """``(caption, PNG path)`` for report.html: per reported held-out view, truth, seed and splat."""
-        by_name = {v.name: v for v in self.heldout}
+        by_name = {v.name: v for v in self.heldout_metrics}
         out = []
         for name, truth, seed, splat in self.render_paths:
             m = by_name[name]
@@ -133,15 +137,14 @@ class SplatResult:
                 {"view": v, "truth": rel(t), "seed": rel(s), "splat": rel(o)} for v, t, s, o in self.render_paths
             ],
             "video": rel(self.video_path),
-            "mesh": {"ply": rel(self.mesh_ply_path), "glb": rel(self.mesh_glb_path)} if self.mesh_ply_path else None,
-            "heldout_views": [v.name for v in self.heldout],
+            "heldout_views": [v.name for v in self.heldout_metrics],
             "heldout_mean": {k: (None if np.isnan(self.mean(k)) else self.mean(k)) for k in keys},
-            "heldout_per_view": [{"name": v.name, **{k: getattr(v, k) for k in keys}} for v in self.heldout],
+            "heldout_per_view": [{"name": v.name, **{k: getattr(v, k) for k in keys}} for v in self.heldout_metrics],
             "iterations": self.iterations,
             "iterations_per_second": self.iterations_per_second,
             "gaussians": {"seed": self.count_seed, "optimized": self.count_optimized, "cleaned": self.count_cleaned},
             "cleaning": self.clean.to_dict(),
-            "timings_s": dict(self.timings),
+            "timings_s": self.timings.to_report(),
         }
 
 
@@ -155,8 +158,15 @@ def image_metrics(rendered: torch.Tensor, truth: torch.Tensor) -> tuple[float, f
     return float(psnr), ssim
 
 
-def render_view(g: Gaussians, cam_from_world: np.ndarray, camera: PinholeCamera, options: SplatOptions) -> torch.Tensor:
-    """``[H, W, 3]`` render of ``g`` on the CPU (no gradient)."""
+def render_view(
+    g: Gaussians,
+    cam_from_world: np.ndarray,
+    camera: PinholeCamera,
+    *,
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    raster: RasterOptions | None = None,
+) -> torch.Tensor:
+    """``[H, W, 3]`` render of ``g`` seen by ``camera`` at ``cam_from_world [3, 4]``, on the CPU (no gradient)."""
     with torch.no_grad():
         out = render(
             g.means,
@@ -168,39 +178,12 @@ def render_view(g: Gaussians, cam_from_world: np.ndarray, camera: PinholeCamera,
             torch.tensor(camera.K, dtype=torch.float32),
             camera.width,
             camera.height,
-            background=torch.tensor(options.background, dtype=torch.float32),
+            background=torch.tensor(background, dtype=torch.float32),
             sh_degree=g.sh_degree,
             with_depth=False,
-            options=options.raster,
+            options=raster or RasterOptions(),
         )
     return out.rgb.clamp(0, 1)
-
-
-def _write_png(path: Path, rgb: torch.Tensor | np.ndarray) -> Path:
-    arr = rgb if isinstance(rgb, np.ndarray) else (rgb.numpy() * 255 + 0.5).astype(np.uint8)
-    cv2.imwrite(str(path), cv2.cvtColor(arr, cv2.COLOR_RGB2BGR))
-    return path
-
-
-def _validate(images, names, cam_from_world, cameras, seed_xyz, seed_rgb) -> None:
-    n = len(images)
-    if not (len(names) == n == len(cameras) == len(cam_from_world)):
-        raise InputError(
-            f"run_splat: {n} images, {len(names)} names, {len(cameras)} cameras, {len(cam_from_world)} poses",
-            "pass one of each per frame",
-        )
-    check_shape("cam_from_world", np.asarray(cam_from_world), (n, 3, 4))
-    check_shape("seed_xyz", np.asarray(seed_xyz), (None, 3))
-    check_shape("seed_rgb", np.asarray(seed_rgb), (len(seed_xyz), 3))
-    require_finite(
-        "splat",
-        cam_from_world=cam_from_world,
-        seed_xyz=seed_xyz,
-        seed_rgb=seed_rgb,
-        intrinsics=np.array([[c.fx, c.fy, c.cx, c.cy] for c in cameras]),
-    )
-    for name, image, cam in zip(names, images, cameras):
-        check_shape(f"image {name}", image, (cam.height, cam.width, 3))
 
 
 def split_views(num: int, holdout_every: int) -> tuple[list[int], list[int]]:
@@ -216,6 +199,7 @@ def split_views(num: int, holdout_every: int) -> tuple[list[int], list[int]]:
 
 
 def resolve_device(device: SplatDevice | str) -> str:
+    """``"cuda"`` or ``"cpu"``: AUTO picks CUDA when CUDA and gsplat are both available."""
     device = SplatDevice(device)
     if device is SplatDevice.CUDA and not gsplat_available():
         raise InputError(
@@ -234,133 +218,114 @@ def run_splat(
     options: SplatOptions,
     out_dir: Path,
 ) -> SplatResult:
-    """Seed, optimise, clean and export a Gaussian splat; measure it on held-out views.
+    """Optimise, clean and export a Gaussian splat from an explicit seed; measure it on held-out views.
 
     Args:
         images: per frame ``[H, W, 3]`` uint8 RGB.
         names: per frame file names (held-out renders are named after their stem).
         cam_from_world: ``[N, 3, 4]`` OpenCV poses; cameras: per frame pinhole intrinsics.
-        seed_xyz: ``[M, 3]`` world points; seed_rgb: ``[M, 3]`` float colours in [0, 1].
+        seed_xyz: ``[M, 3]`` world points; seed_rgb: ``[M, 3]`` float colours in [0, 1]. To keep the
+            held-out PSNR honest, they should come from the training views of :func:`split_views` only.
     """
-    with torch_threads(cpu_threads(options.threads)):
-        return _run_splat(images, names, cam_from_world, cameras, seed_xyz, seed_rgb, options, out_dir)
+    split = split_views(len(images), options.holdout_every)
+    with torch_threads(cpu_threads(options.optimize.threads)):
+        return _splat(images, names, cam_from_world, cameras, seed_xyz, seed_rgb, split, options, out_dir, StageTimer())
 
 
-def _run_splat(
-    images, names, cam_from_world, cameras, seed_xyz, seed_rgb, options: SplatOptions, out_dir: Path
+def run_splat_from_prediction(
+    prediction: Prediction,
+    images: Sequence[np.ndarray],
+    cam_from_world: np.ndarray,
+    cameras: Sequence[PinholeCamera],
+    options: SplatOptions,
+    out_dir: Path,
 ) -> SplatResult:
-    t_start = time.perf_counter()
-    _validate(images, names, cam_from_world, cameras, seed_xyz, seed_rgb)
+    """The splat stage seeded from feed-forward depth: split the views, seed from the training views, optimise.
+
+    Args:
+        prediction: the feed-forward output (depth maps, confidences, names) for the same frames.
+        images: per frame ``[H, W, 3]`` uint8 RGB at the size of ``cameras``.
+        cam_from_world: ``[N, 3, 4]`` OpenCV poses and cameras: per frame intrinsics, the final ones
+            (e.g. after bundle adjustment), in the prediction's world frame and scale.
+
+    Each training view's depth map is unprojected with its final camera (see :func:`prediction_seed`),
+    then :func:`run_splat`'s optimisation follows with the same split.
+    """
+    split = split_views(len(images), options.holdout_every)
+    _validate_views(images, prediction.names, cam_from_world, cameras)
+    timer = StageTimer()
+    with torch_threads(cpu_threads(options.optimize.threads)):
+        with timer.stage("fuse_depth"):
+            xyz, rgb = prediction_seed(prediction, images, cam_from_world, cameras, split[0], options)
+        names = prediction.names
+        return _splat(images, names, cam_from_world, cameras, xyz, rgb, split, options, out_dir, timer)
+
+
+def prediction_seed(
+    prediction: Prediction,
+    images: Sequence[np.ndarray],
+    cam_from_world: np.ndarray,
+    cameras: Sequence[PinholeCamera],
+    frames: Sequence[int],
+    options: SplatOptions,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Seed points from the depth maps of ``frames``, placed with the final cameras.
+
+    Final (refined) cameras sit in the feed-forward world at its scale, so each depth map is
+    unprojected with its frame's final pose and intrinsics: points from different frames then agree
+    where the feed-forward poses did not. Images are resized (``INTER_AREA``) to their depth map's
+    grid where the sizes differ. Returns ``(xyz [M, 3] float64, rgb [M, 3] float32 in [0, 1])``.
+    """
+    pred = dataclasses.replace(prediction, cam_from_world=cam_from_world, cameras=tuple(cameras))
+    small = [
+        im if im.shape[:2] == d.shape else cv2.resize(im, d.shape[::-1], interpolation=cv2.INTER_AREA)
+        for im, d in zip(images, pred.depth)
+    ]
+    return seed_from_prediction(
+        pred, small, max_points=options.max_seed_points, frames=frames, seed=options.optimize.seed
+    )
+
+
+def _splat(
+    images,
+    names,
+    cam_from_world,
+    cameras,
+    seed_xyz,
+    seed_rgb,
+    split,
+    options: SplatOptions,
+    out_dir,
+    timer: StageTimer,
+) -> SplatResult:
+    """Both entries' implementation, from the seed cloud and the ``(train, heldout)`` split on.
+
+    ``timer`` holds what the entry already measured and receives the rest of the steps."""
+    _validate_views(images, names, cam_from_world, cameras)
+    _validate_seed(seed_xyz, seed_rgb)
+    train, heldout = split
     out_dir = Path(out_dir)
-    renders_dir = out_dir / "renders"
-    renders_dir.mkdir(parents=True, exist_ok=True)
-    timings: dict[str, float] = {}
     device = resolve_device(options.device)
-    cam_from_world = np.asarray(cam_from_world, np.float64)
-    train, test = split_views(len(images), options.holdout_every)
-    logger.info("splat: %d training and %d held-out views, device %s", len(train), len(test), device)
-
-    t = time.perf_counter()
-    cap = min(options.max_seed_points, options.max_gaussians)
-    xyz, rgb = reduce_points(
-        np.asarray(seed_xyz, np.float64),
-        np.asarray(seed_rgb, np.float32),
-        voxel_size=None,
-        max_points=cap,
-        seed=options.seed,
+    logger.info("splat: %d training and %d held-out views, device %s", len(train), len(heldout), device)
+    seed, result, cleaned, clean_report = _fit_and_clean(
+        images, cam_from_world, cameras, seed_xyz, seed_rgb, train, options, device, timer
     )
-    seed = initial_gaussians(xyz, rgb, sh_degree=options.sh_degree)
-    scale = scene_scale(cam_from_world[train], xyz)
-    timings["seed"] = time.perf_counter() - t
-
-    targets = [torch.from_numpy(np.ascontiguousarray(im)).float() / 255.0 for im in images]
-    opt = replace(
-        options.optimizer,
-        iterations=options.iterations,
-        max_seconds=options.max_seconds,
-        sh_degree=options.sh_degree,
-        max_gaussians=options.max_gaussians,
-        refine_poses=options.refine_poses,
-        background=options.background,
-        raster=options.raster,
-        device=device,
-        seed=options.seed,
-        progress=options.progress,
-        threads=options.threads,
-    )
-    Ks = np.stack([c.K for c in cameras])
-    result = optimize(seed, targets, cam_from_world, Ks, train, opt, scale=scale)
     poses = result.cam_from_world
-    timings["optimize"] = result.seconds
 
-    t = time.perf_counter()
-    clean_opts = replace(options.clean, crop_box=options.crop_box) if options.crop_box is not None else options.clean
-    cleaned, clean_report = clean_gaussians(result.gaussians, poses[train], [cameras[i] for i in train], clean_opts)
-    timings["clean"] = time.perf_counter() - t
-
-    t = time.perf_counter()
-    heldout, render_paths = [], []
-    for j, i in enumerate(test):
-        views = {
-            key: render_view(g, poses[i], cameras[i], options)
-            for key, g in (("seed", seed), ("optimized", result.gaussians), ("cleaned", cleaned))
-        }
-        m = {key: image_metrics(img, targets[i]) for key, img in views.items()}
-        heldout.append(ViewMetrics(names[i], *m["seed"], *m["optimized"], *m["cleaned"]))
-        if j < options.report_views:
-            stem = Path(names[i]).stem
-            paths = tuple(
-                _write_png(renders_dir / f"{stem}_{kind}.png", img)
-                for kind, img in (("truth", images[i]), ("seed", views["seed"]), ("splat", views["cleaned"]))
-            )
-            render_paths.append((names[i], *paths))
-    timings["evaluate"] = time.perf_counter() - t
-
-    t = time.perf_counter()
-    ply_path = write_splat_ply(out_dir / "splat.ply", cleaned, sh_degree=options.sh_degree)
-    timings["write_ply"] = time.perf_counter() - t
-
-    video_path = None
-    if options.video:
-        from ffrecon.export.video import write_flythrough
-
-        t = time.perf_counter()
-        video_path = write_flythrough(
-            out_dir / "flythrough.mp4",
-            cleaned,
-            poses,
-            cameras[0],
-            num_frames=options.video_frames,
-            background=options.background,
-            raster=options.raster,
-        )
-        timings["video"] = time.perf_counter() - t
-
-    mesh_ply = mesh_glb = None
-    if options.mesh:
-        from ffrecon.export.mesh import write_mesh
-
-        t = time.perf_counter()
-        mesh_ply, mesh_glb = write_mesh(
-            out_dir / "mesh.ply",
-            out_dir / "mesh.glb",
-            np.asarray(seed_xyz, np.float64),
-            np.asarray(seed_rgb, np.float32),
-            camera_centers(poses),
-        )
-        timings["mesh"] = time.perf_counter() - t
-    timings["total"] = time.perf_counter() - t_start
-
+    splats = {"seed": seed, "optimized": result.gaussians, "cleaned": cleaned}
+    with timer.stage("evaluate"):
+        metrics, render_paths = _evaluate_heldout(heldout, names, images, poses, cameras, splats, options, out_dir)
+    ply_path, video_path = _write_outputs(out_dir, cleaned, poses, cameras[0], options, timer)
     res = SplatResult(
         out_dir=out_dir,
         ply_path=ply_path,
-        renders_dir=renders_dir,
-        render_paths=tuple(render_paths),
+        renders_dir=out_dir / "renders",
+        render_paths=render_paths,
         video_path=video_path,
-        mesh_ply_path=mesh_ply,
-        mesh_glb_path=mesh_glb,
+        train=tuple(train),
         heldout=tuple(heldout),
-        timings=timings,
+        heldout_metrics=metrics,
+        timings=timer.freeze(),
         iterations=result.iterations,
         iterations_per_second=result.iterations / max(result.seconds, 1e-9),
         count_seed=len(seed),
@@ -370,7 +335,135 @@ def _run_splat(
         backend="gsplat" if device == "cuda" else "cpu",
         cam_from_world=poses,
     )
-    if heldout:
+    _log_summary(res)
+    return res
+
+
+def _fit_and_clean(
+    images, cam_from_world, cameras, seed_xyz, seed_rgb, train, options: SplatOptions, device: str, timer: StageTimer
+) -> tuple[Gaussians, OptimizeResult, Gaussians, CleanReport]:
+    """Seed Gaussians, optimise them on the ``train`` views, clean the result; adds the step times to ``timer``."""
+    opt = dataclasses.replace(options.optimize, device=device)  # the only optimiser field the stage sets
+    cam_from_world = np.asarray(cam_from_world, np.float64)
+    with timer.stage("seed"):
+        seed, seed_points = _initial_splat(seed_xyz, seed_rgb, options)
+        scale = scene_scale(cam_from_world[train], seed_points)
+
+    targets = [torch.from_numpy(np.ascontiguousarray(im)).float() / 255.0 for im in images]
+    Ks = np.stack([c.K for c in cameras])
+    result = optimize(seed, targets, cam_from_world, Ks, train, opt, scale=scale)
+    timer.add("optimize", result.seconds)  # the optimiser's own clock (callbacks left out)
+
+    poses = result.cam_from_world
+    with timer.stage("clean"):
+        cleaned, report = clean_gaussians(result.gaussians, poses[train], [cameras[i] for i in train], options.clean)
+    return seed, result, cleaned, report
+
+
+def _validate_views(images, names, cam_from_world, cameras) -> None:
+    n = len(images)
+    if not (len(names) == n == len(cameras) == len(cam_from_world)):
+        raise InputError(
+            f"run_splat: {n} images, {len(names)} names, {len(cameras)} cameras, {len(cam_from_world)} poses",
+            "pass one of each per frame",
+        )
+    check_shape("cam_from_world", np.asarray(cam_from_world), (n, 3, 4))
+    require_finite(
+        "splat", cam_from_world=cam_from_world, intrinsics=np.array([[c.fx, c.fy, c.cx, c.cy] for c in cameras])
+    )
+    for name, image, cam in zip(names, images, cameras):
+        check_shape(f"image {name}", image, (cam.height, cam.width, 3))
+
+
+def _validate_seed(seed_xyz, seed_rgb) -> None:
+    check_shape("seed_xyz", np.asarray(seed_xyz), (None, 3))
+    check_shape("seed_rgb", np.asarray(seed_rgb), (len(seed_xyz), 3))
+    require_finite("splat", seed_xyz=seed_xyz, seed_rgb=seed_rgb)
+
+
+def _initial_splat(seed_xyz: np.ndarray, seed_rgb: np.ndarray, options: SplatOptions) -> tuple[Gaussians, np.ndarray]:
+    """The seed cloud reduced to ``min(max_seed_points, optimize.max_gaussians)`` points, as 3DGS
+    Gaussians, and those points (``[M, 3]`` float64)."""
+    o = options.optimize
+    xyz, rgb = reduce_points(
+        np.asarray(seed_xyz, np.float64),
+        np.asarray(seed_rgb, np.float32),
+        voxel_size=None,
+        max_points=min(options.max_seed_points, o.max_gaussians),
+        seed=o.seed,
+    )
+    return initial_gaussians(xyz, rgb, sh_degree=o.sh_degree), xyz
+
+
+def _evaluate_heldout(
+    heldout: Sequence[int],
+    names: Sequence[str],
+    images: Sequence[np.ndarray],
+    poses: np.ndarray,
+    cameras: Sequence[PinholeCamera],
+    splats: dict[str, Gaussians],
+    options: SplatOptions,
+    out_dir: Path,
+) -> tuple[tuple[ViewMetrics, ...], tuple[tuple[str, Path, Path, Path], ...]]:
+    """Metrics of the ``seed``, ``optimized`` and ``cleaned`` splats on each held-out view, and
+    ``renders/<stem>_{truth,seed,splat}.png`` for the first ``report_views`` of them."""
+    renders_dir = out_dir / "renders"
+    renders_dir.mkdir(parents=True, exist_ok=True)
+    o = options.optimize
+    metrics, render_paths = [], []
+    for j, i in enumerate(heldout):
+        truth = torch.from_numpy(np.ascontiguousarray(images[i])).float() / 255.0
+        views = {
+            key: render_view(g, poses[i], cameras[i], background=o.background, raster=o.raster)
+            for key, g in splats.items()
+        }
+        m = {key: image_metrics(img, truth) for key, img in views.items()}
+        metrics.append(ViewMetrics(names[i], *m["seed"], *m["optimized"], *m["cleaned"]))
+        if j < options.report_views:
+            stem = Path(names[i]).stem
+            paths = tuple(
+                _write_png(renders_dir / f"{stem}_{kind}.png", img)
+                for kind, img in (("truth", images[i]), ("seed", views["seed"]), ("splat", views["cleaned"]))
+            )
+            render_paths.append((names[i], *paths))
+    return tuple(metrics), tuple(render_paths)
+
+
+def _write_png(path: Path, rgb: torch.Tensor | np.ndarray) -> Path:
+    arr = rgb if isinstance(rgb, np.ndarray) else (rgb.numpy() * 255 + 0.5).astype(np.uint8)
+    cv2.imwrite(str(path), cv2.cvtColor(arr, cv2.COLOR_RGB2BGR))
+    return path
+
+
+def _write_outputs(
+    out_dir: Path,
+    cleaned: Gaussians,
+    poses: np.ndarray,
+    camera: PinholeCamera,
+    options: SplatOptions,
+    timer: StageTimer,
+) -> tuple[Path, Path | None]:
+    """``splat.ply`` and (when ``options.video``) ``flythrough.mp4``; adds their times to ``timer``."""
+    o = options.optimize
+    with timer.stage("write_ply"):
+        ply_path = write_splat_ply(out_dir / "splat.ply", cleaned, sh_degree=o.sh_degree)
+    if not options.video:
+        return ply_path, None
+    with timer.stage("video"):
+        video_path = write_flythrough(
+            out_dir / "flythrough.mp4",
+            cleaned,
+            poses,
+            camera,
+            num_frames=options.video_frames,
+            background=o.background,
+            raster=o.raster,
+        )
+    return ply_path, video_path
+
+
+def _log_summary(res: SplatResult) -> None:
+    if res.heldout_metrics:
         logger.info(
             "splat: held-out PSNR %.2f -> %.2f dB (cleaned %.2f), SSIM %.3f -> %.3f; %d iterations (%.2f it/s)",
             res.mean("psnr_seed"),
@@ -381,4 +474,3 @@ def _run_splat(
             res.iterations,
             res.iterations_per_second,
         )
-    return res

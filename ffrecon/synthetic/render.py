@@ -154,7 +154,8 @@ def intersect(geometry: Geometry, origin: np.ndarray, dirs: np.ndarray) -> tuple
 def _near_rays(
     origin: np.ndarray, d: list[np.ndarray], dd: np.ndarray, center: np.ndarray, radius: float
 ) -> np.ndarray:
-    """Indices of rays (direction columns ``d``) passing within ``radius`` (plus a margin) of ``center`` ahead of the origin."""
+    """Indices of rays (direction columns ``d``) passing within ``radius`` (plus a margin) of ``center``,
+    ahead of the origin."""
     oc = center - origin
     along = d[0] * oc[0] + d[1] * oc[1] + d[2] * oc[2]
     dist_sq = oc @ oc - along**2 / dd

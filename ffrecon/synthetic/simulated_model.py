@@ -137,10 +137,8 @@ def simulate(scene: SyntheticScene, options: SimulationOptions = SimulationOptio
     for i in range(n):
         depth_err[i] = options.depth_error * _eval_field(fields[i], orig_uv / [w, h])
         err_net = options.depth_error * _eval_field(fields[i], net_uv / [w, h])
-        true_net = render.cast_depth(geometry, scene.cam_from_world[i], scene.camera.K, net_uv.reshape(-1, 2)).reshape(
-            hn, wn
-        )
-        net_depth[i] = true_net * (1 + err_net)
+        true_net = render.cast_depth(geometry, scene.cam_from_world[i], scene.camera.K, net_uv.reshape(-1, 2))
+        net_depth[i] = true_net.reshape(hn, wn) * (1 + err_net)
         net_conf[i] = 1 + (_CONF_MAX - 1) * np.exp(-np.abs(err_net) / max(options.depth_error, 1e-6))
     truth = SimulatedTruth(
         cam_from_world=cam_from_world,
@@ -148,15 +146,24 @@ def simulate(scene: SyntheticScene, options: SimulationOptions = SimulationOptio
         depth=(scene.depth * (1 + depth_err)).astype(np.float32),
         depth_error=depth_err,
     )
-
     K_net = K.copy()
     K_net[:, 0] *= t.scale_x
     K_net[:, 1] *= t.scale_y
+    return truth, _stored_arrays(batch, cam_from_world, K_net, net_depth, net_conf)
+
+
+def _stored_arrays(
+    batch: np.ndarray, cam_from_world: np.ndarray, K_net: np.ndarray, net_depth: np.ndarray, net_conf: np.ndarray
+) -> dict:
+    """What the graph stores per scene frame (see :func:`simulate`), from the network-resolution
+    ``batch [N, 3, Hn, Wn]``, the noisy poses, intrinsics ``K_net [N, 3, 3]`` in network pixels,
+    and the noisy depth and confidence ``[N, Hn, Wn]``."""
+    n, hn, wn = len(batch), *batch.shape[2:]
     pose_enc = encode_pose_enc(cam_from_world, K_net, (hn, wn))
     g = SIGNATURE_GRID
     kh, kw = hn // g, wn // g
     signatures = batch[:, :, : g * kh, : g * kw].reshape(n, 3, g, kh, g, kw).mean(axis=(3, 5)).reshape(n, -1)
-    arrays = {
+    return {
         "batch": batch,
         "signatures": signatures,
         "rot": cam_from_world[:, :, :3],
@@ -168,7 +175,6 @@ def simulate(scene: SyntheticScene, options: SimulationOptions = SimulationOptio
         "conf": net_conf,
         "size_hw": (hn, wn),
     }
-    return truth, arrays
 
 
 def injected_cam_from_first(truth: SimulatedTruth, frames: list[int]) -> np.ndarray:
@@ -184,10 +190,10 @@ def build_simulated_vggt(
 
     The model's input is ``input_images [S, 3, Hn, Wn]`` float32 in [0, 1], the scene's frames
     preprocessed by ``preprocess_vggt(images, PreprocessMode.CROP, options.target_size)``, any subset
-    in any order; its outputs follow CONTRACTS.md section 1. A 24-frame 320x240 scene gives ~40 MB.
-    Input frames are matched to the nearest stored signature, so frames that are not the scene's
-    (or preprocessed differently) silently get some scene frame's outputs; a different input size
-    is refused by onnxruntime (the size is fixed).
+    in any order; its outputs follow the VGGT contract (docs/contracts.md, "Multi-view models"). A
+    24-frame 320x240 scene gives ~40 MB. Input frames are matched to the nearest stored signature, so
+    frames that are not the scene's (or preprocessed differently) silently get some scene frame's
+    outputs; a different input size is refused by onnxruntime (the size is fixed).
     """
     truth, arrays = simulate(scene, options)
     model = _build_graph(arrays)
@@ -218,18 +224,12 @@ def build_simulated_vggt(
 
 
 def _build_graph(arrays: dict) -> onnx.ModelProto:
-    """The ONNX graph described in the module docstring."""
+    """The ONNX graph described in the module docstring, from :func:`simulate`'s ``arrays``."""
     hn, wn = arrays["size_hw"]
     n, p = len(arrays["depth"]), hn * wn
     g = GraphBuilder("ffrecon_simulated_vggt")
     x = g.input("input_images", ["S", 3, hn, wn])
-    grid = SIGNATURE_GRID
-    pooled = g.op("AveragePool", [x], kernel_shape=[hn // grid, wn // grid], strides=[hn // grid, wn // grid])
-    sig = g.op("Flatten", [pooled], axis=1)  # [S, 3 * 8 * 8]
-    stored = arrays["signatures"].astype(np.float32)
-    # Squared distance up to the per-row constant |sig|^2: |stored|^2 - 2 sig . stored.
-    dist = g.op("Add", [g.op("MatMul", [sig, g.const(-2.0 * stored.T)]), g.const((stored**2).sum(1))])
-    idx = g.op("ArgMin", [dist], axis=1, keepdims=0)  # [S] index of the scene frame
+    idx = _frame_index(g, x, arrays["signatures"], (hn, wn))  # [S] index of the scene frame
 
     def gather(name: str, values: np.ndarray) -> str:
         return g.op("Gather", [g.const(values.astype(np.float32), name), idx], axis=0)
@@ -244,36 +244,12 @@ def _build_graph(arrays: dict) -> onnx.ModelProto:
     conf = gather("conf", arrays["conf"].reshape(n, p))
     zero = g.const(np.array(0, np.int64))
     rot0, center0, quat0 = (g.op("Gather", [v, zero], axis=0) for v in (rot, centers, quat))
-
-    # Quaternions: q_rel = q_i (x) conj(q_0) = q_i @ M(conj(q_0)), M linear in its argument.
-    quat0_conj = g.op("Mul", [quat0, g.const(np.array([-1, -1, -1, 1], np.float32))])
-    basis = quat_product_basis().reshape(4, 16).astype(np.float32)
-    mat = g.op(
-        "Reshape",
-        [
-            g.op("MatMul", [g.op("Unsqueeze", [quat0_conj, g.const(np.array([0], np.int64))]), g.const(basis)]),
-            g.const(np.array([4, 4], np.int64)),
-        ],
-    )
-    quat_rel = g.op("MatMul", [quat, mat])
+    quat_rel = _quat_relative_to_first(g, quat, quat0)
     # Translations: t_rel_i = R_i (c_0 - c_i).
     diff = g.op("Sub", [center0, centers])  # [S, 3]
     last = g.const(np.array([-1], np.int64))
     t_rel = g.op("Squeeze", [g.op("MatMul", [rot, g.op("Unsqueeze", [diff, last])]), last])
-    # Points: p_rel = p_cam @ (R_i R_0^T) - (c_0 - c_i) @ R_0^T, rows are points.
-    rot0_t = g.op("Transpose", [rot0], perm=[1, 0])
-    to_first = g.op("MatMul", [rot, rot0_t])  # [S, 3, 3]
-    offset = g.op("Neg", [g.op("MatMul", [diff, rot0_t])])  # [S, 3]
-    u = (np.arange(wn) + 0.5 - wn / 2).astype(np.float32)
-    v = (np.arange(hn) + 0.5 - hn / 2).astype(np.float32)
-    u_grid = g.const(np.tile(u, hn)[None], "u_minus_cx")  # [1, P]
-    v_grid = g.const(np.repeat(v, wn)[None], "v_minus_cy")
-    split = g.op("Split", [inv_f], axis=1, n_out=2)
-    ray_x, ray_y = g.op("Mul", [u_grid, split[0]]), g.op("Mul", [v_grid, split[1]])
-    comps = [g.op("Unsqueeze", [g.op("Mul", [r, depth]), last]) for r in (ray_x, ray_y)]
-    p_cam = g.op("Concat", comps + [g.op("Unsqueeze", [depth, last])], axis=-1)  # [S, P, 3]
-    one = g.const(np.array([1], np.int64))
-    p_rel = g.op("Add", [g.op("MatMul", [p_cam, to_first]), g.op("Unsqueeze", [offset, one])])
+    p_rel = _points_in_first_camera(g, rot, rot0, diff, depth, inv_f, last, (hn, wn))  # [S, P, 3]
     # Scale: mean distance of all the call's points from the first camera, as VGGT normalises; so
     # any two calls differ by a similarity, and a chunked run must recover it from shared frames.
     radius = g.op("Sqrt", [g.op("ReduceSum", [g.op("Mul", [p_rel, p_rel]), last], keepdims=0)])  # [S, P]
@@ -288,12 +264,70 @@ def _build_graph(arrays: dict) -> onnx.ModelProto:
     g.output(g.op("Reshape", [conf, shape4]), "depth_conf", [1, "S", hn, wn])
     shape_pts = g.const(np.array([1, -1, hn, wn, 3], np.int64))
     g.output(g.op("Reshape", [g.op("Mul", [p_rel, inv_scale]), shape_pts]), "world_points", [1, "S", hn, wn, 3])
-    point_conf = g.op(
-        "Add", [g.op("Mul", [conf, g.const(np.float32(0.8))]), g.const(np.float32(0.2))]
-    )  # a little less sure
+    # The point head is a little less sure than the depth head.
+    point_conf = g.op("Add", [g.op("Mul", [conf, g.const(np.float32(0.8))]), g.const(np.float32(0.2))])
     g.output(g.op("Reshape", [point_conf, shape4]), "world_points_conf", [1, "S", hn, wn])
     g.output(g.op("Unsqueeze", [x, batch0]), "images", [1, "S", 3, hn, wn])
     return g.model(opset=17)
+
+
+def _frame_index(g: GraphBuilder, x: str, signatures: np.ndarray, size_hw: tuple[int, int]) -> str:
+    """Nodes giving ``[S]`` int64: the stored frame whose signature is nearest each input frame's."""
+    hn, wn = size_hw
+    grid = SIGNATURE_GRID
+    pooled = g.op("AveragePool", [x], kernel_shape=[hn // grid, wn // grid], strides=[hn // grid, wn // grid])
+    sig = g.op("Flatten", [pooled], axis=1)  # [S, 3 * 8 * 8]
+    stored = signatures.astype(np.float32)
+    # Squared distance up to the per-row constant |sig|^2: |stored|^2 - 2 sig . stored.
+    dist = g.op("Add", [g.op("MatMul", [sig, g.const(-2.0 * stored.T)]), g.const((stored**2).sum(1))])
+    return g.op("ArgMin", [dist], axis=1, keepdims=0)
+
+
+def _quat_relative_to_first(g: GraphBuilder, quat: str, quat0: str) -> str:
+    """Nodes giving ``[S, 4]`` xyzw: each frame's rotation relative to the first frame's."""
+    # q_rel = q_i (x) conj(q_0) = q_i @ M(conj(q_0)), M linear in its argument.
+    quat0_conj = g.op("Mul", [quat0, g.const(np.array([-1, -1, -1, 1], np.float32))])
+    basis = quat_product_basis().reshape(4, 16).astype(np.float32)
+    mat = g.op(
+        "Reshape",
+        [
+            g.op("MatMul", [g.op("Unsqueeze", [quat0_conj, g.const(np.array([0], np.int64))]), g.const(basis)]),
+            g.const(np.array([4, 4], np.int64)),
+        ],
+    )
+    return g.op("MatMul", [quat, mat])
+
+
+def _points_in_first_camera(
+    g: GraphBuilder,
+    rot: str,
+    rot0: str,
+    diff: str,
+    depth: str,
+    inv_f: str,
+    last: str,
+    size_hw: tuple[int, int],
+) -> str:
+    """Nodes giving ``[S, P, 3]``: each frame's unprojected depth in the first frame's camera.
+
+    ``diff`` is ``c_0 - c_i`` ``[S, 3]``, ``inv_f`` the inverse focal lengths ``[S, 2]``, ``last`` the
+    constant ``[-1]``; pixel rays follow the COLMAP pixel-centre rule about the image centre.
+    """
+    hn, wn = size_hw
+    # Points: p_rel = p_cam @ (R_i R_0^T) - (c_0 - c_i) @ R_0^T, rows are points.
+    rot0_t = g.op("Transpose", [rot0], perm=[1, 0])
+    to_first = g.op("MatMul", [rot, rot0_t])  # [S, 3, 3]
+    offset = g.op("Neg", [g.op("MatMul", [diff, rot0_t])])  # [S, 3]
+    u = (np.arange(wn) + 0.5 - wn / 2).astype(np.float32)
+    v = (np.arange(hn) + 0.5 - hn / 2).astype(np.float32)
+    u_grid = g.const(np.tile(u, hn)[None], "u_minus_cx")  # [1, P]
+    v_grid = g.const(np.repeat(v, wn)[None], "v_minus_cy")
+    split = g.op("Split", [inv_f], axis=1, n_out=2)
+    ray_x, ray_y = g.op("Mul", [u_grid, split[0]]), g.op("Mul", [v_grid, split[1]])
+    comps = [g.op("Unsqueeze", [g.op("Mul", [r, depth]), last]) for r in (ray_x, ray_y)]
+    p_cam = g.op("Concat", comps + [g.op("Unsqueeze", [depth, last])], axis=-1)  # [S, P, 3]
+    one = g.const(np.array([1], np.int64))
+    return g.op("Add", [g.op("MatMul", [p_cam, to_first]), g.op("Unsqueeze", [offset, one])])
 
 
 def prediction_from_truth(

@@ -1,10 +1,10 @@
 """Procedural textures for the synthetic scenes.
 
 Textures are float32 RGB images in [0, 1], sized in texels; the scene decides how many texels one
-world unit of each surface gets. The rich texture is built for two consumers: SIFT wants distinctive, non-repeating detail and
-the splat optimiser wants detail it can fit, so features span roughly 3 to 40 texels (smooth
-multi-octave value noise, soft-edged discs, rectangles, stripes and letters) and there is no
-texel-level white noise.
+world unit of each surface gets. The rich texture is built for two consumers: SIFT wants distinctive,
+non-repeating detail and the splat optimiser wants detail it can fit, so features span roughly 3 to
+40 texels (smooth multi-octave value noise, soft-edged discs, rectangles, stripes and letters) and
+there is no texel-level white noise.
 """
 
 from __future__ import annotations

@@ -1,4 +1,6 @@
-"""Capture: formats, bit depths, EXIF orientation and focal length, video frames, bad input."""
+"""Capture: formats, bit depths, EXIF orientation and focal length, video frames, quality flags, bad input."""
+
+import pickle
 
 import cv2
 import numpy as np
@@ -7,6 +9,7 @@ from PIL import Image, ImageOps
 
 from ffrecon.capture import CaptureOptions, run_capture
 from ffrecon.capture.images import load_image
+from ffrecon.capture.quality import assess_capture, measure_frame
 from ffrecon.capture.video import extract_video_frames
 from ffrecon.errors import InputError
 
@@ -91,6 +94,9 @@ def test_video_keeps_sharpest_frame_per_window(tmp_path):
     writer.release()
     frames = extract_video_frames(path, 2)
     assert [n for n, _ in frames] == ["clip_000002.png", "clip_000007.png"]
+    cap = run_capture(path, CaptureOptions(video_frames=2), tmp_path / "out")
+    assert cap.is_video and cap.names == ("clip_000002.png", "clip_000007.png")
+    assert [f.size_wh for f in cap.frames] == [(80, 60)] * 2 and cap.read_images()[1].shape == (60, 80, 3)
 
 
 def test_folder_capture_writes_images_and_flags_blur(tmp_path):
@@ -105,6 +111,51 @@ def test_folder_capture_writes_images_and_flags_blur(tmp_path):
     assert cap.names == ("im0.png", "im1.png", "im2.png", "im3.png")
     assert all((tmp_path / "out" / "images" / n).is_file() for n in cap.names)
     assert cap.quality.flagged("blur") == ["im2.png"]
+
+
+def test_frames_hold_paths_and_read_back_the_loaded_pixels(tmp_path):
+    src = tmp_path / "in"
+    src.mkdir()
+    upright = Image.Exif()
+    upright[0x0112] = 1  # EXIF that says "upright": the file is copied byte for byte, EXIF and all
+    Image.fromarray(_pattern(60, 80, seed=1)).save(src / "a_copied.jpg", exif=upright, quality=95)
+    rotated = Image.fromarray(_pattern(60, 80, seed=2))
+    exif = rotated.getexif()
+    exif[0x0112] = 6  # rotate 90 degrees clockwise on display: converted, written upright without EXIF
+    rotated.save(src / "b_rotated.png", exif=exif)
+    cap = run_capture(src, CaptureOptions(), tmp_path / "out")
+    copied, turned = cap.frames
+    assert copied.path.read_bytes() == (src / "a_copied.jpg").read_bytes()
+    assert copied.size_wh == (80, 60) and turned.size_wh == (60, 80)
+    assert np.array_equal(copied.read_rgb(), load_image(src / "a_copied.jpg")[0])
+    assert np.array_equal(turned.read_rgb(), load_image(src / "b_rotated.png")[0])  # rotated once, not twice
+    assert [im.shape for im in cap.read_images([1, 0])] == [(80, 60, 3), (60, 80, 3)]
+    assert len(pickle.dumps(cap)) < 4000  # names, paths, sizes and per-frame numbers: no pixels
+    cv2.imwrite(str(turned.path), np.zeros((80, 80, 3), np.uint8))
+    with pytest.raises(InputError, match="b_rotated.png .* is 80x80, expected 60x80"):
+        turned.read_rgb()
+    copied.path.unlink()
+    with pytest.raises(InputError, match="cannot read frame a_copied.jpg"):
+        copied.read_rgb()
+
+
+def test_blur_is_told_from_faint_texture_and_exposure():
+    sharp = [_pattern(120, 160, seed=k) for k in range(5)]
+    images = [
+        sharp[0],
+        cv2.GaussianBlur(sharp[1], (0, 0), 3),  # blurred
+        (sharp[2] * 0.4).astype(np.uint8),  # under-exposed, still sharp
+        (sharp[3] * 0.03 + 120).astype(np.uint8),  # nearly uniform: little texture, not blur
+        sharp[4],
+    ]
+    names = [f"{k}.png" for k in range(5)]
+    measures = [measure_frame(img) for img in images]
+    quality = assess_capture(names, measures)
+    assert quality.flagged("blur") == ["1.png"]
+    assert quality.flagged("texture") == ["3.png"]
+    assert quality.flagged("exposure") == ["2.png"]
+    assert quality.edge_sharpness[2] == pytest.approx(quality.edge_sharpness[0], rel=0.1)  # contrast-invariant
+    assert quality.names == tuple(names) and quality.to_report()["edge_sharpness"][1] < 0.05
 
 
 def test_bad_inputs_have_clear_messages(tmp_path):

@@ -9,18 +9,30 @@ import numpy as np
 import pycolmap
 import pytest
 
-from ffrecon.errors import GateFailed
+from ffrecon.capture import CaptureOptions, run_capture
+from ffrecon.capture.quality import assess_capture, measure_frame
 from ffrecon.sfm.crosscheck import ColmapOptions, run_colmap
-from ffrecon.sfm.gates import FailureCause, GateOptions, GateStatus, check_gates, evaluate_gates, sparse_cloud_gate
+from ffrecon.sfm.gates import (
+    FailureCause,
+    GateOptions,
+    GatesResult,
+    GateStatus,
+    diagnose_registration,
+    evaluate_gates,
+    run_gates,
+    sparse_cloud_gate,
+)
 from ffrecon.synthetic import SceneOptions, Texture, make_scene, write_scene
 
 
 def test_good_capture_passes_every_gate(orbit24, colmap24):
-    verdicts = evaluate_gates(colmap=colmap24[0], prediction=orbit24.prediction, image_dir=orbit24.image_dir)
+    quality = assess_capture(orbit24.scene.names, [measure_frame(img) for img in orbit24.scene.images])
+    assert quality.flags == ()  # the demo's scene: no capture flag either
+    verdicts = evaluate_gates(colmap=colmap24[0], prediction=orbit24.prediction, quality=quality)
     assert [v.name for v in verdicts] == ["registration", "sparse_cloud", "depth_coverage"]
     assert all(v.status is GateStatus.PASS for v in verdicts), [v.reason for v in verdicts]
     assert verdicts[0].value == 1.0 and verdicts[0].threshold == 0.85
-    check_gates(verdicts)  # no exception
+    assert not GatesResult(tuple(verdicts), forced=False).blocking
     assert verdicts[1].to_report()["status"] == "pass"
 
 
@@ -36,18 +48,30 @@ def test_bad_capture_fails_registration_fast_and_names_the_cause(scene_options, 
     scene = make_scene(scene_options)
     image_dir = write_scene(scene, tmp_path / "scene")
     start = time.perf_counter()
+    capture = run_capture(image_dir, CaptureOptions(), tmp_path / "out")
+    assert set(capture.quality.flagged(cause.value)) == set(scene.names)  # flagged at capture already
     colmap = run_colmap(image_dir, scene.names, ColmapOptions(), tmp_path / "colmap", focal_prior_px=scene.camera.fx)
-    verdicts = evaluate_gates(colmap=colmap, prediction=None, image_dir=image_dir)
+    gates = run_gates(colmap=colmap, prediction=None, quality=capture.quality)
+    verdicts = gates.verdicts
     elapsed = time.perf_counter() - start
     registration = verdicts[0]
     assert registration.status is GateStatus.FAIL
     assert registration.causes[0] is cause
     assert word in registration.reason and word in registration.fix
     assert elapsed < 120  # "within minutes", measured on 2 shared cores: a few seconds
-    with pytest.raises(GateFailed) as info:
-        check_gates(verdicts)
-    assert info.value.exit_code == 5 and "registration" in str(info.value)
-    check_gates(verdicts, force=True)  # forced: logged, not raised
+    assert gates.blocking and gates.failed == (registration,)
+    assert not run_gates(colmap=colmap, prediction=None, quality=capture.quality, force=True).blocking
+
+
+def test_diagnosis_uses_capture_flags_of_the_images_colmap_saw():
+    scene = make_scene(SceneOptions(num_frames=6, width=160, height=120, textureless_frames=(0, 1)))
+    quality = assess_capture(scene.names, [measure_frame(img) for img in scene.images])
+    assert quality.flagged("texture") == list(scene.names[:2]) and not quality.flagged("blur")
+    options = GateOptions()
+    assert diagnose_registration(quality, scene.names, 1000, options) == (FailureCause.TEXTURE,)  # 2 of 6 >= 30%
+    assert diagnose_registration(quality, scene.names[2:], 1000, options) == (FailureCause.OVERLAP,)
+    assert diagnose_registration(None, scene.names, 1000, options) == (FailureCause.OVERLAP,)
+    assert diagnose_registration(None, scene.names, 10, options) == (FailureCause.BLUR, FailureCause.TEXTURE)
 
 
 def _copy(rec: pycolmap.Reconstruction) -> pycolmap.Reconstruction:

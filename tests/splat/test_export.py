@@ -10,16 +10,12 @@ import trimesh
 from plyfile import PlyData
 
 from ffrecon.export.mesh import write_mesh
-from ffrecon.export.splat_ply import (
-    read_splat_ply,
-    splat_property_names,
-    write_splat_ply,
-)
-from ffrecon.export.video import smooth_camera_path, write_flythrough
 from ffrecon.geometry.poses import camera_centers, look_at_cam_from_world
 from ffrecon.geometry.rotations import rotation_angle_deg
 from ffrecon.splat.gaussians import Gaussians, rgb_to_sh_dc
+from ffrecon.splat.ply import read_splat_ply, splat_property_names, write_splat_ply
 from ffrecon.splat.render import render
+from ffrecon.splat.video import smooth_camera_path, write_flythrough
 from ffrecon.types import PinholeCamera
 
 from .reference import random_scene

@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
 from ffrecon.geometry.poses import look_at_cam_from_world
 from ffrecon.geometry.rotations import axis_angle_to_matrix, rotation_angle_deg
-from ffrecon.splat.densify import Adam, Densifier, DensifyOptions
+from ffrecon.splat.densify import Densifier, DensifyOptions, replace_rows
 from ffrecon.splat.gaussians import Gaussians, rgb_to_sh_dc
 from ffrecon.splat.optimize import OptimizeOptions, optimize, ssim_map
 from ffrecon.splat.render import render
@@ -136,14 +137,33 @@ def test_densifier_clones_splits_and_prunes():
     assert keep.tolist() == [True, True, False, True, True, False]
     assert num_new == 3 and len(new) == 4 + 3  # 0 cloned once, 2 replaced by two samples
     assert torch.allclose(new.log_scales[-1], torch.full((3,), float(np.log(0.5) - np.log(1.6))))
-    adam = Adam({"means": g.means.clone().requires_grad_(True)}, {"means": 0.1})
-    adam.m["means"] += 1.0
-    adam.rebuild({"means": new.means.clone().requires_grad_(True)}, keep, num_new)
-    assert (
-        adam.m["means"].shape == (7, 3)
-        and float(adam.m["means"][:4].min()) == 1.0
-        and float(adam.m["means"][4:].abs().max()) == 0.0
-    )
+
+
+def test_replace_rows_carries_the_adam_moments_of_kept_rows():
+    means = torch.zeros(6, 3, requires_grad=True)
+    pose = torch.zeros(4, 3, requires_grad=True)
+    adam = torch.optim.Adam([{"params": [means], "lr": 0.1, "name": "means"}, {"params": [pose], "name": "pose"}])
+    for _ in range(2):
+        means.grad = torch.arange(6.0)[:, None].expand(6, 3).clone()
+        pose.grad = torch.ones(4, 3)
+        adam.step()
+    before = {k: v.clone() for k, v in adam.state[means].items()}
+    pose_state = adam.state[pose]
+    keep = torch.tensor([True, True, False, True, True, False])
+    new = torch.ones(7, 3, requires_grad=True)
+    replace_rows(adam, {"means": new}, keep, num_new=3)
+    assert adam.param_groups[0]["params"] == [new] and means not in adam.state
+    state = adam.state[new]
+    for key in ("exp_avg", "exp_avg_sq"):
+        assert state[key].shape == (7, 3)
+        assert torch.equal(state[key][:4], before[key][keep]) and float(state[key][4:].abs().max()) == 0.0
+    assert float(state["step"]) == 2.0
+    assert adam.param_groups[1]["params"] == [pose] and adam.state[pose] is pose_state  # not resized
+    new.grad = torch.ones(7, 3)
+    adam.step()  # the optimiser goes on with the new tensor
+    assert float(adam.state[new]["step"]) == 3.0 and bool((new < 1).all())
+    with pytest.raises(ValueError):
+        replace_rows(adam, {"means": torch.zeros(5, 3, requires_grad=True)}, torch.ones(7, dtype=torch.bool), 1)
 
 
 def test_ssim_map_matches_kornia_inside_the_border():

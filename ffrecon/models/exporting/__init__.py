@@ -90,6 +90,7 @@ def export_model(options: ExportOptions) -> ExportReport:
         missing = getattr(exc, "name", None) or str(exc)
         raise InputError(
             f"building {options.family} needs the Python package '{missing}', which is not installed",
-            f"pip install 'ffrecon[export]'; if '{missing}' is not among its packages, install it (pip install {missing})",
+            f"pip install 'ffrecon[export]'; if '{missing}' is not among its packages, "
+            f"install it (pip install {missing})",
         ) from exc
     return export_spec(spec, options)

@@ -108,12 +108,14 @@ class ExportReport:
     def summary(self) -> str:
         lines = [f"wrote {p} ({p.stat().st_size / 2**20:.1f} MiB)" for p in self.files]
         lines.append(
-            f"{self.parameters / 1e6:.1f} M parameters; export {self.export_seconds:.0f} s, verification {self.verify_seconds:.0f} s, peak memory {self.peak_rss_gb:.1f} GB"
+            f"{self.parameters / 1e6:.1f} M parameters; export {self.export_seconds:.0f} s, "
+            f"verification {self.verify_seconds:.0f} s, peak memory {self.peak_rss_gb:.1f} GB"
         )
         if self.worst_difference is not None:
             per = ", ".join(f"{k} {v:.1e}" for k, v in self.differences.items())
             lines.append(
-                f"onnxruntime vs PyTorch at {self.verify_count} frames/pairs: worst relative difference {self.worst_difference:.2e} ({per})"
+                f"onnxruntime vs PyTorch at {self.verify_count} frames/pairs: "
+                f"worst relative difference {self.worst_difference:.2e} ({per})"
             )
         return "\n".join(lines)
 
@@ -160,13 +162,52 @@ def export_spec(spec: ExportSpec, options: ExportOptions) -> ExportReport:
         options.opset,
     )
     start = time.perf_counter()
-    with tempfile.TemporaryDirectory(dir=out.parent, prefix=".export-") as tmp:
+    model, warm = _trace(spec, example, options.opset, out.parent)
+    _declare_output_shapes(model, warm, spec.dynamic_axes)
+    if options.fp16:
+        try:
+            from onnxconverter_common import float16
+        except ImportError as exc:
+            raise FFReconError("--fp16 needs onnxconverter-common", "pip install 'ffrecon[export]'") from exc
+        model = _to_fp16(model, float16)
+    onnx.helper.set_model_props(model, _metadata(spec, options, params))
+    files = _save(model, out)
+    del model  # the proto holds a copy of every weight: free it before the verification runs the model twice
+    export_seconds = time.perf_counter() - start
+    differences: dict[str, float] = {}
+    verify_seconds = 0.0
+    count = options.count + 1  # another count than the traced one: checks that it really is dynamic
+    if options.verify:
+        start = time.perf_counter()
+        differences = verify(spec, out, spec.make_inputs(count, rng))
+        verify_seconds = time.perf_counter() - start
+        _require_within_tolerance(differences, count, options.fp16)
+    return ExportReport(
+        tuple(files),
+        max(differences.values()) if differences else None,
+        differences,
+        count,
+        export_seconds,
+        verify_seconds,
+        peak_rss_gb(),
+        params,
+    )
+
+
+def _trace(spec: ExportSpec, example: tuple[torch.Tensor, ...], opset: int, tmp_parent: Path):
+    """Trace ``spec.module`` on ``example`` into an ONNX proto; also return PyTorch's outputs on it.
+
+    The module runs once before the trace: that fills the size-dependent caches (see ``patches``).
+    The exporter writes to a temporary folder under ``tmp_parent`` (it may write external weight
+    files next to the graph), which is loaded back and removed.
+    """
+    import onnx
+
+    with tempfile.TemporaryDirectory(dir=tmp_parent, prefix=".export-") as tmp:
         raw = Path(tmp) / "raw.onnx"
         context = spec.trace_context(spec.module) if spec.trace_context else contextlib.nullcontext()
         with torch.no_grad(), context:
-            warm = torch_outputs(
-                spec, tuple(x.numpy() for x in example)
-            )  # fills the size-dependent caches (see patches)
+            warm = torch_outputs(spec, tuple(x.numpy() for x in example))
             try:
                 with export_rewrites():
                     torch.onnx.export(
@@ -176,23 +217,22 @@ def export_spec(spec: ExportSpec, options: ExportOptions) -> ExportReport:
                         input_names=list(spec.input_names),
                         output_names=list(spec.output_names),
                         dynamic_axes=spec.dynamic_axes,
-                        opset_version=options.opset,
+                        opset_version=opset,
                         dynamo=False,
                     )
             except Exception as exc:  # the exporter raises many types; all mean "this graph did not export"
                 raise ModelError(
                     f"the ONNX exporter failed on {spec.family}: {str(exc).splitlines()[0]}",
-                    "this upstream version uses an operator ffrecon does not rewrite yet; report it with the upstream commit",
+                    "this upstream version uses an operator ffrecon does not rewrite yet; "
+                    "report it with the upstream commit",
                 ) from exc
         model = onnx.load(str(raw))  # also reads external weight files the exporter wrote
-    _declare_output_shapes(model, warm, spec.dynamic_axes)
-    if options.fp16:
-        try:
-            from onnxconverter_common import float16
-        except ImportError as exc:
-            raise FFReconError("--fp16 needs onnxconverter-common", "pip install 'ffrecon[export]'") from exc
-        model = _to_fp16(model, float16)
-    metadata = {
+    return model, warm
+
+
+def _metadata(spec: ExportSpec, options: ExportOptions, params: int) -> dict[str, str]:
+    """The ``ffrecon.*`` metadata properties the runner detects families by and inspect-model shows."""
+    return {
         "ffrecon.contract": spec.contract,
         "ffrecon.family": spec.family,
         "ffrecon.description": spec.description + (", fp16" if options.fp16 else ", fp32"),
@@ -207,34 +247,19 @@ def export_spec(spec: ExportSpec, options: ExportOptions) -> ExportReport:
         "ffrecon.parameters": str(params),
         **spec.extra_metadata,
     }
-    onnx.helper.set_model_props(model, metadata)
-    files = _save(model, out)
-    del model  # the proto holds a copy of every weight: free it before the verification runs the model twice
-    export_seconds = time.perf_counter() - start
-    differences: dict[str, float] = {}
-    verify_seconds = 0.0
-    count = options.count + 1  # another count than the traced one: checks that it really is dynamic
-    if options.verify:
-        start = time.perf_counter()
-        differences = verify(spec, out, spec.make_inputs(count, rng))
-        verify_seconds = time.perf_counter() - start
-        worst = max(differences.values())
-        tolerance = FP16_TOLERANCE if options.fp16 else FP32_TOLERANCE
-        if not worst <= tolerance:
-            raise ModelError(
-                f"onnxruntime and PyTorch differ by up to {worst:.2e} at {count} frames/pairs (tolerance {tolerance:.0e}): {differences}",
-                "the traced graph does not generalise; export with --frames equal to the chunk size you will run, and report the upstream commit",
-            )
-    return ExportReport(
-        tuple(files),
-        max(differences.values()) if differences else None,
-        differences,
-        count,
-        export_seconds,
-        verify_seconds,
-        peak_rss_gb(),
-        params,
-    )
+
+
+def _require_within_tolerance(differences: dict[str, float], count: int, fp16: bool) -> None:
+    """Raise :class:`ModelError` if onnxruntime and PyTorch differ by more than the precision allows."""
+    worst = max(differences.values())
+    tolerance = FP16_TOLERANCE if fp16 else FP32_TOLERANCE
+    if not worst <= tolerance:
+        raise ModelError(
+            f"onnxruntime and PyTorch differ by up to {worst:.2e} at {count} frames/pairs "
+            f"(tolerance {tolerance:.0e}): {differences}",
+            "the traced graph does not generalise; export with --frames equal to the chunk size you will run, "
+            "and report the upstream commit",
+        )
 
 
 def verify(spec: ExportSpec, path: Path, inputs: tuple[np.ndarray, ...]) -> dict[str, float]:

@@ -195,7 +195,10 @@ def plausible_fov(net: torch.nn.Module, size_hw: tuple[int, int], fov_w_deg: flo
     fov_h = 2 * math.atan(math.tan(fov_w / 2) * h / w)
     with torch.no_grad():
         net.cam_dec.fc_fov[0].bias.copy_(torch.tensor([fov_h, fov_w]))
-    return f"random weights; camera decoder fc_fov bias set to fov_h/fov_w {math.degrees(fov_h):.1f}/{fov_w_deg:.1f} deg so the untrained decoder gives a plausible focal"
+    return (
+        f"random weights; camera decoder fc_fov bias set to fov_h/fov_w {math.degrees(fov_h):.1f}/{fov_w_deg:.1f} deg "
+        "so the untrained decoder gives a plausible focal"
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -295,7 +298,8 @@ def export_rewrites(upstream: Path | None) -> Iterator[None]:
     da3 = import_upstream("depth_anything_3.model.da3", upstream, family="depth_anything_3")
     if vit.THRESH_FOR_REF_SELECTION != REF_SELECTION_MIN_FRAMES:
         raise InputError(
-            f"this depth_anything_3 selects a reference view from {vit.THRESH_FOR_REF_SELECTION} frames, ffrecon's rewrite from {REF_SELECTION_MIN_FRAMES}",
+            f"this depth_anything_3 selects a reference view from {vit.THRESH_FOR_REF_SELECTION} frames, "
+            f"ffrecon's rewrite from {REF_SELECTION_MIN_FRAMES}",
             "install depth-anything-3==0.1.1, or report the version you use",
         )
     view_selection = {
@@ -322,7 +326,8 @@ def build(options: ExportOptions, size_hw: tuple[int, int]) -> ExportSpec:
     net, name = build_net(options)
     net = net.eval().float()
     notes = [
-        f"reference view strategy {REF_VIEW_STRATEGY} from {REF_SELECTION_MIN_FRAMES} frames (upstream's default): extrinsics are relative to the chosen view"
+        f"reference view strategy {REF_VIEW_STRATEGY} from {REF_SELECTION_MIN_FRAMES} frames (upstream's default): "
+        "extrinsics are relative to the chosen view"
     ]
     if options.checkpoint is None and not options.keep_untrained_heads:
         notes.append(plausible_fov(net, size_hw))
@@ -338,7 +343,8 @@ def build(options: ExportOptions, size_hw: tuple[int, int]) -> ExportSpec:
         make_inputs=lambda n, rng: (random_images(n, size_hw, rng),),
         size_hw=size_hw,
         contract="da3",
-        description=f"Depth Anything 3 ({name}, weights: {options.weights}) exported by ffrecon export-model, input {w}x{h}",
+        description=f"Depth Anything 3 ({name}, weights: {options.weights}) exported by ffrecon export-model, "
+        f"input {w}x{h}",
         notes=notes,
         extra_metadata={"ffrecon.da3.config": name, "ffrecon.da3.ref_view_strategy": REF_VIEW_STRATEGY},
         trace_context=trace_context(options.upstream),

@@ -1,4 +1,5 @@
-"""DUSt3R (naver/dust3r) and MASt3R (naver/mast3r) to ONNX with the pairwise contract (CONTRACTS.md section 2).
+"""DUSt3R (naver/dust3r) and MASt3R (naver/mast3r) to ONNX with the pairwise contract
+(docs/contracts.md, "Pairwise models").
 
 Inputs ``view1``, ``view2``: ``[B, 3, H, W]`` float32 RGB normalised to [-1, 1] (``(x / 255 - 0.5) / 0.5``),
 preprocessed by :func:`ffrecon.models.pairwise.preprocess_pairwise` (upstream's ``load_images``).
@@ -255,7 +256,8 @@ def load_checkpoint(options: ExportOptions) -> torch.nn.Module:
     if not path.exists() and (path.suffix in WEIGHT_SUFFIXES or str(options.checkpoint).startswith((".", "/", "~"))):
         raise InputError(
             f"no checkpoint at {path}",
-            "pass the .pth file you downloaded (see docs/models.md), or a Hugging Face id such as naver/DUSt3R_ViTLarge_BaseDecoder_512_dpt",
+            "pass the .pth file you downloaded (see docs/models.md), "
+            "or a Hugging Face id such as naver/DUSt3R_ViTLarge_BaseDecoder_512_dpt",
         )
     if (path.is_dir() and (path / "config.json").is_file()) or not path.exists():
         log.info("loading %s with upstream from_pretrained(%s)", options.family, options.checkpoint)
@@ -322,7 +324,8 @@ def build_model(options: ExportOptions) -> tuple[torch.nn.Module, list[str]]:
     if note:
         notes.append(note)
     notes.append(
-        "heads called at the export's HxW (upstream's landscape_only=False path); rotary tables and int(positions.max()) frozen at HxW; expm1 as exp - 1"
+        "heads called at the export's HxW (upstream's landscape_only=False path); "
+        "rotary tables and int(positions.max()) frozen at HxW; expm1 as exp - 1"
     )
     return model.eval().float(), notes
 
@@ -376,7 +379,8 @@ def build(options: ExportOptions, size_hw: tuple[int, int]) -> ExportSpec:
         ),
         size_hw=size_hw,
         contract="pairwise",
-        description=f"{label} ({kind}, weights: {options.weights}) exported by ffrecon export-model, input {size_hw[1]}x{size_hw[0]}",
+        description=f"{label} ({kind}, weights: {options.weights}) exported by ffrecon export-model, "
+        f"input {size_hw[1]}x{size_hw[0]}",
         notes=notes,
         extra_metadata={"ffrecon.descriptor_dim": str(desc_dim)} if descriptors else {},
         trace_context=trace_context(size_hw),

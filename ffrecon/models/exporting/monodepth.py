@@ -114,7 +114,8 @@ def load_checkpoint(folder: Path) -> tuple[torch.nn.Module, dict]:
     if not (folder / "config.json").is_file():
         raise InputError(
             f"{folder} is not a downloaded Hugging Face model folder (no config.json)",
-            "download the whole model folder, e.g. `hf download depth-anything/Depth-Anything-V2-Small-hf --local-dir DA2S`",
+            "download the whole model folder, "
+            "e.g. `hf download depth-anything/Depth-Anything-V2-Small-hf --local-dir DA2S`",
         )
     architectures = json.loads((folder / "config.json").read_text()).get("architectures") or []
     if not set(architectures) & set(SUPPORTED):
@@ -183,7 +184,8 @@ def build(options: ExportOptions, size_hw: tuple[int, int]) -> ExportSpec:
         make_inputs=lambda n, rng: (random_images(n, size_hw, rng),),
         size_hw=size_hw,
         contract="monodepth",
-        description=f"monocular depth ({name}, {kind}, weights: {options.weights}) exported by ffrecon export-model, input {w}x{h}",
+        description=f"monocular depth ({name}, {kind}, weights: {options.weights}) exported by ffrecon export-model, "
+        f"input {w}x{h}",
         notes=[f"normalisation mean {mean} std {std} inside the file; output {kind.replace('_', ' ')} depth"],
         extra_metadata=metadata,
     )

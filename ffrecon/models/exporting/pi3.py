@@ -1,4 +1,4 @@
-"""Pi3 (yyfz/Pi3) to ONNX with ffrecon's Pi3 contract (docs/models.md, CONTRACTS.md section 1b).
+"""Pi3 (yyfz/Pi3) to ONNX with ffrecon's Pi3 contract (docs/models.md; docs/contracts.md, "Other multi-view families").
 
 Input ``images [N, 3, H, W]`` float32 RGB in [0, 1]; outputs, exactly as ``Pi3.forward`` returns
 them with its batch axis of 1: ``points [1, N, H, W, 3]`` (world frame of the call),
@@ -65,49 +65,16 @@ def build_tiny(upstream: Path | None) -> nn.Module:
     ``LinearPts3d`` and ``CameraHead``. ``Pi3.forward`` and ``Pi3.decode`` then run unchanged.
     """
     pi3_mod = import_upstream("pi3.models.pi3", upstream, family="pi3")
-    vit_mod = import_upstream("pi3.models.dinov2.models.vision_transformer", upstream, family="pi3")
-    dino_block = import_upstream("pi3.models.dinov2.layers.block", upstream, family="pi3")
-    dino_attn = import_upstream("pi3.models.dinov2.layers.attention", upstream, family="pi3")
     dim, heads = 32, 2
     model = pi3_mod.Pi3.__new__(pi3_mod.Pi3)
     nn.Module.__init__(model)
-    model.encoder = vit_mod.DinoVisionTransformer(
-        img_size=518,
-        patch_size=PATCH_SIZE,
-        embed_dim=dim,
-        depth=1,
-        num_heads=heads,
-        mlp_ratio=4,
-        init_values=1.0,
-        block_chunks=0,
-        block_fn=partial(dino_block.Block, attn_class=dino_attn.MemEffAttention),
-        num_register_tokens=4,
-        interpolate_antialias=True,
-        interpolate_offset=0.0,
-    )
+    model.encoder = _tiny_encoder(upstream, dim, heads)
     del model.encoder.mask_token  # as Pi3.__init__ does
     model.patch_size = PATCH_SIZE
     model.pos_type = "rope100"
     model.rope = pi3_mod.RoPE2D(freq=100.0)
     model.position_getter = pi3_mod.PositionGetter()
-    block = partial(
-        pi3_mod.BlockRope,
-        dim=dim,
-        num_heads=heads,
-        mlp_ratio=4,
-        qkv_bias=True,
-        proj_bias=True,
-        ffn_bias=True,
-        drop_path=0.0,
-        norm_layer=partial(nn.LayerNorm, eps=1e-6),
-        act_layer=nn.GELU,
-        ffn_layer=pi3_mod.Mlp,
-        init_values=0.01,
-        qk_norm=True,
-        attn_class=pi3_mod.FlashAttentionRope,
-        rope=model.rope,
-    )
-    model.decoder = nn.ModuleList([block() for _ in range(2)])
+    model.decoder = nn.ModuleList([_tiny_decoder_block(pi3_mod, dim, heads, model.rope) for _ in range(2)])
     model.dec_embed_dim = dim
     model.patch_start_idx = 5
     model.register_token = nn.Parameter(torch.randn(1, 1, 5, dim) * 1e-6)
@@ -121,6 +88,47 @@ def build_tiny(upstream: Path | None) -> nn.Module:
     model.register_buffer("image_mean", torch.tensor([0.485, 0.456, 0.406]).view(1, 3, 1, 1))
     model.register_buffer("image_std", torch.tensor([0.229, 0.224, 0.225]).view(1, 3, 1, 1))
     return model
+
+
+def _tiny_encoder(upstream: Path | None, dim: int, heads: int) -> nn.Module:
+    """Upstream's 1-block DINOv2 with 4 registers, antialiased position-table resize (as ViT-L/14-reg)."""
+    vit_mod = import_upstream("pi3.models.dinov2.models.vision_transformer", upstream, family="pi3")
+    dino_block = import_upstream("pi3.models.dinov2.layers.block", upstream, family="pi3")
+    dino_attn = import_upstream("pi3.models.dinov2.layers.attention", upstream, family="pi3")
+    return vit_mod.DinoVisionTransformer(
+        img_size=518,
+        patch_size=PATCH_SIZE,
+        embed_dim=dim,
+        depth=1,
+        num_heads=heads,
+        mlp_ratio=4,
+        init_values=1.0,
+        block_chunks=0,
+        block_fn=partial(dino_block.Block, attn_class=dino_attn.MemEffAttention),
+        num_register_tokens=4,
+        interpolate_antialias=True,
+        interpolate_offset=0.0,
+    )
+
+
+def _tiny_decoder_block(pi3_mod, dim: int, heads: int, rope: nn.Module) -> nn.Module:
+    """One of upstream's ``BlockRope`` decoder blocks, configured as ``Pi3.__init__`` configures them."""
+    return pi3_mod.BlockRope(
+        dim=dim,
+        num_heads=heads,
+        mlp_ratio=4,
+        qkv_bias=True,
+        proj_bias=True,
+        ffn_bias=True,
+        drop_path=0.0,
+        norm_layer=partial(nn.LayerNorm, eps=1e-6),
+        act_layer=nn.GELU,
+        ffn_layer=pi3_mod.Mlp,
+        init_values=0.01,
+        qk_norm=True,
+        attn_class=pi3_mod.FlashAttentionRope,
+        rope=rope,
+    )
 
 
 def plausible_rays(model: nn.Module, size_hw: tuple[int, int], fov_deg: float = PLAUSIBLE_FOV_DEG) -> str:
@@ -147,7 +155,8 @@ def plausible_rays(model: nn.Module, size_hw: tuple[int, int], fov_deg: float = 
         proj.bias[p * p : 2 * p * p] = (offsets[:, None] / focal).expand(p, p).reshape(-1)  # y: row offset
     return (
         f"random weights; point head x/y rows zeroed and their biases set to a pinhole ray fan per 14x14 patch "
-        f"(focal {focal:.1f} px: {fov_deg:g} deg over the {size_hw[1]} px width) so the untrained rays decode to a plausible focal"
+        f"(focal {focal:.1f} px: {fov_deg:g} deg over the {size_hw[1]} px width) "
+        "so the untrained rays decode to a plausible focal"
     )
 
 
@@ -258,7 +267,8 @@ def build(options: ExportOptions, size_hw: tuple[int, int]) -> ExportSpec:
         make_inputs=lambda n, rng: (random_images(n, size_hw, rng),),
         size_hw=size_hw,
         contract="pi3",
-        description=f"Pi3 ({kind}, weights: {options.weights}) exported by ffrecon export-model, input {size_hw[1]}x{size_hw[0]}",
+        description=f"Pi3 ({kind}, weights: {options.weights}) exported by ffrecon export-model, "
+        f"input {size_hw[1]}x{size_hw[0]}",
         notes=notes,
         trace_context=trace_context,
     )

@@ -1,4 +1,4 @@
-"""VGGT (facebookresearch/vggt) to ONNX with the VGGT contract (CONTRACTS.md section 1).
+"""VGGT (facebookresearch/vggt) to ONNX with the VGGT contract (docs/contracts.md, "Multi-view models").
 
 Input ``input_images [S, 3, H, W]`` float32 RGB in [0, 1]; outputs ``pose_enc [1, S, 9]``,
 ``depth [1, S, H, W, 1]``, ``depth_conf [1, S, H, W]``, ``world_points [1, S, H, W, 3]``,
@@ -88,7 +88,10 @@ def plausible_fov(model: torch.nn.Module, size_hw: tuple[int, int], fov_w_deg: f
         bias = model.camera_head.pose_branch.fc2.bias
         bias[7] = fov_h / CAMERA_ITERATIONS
         bias[8] = fov_w / CAMERA_ITERATIONS
-    return f"random weights; camera head fc2 bias of fov_h/fov_w set to {math.degrees(fov_h):.1f}/{fov_w_deg:.1f} deg over {CAMERA_ITERATIONS} iterations so the untrained head decodes to a plausible focal"
+    return (
+        f"random weights; camera head fc2 bias of fov_h/fov_w set to {math.degrees(fov_h):.1f}/{fov_w_deg:.1f} deg "
+        f"over {CAMERA_ITERATIONS} iterations so the untrained head decodes to a plausible focal"
+    )
 
 
 def trace_context(upstream: Path | None):
@@ -133,7 +136,8 @@ def build(options: ExportOptions, size_hw: tuple[int, int]) -> ExportSpec:
         make_inputs=lambda n, rng: (random_images(n, size_hw, rng),),
         size_hw=size_hw,
         contract="multiview",
-        description=f"VGGT ({kind}, weights: {options.weights}) exported by ffrecon export-model, input {size_hw[1]}x{size_hw[0]}",
+        description=f"VGGT ({kind}, weights: {options.weights}) exported by ffrecon export-model, "
+        f"input {size_hw[1]}x{size_hw[0]}",
         notes=notes,
         trace_context=trace_context(options.upstream),
     )

@@ -74,6 +74,7 @@ def load_into(
     missing = [k for k in result.missing_keys if not k.startswith(ignore_prefixes)]
     if missing or result.unexpected_keys:
         raise InputError(
-            f"{source} does not fit this architecture: {len(missing)} missing keys (e.g. {missing[:3]}), {len(result.unexpected_keys)} unexpected (e.g. {result.unexpected_keys[:3]})",
+            f"{source} does not fit this architecture: {len(missing)} missing keys (e.g. {missing[:3]}), "
+            f"{len(result.unexpected_keys)} unexpected (e.g. {result.unexpected_keys[:3]})",
             "check that the checkpoint belongs to this family and size",
         )

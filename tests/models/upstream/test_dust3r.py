@@ -207,7 +207,11 @@ def test_checkpoints_build_the_architecture_they_name(tmp_path):
     from ffrecon.models.exporting.dust3r import build_model, load_checkpoint, model_class, parse_model_string
 
     upstream = upstream_dir("dust3r")
-    arch = "AsymmetricCroCo3DStereo(pos_embed='RoPE100', patch_embed_cls='ManyAR_PatchEmbed', img_size=(224, 224), head_type='linear', output_mode='pts3d', depth_mode=('exp', -inf, inf), conf_mode=('exp', 1, inf), enc_embed_dim=64, enc_depth=2, enc_num_heads=2, dec_embed_dim=48, dec_depth=2, dec_num_heads=2)"
+    arch = (
+        "AsymmetricCroCo3DStereo(pos_embed='RoPE100', patch_embed_cls='ManyAR_PatchEmbed', img_size=(224, 224), "
+        "head_type='linear', output_mode='pts3d', depth_mode=('exp', -inf, inf), conf_mode=('exp', 1, inf), "
+        "enc_embed_dim=64, enc_depth=2, enc_num_heads=2, dec_embed_dim=48, dec_depth=2, dec_num_heads=2)"
+    )
     torch.manual_seed(1)
     _, kwargs = parse_model_string(arch)
     original = model_class("dust3r", upstream)(

@@ -8,14 +8,6 @@ import numpy as np
 import pytest
 import torch
 
-transformers = pytest.importorskip(
-    "transformers", reason="needs transformers (Depth Anything's reference implementation)"
-)
-if not hasattr(transformers, "DepthAnythingForDepthEstimation") or not hasattr(transformers, "DPTImageProcessorPil"):
-    pytest.skip(
-        "needs transformers >= 5 (DepthAnythingForDepthEstimation, DPTImageProcessorPil)", allow_module_level=True
-    )
-
 from ffrecon.errors import InputError
 from ffrecon.geometry.projection import pixel_centers, project_points
 from ffrecon.models import monodepth
@@ -26,6 +18,14 @@ from ffrecon.models.runner import OnnxModel
 from ffrecon.types import ModelFamily
 
 from .conftest import real_photos
+
+transformers = pytest.importorskip(
+    "transformers", reason="needs transformers (Depth Anything's reference implementation)"
+)
+if not hasattr(transformers, "DepthAnythingForDepthEstimation") or not hasattr(transformers, "DPTImageProcessorPil"):
+    pytest.skip(
+        "needs transformers >= 5 (DepthAnythingForDepthEstimation, DPTImageProcessorPil)", allow_module_level=True
+    )
 
 TOLERANCE = 1e-4
 SIZES = {"landscape": (518, 686), "portrait": (686, 518)}  # 640x480 and 480x640 photos

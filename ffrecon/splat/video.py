@@ -15,7 +15,7 @@ from ffrecon.splat.gaussians import Gaussians
 from ffrecon.splat.render import RasterOptions, render
 from ffrecon.types import PinholeCamera
 
-logger = logging.getLogger("ffrecon.export")
+logger = logging.getLogger("ffrecon.splat")
 
 
 def _smooth_keys(values: np.ndarray, sigma: float) -> np.ndarray:
@@ -48,7 +48,9 @@ def smooth_camera_path(cam_from_world: np.ndarray, num_frames: int, *, smoothing
     centres follow a Catmull-Rom spline and rotations a slerp between consecutive keyframes.
 
     >>> from ffrecon.geometry.poses import look_at_cam_from_world
-    >>> keys = np.stack([look_at_cam_from_world(np.array([np.cos(a), np.sin(a), 0.3]), np.zeros(3)) for a in np.linspace(0, 2, 6)])
+    >>> angles = np.linspace(0, 2, 6)
+    >>> centers = np.stack([np.cos(angles), np.sin(angles), np.full(6, 0.3)], axis=1)
+    >>> keys = np.stack([look_at_cam_from_world(c, np.zeros(3)) for c in centers])
     >>> smooth_camera_path(keys, 40).shape
     (40, 3, 4)
     """

@@ -1,4 +1,4 @@
-"""3D Gaussian splat PLY files in the standard 3DGS layout (CONTRACTS.md section 4).
+"""3D Gaussian splat PLY files in the standard 3DGS layout (docs/contracts.md).
 
 Binary little-endian, one ``vertex`` element with float32 properties in this order:
 ``x y z nx ny nz f_dc_0..2 f_rest_0..f_rest_{3 * ((d + 1)^2 - 1) - 1} opacity scale_0..2 rot_0..3``.
@@ -19,14 +19,16 @@ import torch
 from ffrecon.errors import InputError
 from ffrecon.splat.gaussians import Gaussians, num_sh_bases
 
-logger = logging.getLogger("ffrecon.export")
+logger = logging.getLogger("ffrecon.splat")
 
 
 def splat_property_names(sh_degree: int) -> list[str]:
     """The standard property list for SH degree ``sh_degree``.
 
-    >>> splat_property_names(0)
-    ['x', 'y', 'z', 'nx', 'ny', 'nz', 'f_dc_0', 'f_dc_1', 'f_dc_2', 'opacity', 'scale_0', 'scale_1', 'scale_2', 'rot_0', 'rot_1', 'rot_2', 'rot_3']
+    >>> splat_property_names(0)[:9]
+    ['x', 'y', 'z', 'nx', 'ny', 'nz', 'f_dc_0', 'f_dc_1', 'f_dc_2']
+    >>> splat_property_names(0)[9:]
+    ['opacity', 'scale_0', 'scale_1', 'scale_2', 'rot_0', 'rot_1', 'rot_2', 'rot_3']
     >>> len(splat_property_names(3))
     62
     """

@@ -1,4 +1,5 @@
-"""Wall-clock time per stage, recorded in order."""
+"""Wall-clock time per step, recorded in order: the one timer of ffrecon (pipeline stages, and the
+steps inside COLMAP, refinement and the splat)."""
 
 from __future__ import annotations
 
@@ -28,6 +29,10 @@ class StageTimer:
             yield
         finally:
             self._stages.append((name, time.perf_counter() - start))
+
+    def add(self, name: str, seconds: float) -> None:
+        """Record a time measured elsewhere (e.g. the optimiser's own clock, which leaves out callbacks)."""
+        self._stages.append((name, float(seconds)))
 
     def freeze(self) -> "Timings":
         return Timings(tuple(self._stages))

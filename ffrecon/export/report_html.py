@@ -1,0 +1,353 @@
+"""report.html: one self-contained page (figures embedded as base64 PNG) from report.json's data.
+
+The rows of every table and every figure are computed here from the report dict; pictures are read
+from the run folder the report describes (``images/``, ``feedforward/depth/``, ``renders/``).
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from ffrecon.export.plots import PathSeries, camera_paths_png, error_bars_png, thumbnail_png
+
+MAX_THUMBNAILS = 12
+
+_CSS = """
+body{font-family:system-ui,-apple-system,Segoe UI,Roboto,sans-serif;max-width:1100px;margin:2em auto;padding:0 1em;
+color:#222}
+h1{margin-bottom:.2em} h2{border-bottom:1px solid #ddd;padding-bottom:.2em;margin-top:1.6em}
+table{border-collapse:collapse;margin:.6em 0}
+td,th{border:1px solid #ddd;padding:.25em .6em;text-align:left;font-size:.92em}
+th{background:#f5f5f5} .pass{color:#137333;font-weight:600} .fail{color:#c5221f;font-weight:600}
+.skipped{color:#80868b;font-weight:600} .reused{color:#1a73e8;font-weight:600}
+.banner{padding:.7em 1em;border-radius:6px;margin:.8em 0} .ok{background:#e6f4ea} .bad{background:#fce8e6}
+.warn{background:#fef7e0}
+.gallery{display:flex;flex-wrap:wrap;gap:.5em} .gallery figure{margin:0;font-size:.8em;text-align:center}
+img{max-width:100%} .muted{color:#666;font-size:.9em} .scroll{overflow-x:auto} .g3 figure{width:32%}
+.g3 img{width:100%}
+"""
+_SIMULATED = (
+    "<div class='banner warn'><b>Simulated model.</b> The feed-forward cameras and depth come from ffrecon's "
+    "simulated model (ground truth plus injected error), not a trained network. Numbers show the pipeline "
+    "working, not a model's accuracy.</div>"
+)
+
+
+def _fmt(v) -> str:
+    if isinstance(v, float):
+        return f"{v:.4g}"
+    if v is None or v == [] or v == "":
+        return "—"
+    if isinstance(v, list):
+        return html.escape(", ".join(str(x) for x in v))
+    return html.escape(str(v))
+
+
+def _cell(key: str, value) -> str:
+    if key == "status" and isinstance(value, str):
+        return f'<span class="{value.lower()}">{html.escape(value)}</span>'
+    return _fmt(value)
+
+
+def _table(rows: list[dict]) -> str:
+    if not rows:
+        return ""
+    keys = list(dict.fromkeys(k for r in rows for k in r))
+    head = "".join(f"<th>{html.escape(k)}</th>" for k in keys)
+    body = "".join("<tr>" + "".join(f"<td>{_cell(k, r.get(k))}</td>" for k in keys) + "</tr>" for r in rows)
+    return f"<div class='scroll'><table><tr>{head}</tr>{body}</table></div>"
+
+
+def _img(png: bytes, alt: str) -> str:
+    return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{base64.b64encode(png).decode()}">'
+
+
+def _figure(title: str, png: bytes, caption: str) -> str:
+    return f"<figure>{_img(png, title)}<figcaption class='muted'>{html.escape(caption)}</figcaption></figure>"
+
+
+def _gallery(items: list[tuple[str, bytes]], wide: bool = False) -> str:
+    if not items:
+        return ""
+    figures = "".join(
+        f"<figure>{_img(png, cap)}<figcaption>{html.escape(cap)}</figcaption></figure>" for cap, png in items
+    )
+    return f"<div class='gallery{' g3' if wide else ''}'>{figures}</div>"
+
+
+def _read_rgb(path: Path) -> np.ndarray | None:
+    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
+    return None if bgr is None else cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+
+def _thumb(path: Path, caption: str, max_side: int) -> list[tuple[str, bytes]]:
+    rgb = _read_rgb(path)
+    return [] if rgb is None else [(caption, thumbnail_png(rgb, max_side=max_side))]
+
+
+def depth_preview(depth: np.ndarray) -> np.ndarray:
+    """A colour-mapped depth map (near = bright) for people; unknown pixels black."""
+    valid = depth > 0
+    out = np.zeros(depth.shape + (3,), np.uint8)
+    if valid.any():
+        lo, hi = np.quantile(depth[valid], [0.02, 0.98])
+        norm = np.clip((hi - depth) / max(hi - lo, 1e-9), 0, 1)
+        colour = cv2.applyColorMap((norm * 255).astype(np.uint8), cv2.COLORMAP_TURBO)
+        out[valid] = cv2.cvtColor(colour, cv2.COLOR_BGR2RGB)[valid]
+    return out
+
+
+def timings_png(seconds: dict[str, float], reused: set[str] = frozenset()) -> bytes:
+    """Horizontal bars of seconds per stage (matplotlib Agg, no global pyplot state); reused stages hatched."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure as MplFigure
+
+    names = list(seconds)[::-1]
+    fig = MplFigure(figsize=(6.0, 0.45 * len(names) + 0.9))
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    colours = ["#9aa0a6" if n in reused else "#1f77b4" for n in names]
+    ax.barh(names, [seconds[n] for n in names], color=colours)
+    for y, n in enumerate(names):
+        label = f"{seconds[n]:.1f} s" + (" (reused)" if n in reused else "")
+        ax.annotate(label, (seconds[n], y), xytext=(4, 0), textcoords="offset points", va="center", fontsize=8)
+    ax.set_xlabel("seconds")
+    ax.set_title("Time per stage", fontsize=10)
+    ax.margins(x=0.2)
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=100)
+    return buf.getvalue()
+
+
+def _every(items: list, limit: int = MAX_THUMBNAILS) -> list:
+    return items[:: max(1, len(items) // limit)][:limit]
+
+
+def _capture(report: dict, run_dir: Path) -> tuple[list[dict], str]:
+    flags = report["inputs"]["quality"]["flags"]
+    rows = [{"frame": f["name"], "issue": f["kind"], "value": f["value"], "what to do": f["message"]} for f in flags]
+    thumbs = [t for name in _every(report["inputs"]["names"]) for t in _thumb(run_dir / "images" / name, name, 160)]
+    return rows, _gallery(thumbs)
+
+
+def _feedforward(report: dict, run_dir: Path) -> tuple[list[dict], str]:
+    ff = report["feedforward"]
+    model = ff["model"]
+    items = [
+        ("world frame", ff.get("world_frame")),
+        ("assumptions", ff.get("assumptions")),
+        ("model notes", model.get("notes")),
+        ("model", model.get("description")),
+    ]
+    previews = []
+    for name in _every(report["inputs"]["names"]):
+        path = run_dir / "feedforward" / "depth" / f"{Path(name).stem}.npz"
+        if path.is_file():
+            with np.load(path) as data:
+                previews.append((f"{name} depth", thumbnail_png(depth_preview(data["depth"]), max_side=160)))
+    return [{"item": k, "value": v} for k, v in items if v], _gallery(previews)
+
+
+def _error_row(comp: dict) -> dict:
+    m = comp["metrics"]
+    rates = {k: v for k, v in m.items() if k.startswith(("RRA@", "RTA@", "AUC@"))}
+    return {
+        "comparison": f"{comp['estimate']} vs {comp['reference']}",
+        "registered": f"{m['num_registered']}/{m['num_images']}",
+        **rates,
+        "ATE": m["ATE"],
+        "ATE/extent": m["ATE_relative"],
+        "median rot (deg)": m["median_rotation_deg"],
+        "disagreeing": len(comp["disagreeing"]),
+    }
+
+
+def _nan_array(values) -> np.ndarray:
+    return np.array([[np.nan] * 3 if v is None else v for v in values], float)
+
+
+def _poses(report: dict, run_dir: Path) -> tuple[list[dict], str]:
+    rows = [_error_row(c) for c in report["pose_errors"].values()]
+    plot = report.get("pose_plot")
+    if not plot:
+        return rows, ""
+    names, ref = plot["names"], plot["reference"]
+    ref_centers = _nan_array(plot["reference_centers"])
+    series = [PathSeries(ref, ref_centers)] + [PathSeries(k, _nan_array(v)) for k, v in plot["aligned_centers"].items()]
+    highlight = [names.index(n) for n in plot["disagreeing"]]
+    paths = camera_paths_png(series, up=np.array(plot["up"]), names=names, highlight=highlight)
+    finite = ref_centers[np.all(np.isfinite(ref_centers), axis=1)]
+    extent = float(np.linalg.norm(finite.max(0) - finite.min(0))) if len(finite) else 1.0
+    as_array = lambda v: np.array([np.nan if x is None else x for x in v], float)  # noqa: E731
+    bars = error_bars_png(
+        names,
+        {k: as_array(v) for k, v in plot["rotation_deg"].items()},
+        {k: as_array(v) / max(extent, 1e-12) for k, v in plot["center_error"].items()},
+        rotation_threshold_deg=5.0,
+        center_threshold=0.05,
+        center_unit=f"fraction of the {ref} camera extent",
+    )
+    parts = [
+        _figure(
+            f"Camera paths aligned to {ref}",
+            paths,
+            f"Top-down view of the camera centres, each set Sim(3)-aligned to {ref}; "
+            "red circles mark images that disagree.",
+        ),
+        _figure(
+            "Per-image error",
+            bars,
+            f"Rotation and centre error of each image against {ref}, after the Sim(3) alignment.",
+        ),
+    ]
+    thumbs = []
+    for comp in report["pose_errors"].values():
+        for d in comp["disagreeing"][:MAX_THUMBNAILS]:
+            caption = f"{d['name']}: {comp['estimate']} vs {comp['reference']}: {d['reason']}"
+            thumbs += _thumb(run_dir / "images" / d["name"], caption, 200)
+    return rows, "".join(parts) + _gallery(thumbs)
+
+
+def _splat(report: dict, run_dir: Path) -> tuple[list[dict], str]:
+    data = report["splat"]
+    if "skipped" in data:
+        return [], ""
+    mean = data["heldout_mean"]
+    rows = [
+        {"measure": f"held-out {label}", **{col: mean.get(f"{key}_{s}") for col, s in _SPLAT_COLUMNS}}
+        for label, key in (("PSNR (dB)", "psnr"), ("SSIM", "ssim"))
+    ]
+    counts = data["gaussians"]
+    rows.append({"measure": "Gaussians", **{col: counts[s] for col, s in _SPLAT_COLUMNS}})
+    rate = f"{data['iterations']} ({data['iterations_per_second']:.2f}/s)"
+    rows.append({"measure": "iterations (per second)", "seed": None, "optimised": rate, "after cleaning": None})
+    psnr = {v["name"]: v for v in data["heldout_per_view"]}
+    thumbs = []
+    for r in data["renders"]:
+        m = psnr[r["view"]]
+        for caption, key in (
+            (f"{r['view']}: ground truth", "truth"),
+            (f"{r['view']}: seed, PSNR {m['psnr_seed']:.1f} dB", "seed"),
+            (f"{r['view']}: splat, PSNR {m['psnr_cleaned']:.1f} dB", "splat"),
+        ):
+            thumbs += _thumb(run_dir / r[key], caption, 240)
+    return rows, _gallery(thumbs, wide=True)
+
+
+_SPLAT_COLUMNS = (("seed", "seed"), ("optimised", "optimized"), ("after cleaning", "cleaned"))
+
+
+def _refine(report: dict, run_dir: Path) -> tuple[list[dict], str]:
+    data = report["refine"]
+    if "skipped" in data:
+        return [], ""
+    return [{"frame": w["name"], "status": "FLAGGED", "why": w["message"]} for w in data["flagged"]], ""
+
+
+def _gates(report: dict, run_dir: Path) -> tuple[list[dict], str]:
+    gates = report["gates"]
+    return ([] if isinstance(gates, dict) else gates), ""
+
+
+def _timings(report: dict, run_dir: Path) -> tuple[list[dict], str]:
+    timings = report["timings"]
+    if not timings:
+        return [], ""
+    rows = []
+    for stage, t in timings.items():
+        status = "reused" if t["reused"] else "ran"
+        rows.append({"stage": stage, "seconds": t["seconds"], "status": status, "when it ran (s)": t["first_seconds"]})
+    reused = {s for s, t in timings.items() if t["reused"]}
+    shown = {s: (t["first_seconds"] or 0.0) if t["reused"] else t["seconds"] for s, t in timings.items()}
+    caption = "Wall-clock seconds per stage on this machine; grey bars: reused from an earlier run (its time then)."
+    return rows, _figure("Time per stage", timings_png(shown, reused), caption)
+
+
+_SECTIONS = (
+    ("Capture", _capture),
+    ("Feed-forward cameras and depth", _feedforward),
+    ("Verification gates", _gates),
+    ("Pose error", _poses),
+    ("Refinement", _refine),
+    ("Gaussian splat", _splat),
+    ("Timings", _timings),
+)
+
+
+def summary_rows(report: dict) -> list[tuple[str, str]]:
+    """``(item, value)`` lines of the run's summary, for the page and the terminal."""
+    ff = report["feedforward"]
+    model = ff["model"]
+    rows = [
+        ("frames", str(report["inputs"]["num_frames"])),
+        ("model", f"{Path(model['path']).name} ({model['family']}{', SIMULATED' if model['simulated'] else ''})"),
+        ("fused points", str(ff["num_points"])),
+    ]
+    colmap, refine, splat = report["colmap"], report["refine"], report["splat"]
+    if "skipped" not in colmap:
+        rows.append(("COLMAP registered", f"{colmap['num_registered']}/{colmap['num_images']}"))
+    if "skipped" not in refine:
+        err = refine.get("mean_reprojection_error_px")
+        err_text = f"{err:.2f}" if err is not None else "nan"
+        rows.append(("refined frames", f"{refine['num_refined']}/{refine['num_images']} (reprojection {err_text} px)"))
+    for comp in report["pose_errors"].values():
+        m = comp["metrics"]
+        rot = m["median_rotation_deg"] if m["median_rotation_deg"] is not None else float("nan")
+        ate = m["ATE_relative"] if m["ATE_relative"] is not None else float("nan")
+        value = f"AUC@5 {m['AUC@5']:.3f}, median rotation {rot:.3f} deg, ATE {ate:.2%} of extent"
+        rows.append((f"{comp['estimate']} vs {comp['reference']}", value))
+    if "skipped" not in splat:
+        m = splat["heldout_mean"]
+        if m.get("psnr_seed") is not None and m.get("psnr_cleaned") is not None:
+            value = (
+                f"{m['psnr_seed']:.2f} dB (seed) -> {m['psnr_cleaned']:.2f} dB ({splat['iterations']} iterations, "
+                f"{splat['gaussians']['cleaned']} Gaussians)"
+            )
+            rows.append(("splat held-out PSNR", value))
+    reused = [stage for stage, t in report["timings"].items() if t["reused"]]
+    if reused:
+        rows.append(("reused from an earlier run", ", ".join(reused)))
+    return rows
+
+
+def render_html(report: dict, run_dir: Path) -> str:
+    """The whole page: verdict banner, summary, then one section per stage with figures and tables.
+
+    Args:
+        report: what :func:`ffrecon.export.report.build_report` returns (or report.json, read back).
+        run_dir: the run folder the report describes; the frames, depth maps and renders shown are read
+            from it (missing ones are left out).
+    """
+    run_dir = Path(run_dir)
+    inputs = report["inputs"]
+    created = f"{_fmt(report.get('created'))} · ffrecon {_fmt(report.get('ffrecon_version'))}"
+    parts = [
+        "<!doctype html><html><head><meta charset='utf-8'><title>ffrecon report</title>"
+        f"<style>{_CSS}</style></head><body>",
+        f"<h1>ffrecon report</h1><p class='muted'>{created} · input {_fmt(inputs.get('source'))}</p>",
+    ]
+    verdict = report["verdict"]
+    banner = "ok" if verdict["status"] == "ok" else "bad"
+    status = html.escape(verdict["status"].upper())
+    parts.append(f"<div class='banner {banner}'><b>{status}</b> — {html.escape(verdict['message'])}</div>")
+    if report["feedforward"]["model"].get("simulated"):
+        parts.append(_SIMULATED)
+    for item in report["skipped_stages"]:
+        stage, reason = html.escape(item["stage"]), html.escape(item["reason"])
+        parts.append(f"<div class='banner warn'>Skipped <b>{stage}</b>: {reason}</div>")
+    parts.append("<h2>Summary</h2>" + _table([{"item": k, "value": v} for k, v in summary_rows(report)]))
+    for title, section in _SECTIONS:
+        rows, body = section(report, run_dir)
+        if rows or body:
+            parts.append(f"<h2>{html.escape(title)}</h2>" + _table(rows) + body)
+    files = [{"file": k, "path": v} for k, v in report["outputs"].items()]
+    parts.append("<h2>Files</h2>" + _table(files))
+    parts.append("<p class='muted'>Full machine-readable record: report.json</p></body></html>")
+    return "".join(parts)

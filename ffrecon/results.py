@@ -1,0 +1,69 @@
+"""What a run returns: one frozen, typed result per stage, together a :class:`RunResults`.
+
+A stage that did not run holds a :class:`Skipped` naming why, never a missing key. The report
+(``report.json``, ``report.html``) and the command-line summary are built from these results alone
+(:mod:`ffrecon.export.report`).
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+from pathlib import Path
+
+from ffrecon.capture import Capture
+from ffrecon.errors import GateFailed
+from ffrecon.export.stage import ExportsResult
+from ffrecon.models.stage import FeedForwardResult
+from ffrecon.resume import StageTiming
+from ffrecon.sfm.comparisons import ComparisonsResult
+from ffrecon.sfm.crosscheck import ColmapResult
+from ffrecon.sfm.gates import GatesResult
+from ffrecon.sfm.refine import RefineResult
+from ffrecon.splat.stage import SplatResult
+
+
+@dataclass(frozen=True)
+class Skipped:
+    """A stage that did not run, and why (shown in the report and the summary)."""
+
+    stage: str
+    reason: str
+
+
+class Verdict(enum.Enum):
+    OK = "ok"
+    GATE_FAILED = "gate_failed"
+
+
+@dataclass(frozen=True)
+class RunResults:
+    """Everything one run produced, stage by stage."""
+
+    out_dir: Path
+    created: str  # ISO time the run started
+    command: str
+    capture: Capture
+    feedforward: FeedForwardResult
+    colmap: ColmapResult | Skipped
+    gates: GatesResult | Skipped
+    comparisons: ComparisonsResult | Skipped
+    refine: RefineResult | Skipped
+    splat: SplatResult | Skipped
+    exports: ExportsResult
+    timings: tuple[StageTiming, ...]
+    forced: bool
+
+    @property
+    def skipped(self) -> tuple[Skipped, ...]:
+        stages = (self.colmap, self.gates, self.comparisons, self.refine, self.splat)
+        return tuple(s for s in stages if isinstance(s, Skipped))
+
+    @property
+    def verdict(self) -> Verdict:
+        blocked = isinstance(self.gates, GatesResult) and self.gates.blocking
+        return Verdict.GATE_FAILED if blocked else Verdict.OK
+
+    @property
+    def exit_code(self) -> int:
+        return GateFailed.exit_code if self.verdict is Verdict.GATE_FAILED else 0

@@ -1,0 +1,208 @@
+"""Finished stages are kept and reused, as hloc does it: a stage whose inputs and options are
+unchanged is not run again.
+
+Each stage that finishes writes, under ``<run folder>/.ffrecon/stages/``, its typed result
+(``<stage>.pkl``) and a small record (``<stage>.json``: the key, the seconds it took, its options
+and the keys of what it read). The record is written last, so a stage interrupted half-way has no
+record and runs again. A stage's key hashes its name, ffrecon's version, its options and the keys
+of its inputs (file names, sizes and modification times for files the user gave; the keys of the
+stages it read), so changing anything upstream recomputes everything that depends on it.
+
+Results are stored with their paths relative to the run folder, so a finished ``OUT`` copied
+back to the staging folder (``--resume``) reads them as its own. pycolmap reconstructions do not
+pickle: they are dropped on write and read back from the result's ``model_path``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import logging
+import pickle
+import shutil
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TypeVar
+
+from ffrecon import __version__
+from ffrecon.timing import StageTimer
+
+log = logging.getLogger("ffrecon")
+T = TypeVar("T")
+_RECORDS = Path(".ffrecon") / "stages"
+_RUN_ROOT = Path("<run>")  # placeholder root for paths stored in a record
+
+
+@dataclass(frozen=True)
+class StageTiming:
+    """Wall-clock seconds of one stage; ``reused`` when it came from an earlier run's record."""
+
+    stage: str
+    seconds: float  # this run's seconds (loading the record when reused)
+    reused: bool = False
+    first_seconds: float | None = None  # what the stage took when it ran, for reused stages
+
+
+def file_key(path: Path) -> str:
+    """A key of a file or folder the user gave: names, sizes and modification times (not contents,
+    as make and hloc do), so a key is cheap for hundreds of photos.
+
+    >>> file_key(Path("/does/not/exist"))
+    'missing:/does/not/exist'
+    """
+    path = Path(path)
+    if not path.exists():
+        return f"missing:{path}"
+    entries = sorted(path.iterdir()) if path.is_dir() else [path]
+    extra = [path.with_name(path.name + ".data")] if path.suffix == ".onnx" else []  # external weights
+    stats = [(p.name, p.stat().st_size, p.stat().st_mtime_ns) for p in entries + extra if p.is_file()]
+    return hashlib.sha1(repr((str(path.resolve()), stats)).encode()).hexdigest()
+
+
+def stage_key(stage: str, options: object, inputs: Sequence[str]) -> str:
+    """The key of a stage run: its name, ffrecon's version, its options' repr and its inputs' keys."""
+    text = repr((stage, __version__, repr(options), tuple(inputs)))
+    return hashlib.sha1(text.encode()).hexdigest()
+
+
+def rebase_paths(obj, old: Path, new: Path):
+    """``obj`` with every :class:`Path` under ``old`` moved under ``new`` (dataclasses, tuples,
+    lists and dicts are rebuilt; anything else is returned as it is).
+
+    >>> rebase_paths({"a": (Path("/x/run/a.ply"), Path("/y"))}, Path("/x/run"), Path("/out"))
+    {'a': (PosixPath('/out/a.ply'), PosixPath('/y'))}
+    """
+    if isinstance(obj, Path):
+        return new / obj.relative_to(old) if obj.is_relative_to(old) else obj
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        changes = {}
+        for f in dataclasses.fields(obj):
+            if not f.init:
+                continue
+            value = getattr(obj, f.name)
+            moved = rebase_paths(value, old, new)
+            if moved is not value:
+                changes[f.name] = moved
+        return dataclasses.replace(obj, **changes) if changes else obj
+    if isinstance(obj, (tuple, list)):
+        items = [rebase_paths(v, old, new) for v in obj]
+        if all(a is b for a, b in zip(items, obj)):
+            return obj
+        return type(obj)(items) if not hasattr(obj, "_fields") else type(obj)(*items)
+    if isinstance(obj, dict):
+        items = {k: rebase_paths(v, old, new) for k, v in obj.items()}
+        return obj if all(items[k] is obj[k] for k in obj) else items
+    return obj
+
+
+def _drop_reconstruction(obj):
+    """pycolmap reconstructions do not pickle; results that hold one also hold its ``model_path``."""
+    if dataclasses.is_dataclass(obj) and getattr(obj, "reconstruction", None) is not None:
+        return dataclasses.replace(obj, reconstruction=None)
+    return obj
+
+
+def _reload_reconstruction(obj):
+    if dataclasses.is_dataclass(obj) and hasattr(obj, "reconstruction") and getattr(obj, "model_path", None):
+        import pycolmap
+
+        return dataclasses.replace(obj, reconstruction=pycolmap.Reconstruction(str(obj.model_path)))
+    return obj
+
+
+class StageRunner:
+    """Runs the stages of one run folder, reusing finished ones whose key is unchanged.
+
+    ``reuse=False`` recomputes everything (records are still written, for a later resume).
+    """
+
+    def __init__(self, run_dir: Path, *, reuse: bool) -> None:
+        self.run_dir = Path(run_dir)
+        self.reuse = reuse
+        self.timings: list[StageTiming] = []
+        self.finished: list[str] = []  # stages finished or reused in this run, in order
+        self.current: str | None = None  # the stage running now (named when interrupted)
+
+    def _paths(self, stage: str) -> tuple[Path, Path]:
+        folder = self.run_dir / _RECORDS
+        return folder / f"{stage}.pkl", folder / f"{stage}.json"
+
+    def _load(self, stage: str, key: str):
+        pkl, record = self._paths(stage)
+        if not (self.reuse and pkl.is_file() and record.is_file()):
+            return None, None
+        try:
+            meta = json.loads(record.read_text())
+            if meta.get("key") != key:
+                return None, None
+            with open(pkl, "rb") as fh:
+                stored = pickle.load(fh)
+        except (OSError, ValueError, pickle.UnpicklingError, EOFError, AttributeError, ImportError) as err:
+            log.warning("the record of stage %s cannot be read (%s); running it again", stage, err)
+            return None, None
+        return _reload_reconstruction(rebase_paths(stored, _RUN_ROOT, self.run_dir)), meta
+
+    def forget(self, stage: str, outputs: Sequence[str] = ()) -> None:
+        """Remove a stage's record and the files it writes (relative to the run folder)."""
+        for path in self._paths(stage):
+            path.unlink(missing_ok=True)
+        for rel in outputs:
+            target = self.run_dir / rel
+            if target.is_dir():
+                shutil.rmtree(target)
+            elif target.exists():
+                target.unlink()
+
+    def run(
+        self,
+        stage: str,
+        fn: Callable[[], T],
+        *,
+        options: object,
+        inputs: Sequence[str],
+        outputs: Sequence[str] = (),
+    ) -> tuple[T, str]:
+        """``(result, key)``: the stored result when its key matches, else ``fn()`` (timed, recorded).
+
+        ``outputs`` are the files and folders the stage writes (relative to the run folder); they are
+        removed before the stage runs again, so nothing stale is left beside the new results.
+        """
+        key = stage_key(stage, options, inputs)
+        timer = StageTimer()
+        with timer.stage(stage):
+            stored, meta = self._load(stage, key)
+        if meta is not None:
+            self.timings.append(StageTiming(stage, timer.freeze().total_s, True, meta.get("seconds")))
+            self.finished.append(stage)
+            log.info("%s: reused from the earlier run (%.1f s then)", stage, meta.get("seconds", float("nan")))
+            return stored, key
+        self.forget(stage, outputs)
+        self.current = stage
+        with timer.stage(stage):
+            result = fn()
+        seconds = timer.freeze().total_s
+        self.current = None
+        self._store(stage, key, result, seconds, options, inputs)
+        self.timings.append(StageTiming(stage, seconds))
+        self.finished.append(stage)
+        return result, key
+
+    def _store(self, stage: str, key: str, result, seconds: float, options: object, inputs: Sequence[str]) -> None:
+        pkl, record = self._paths(stage)
+        pkl.parent.mkdir(parents=True, exist_ok=True)
+        portable = rebase_paths(_drop_reconstruction(result), self.run_dir, _RUN_ROOT)
+        tmp = pkl.with_suffix(".tmp")
+        with open(tmp, "wb") as fh:
+            pickle.dump(portable, fh, protocol=pickle.HIGHEST_PROTOCOL)
+        tmp.replace(pkl)
+        meta = {
+            "stage": stage,
+            "key": key,
+            "seconds": seconds,
+            "ffrecon_version": __version__,
+            "options": repr(options),
+            "inputs": list(inputs),
+        }
+        record.write_text(json.dumps(meta, indent=2))  # written last: the stage counts as finished

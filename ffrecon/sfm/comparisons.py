@@ -1,0 +1,90 @@
+"""The pose-comparison stage: every estimate against every reference.
+
+Estimates are the feed-forward cameras, COLMAP's and the refined ones; references are COLMAP (the
+cross-check), and ground truth or a ``--reference`` COLMAP model when given. The metrics are the
+field's (docs/contracts.md, "Pose error"); see :func:`ffrecon.sfm.compare.compare_poses`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from ffrecon.export.plots import up_from_cameras
+from ffrecon.sfm.colmap_io import cam_from_world_by_name
+from ffrecon.sfm.compare import PoseComparison, compare_poses
+
+# Reference poses by label: (cam_from_world [N, 3, 4], has a pose [N] bool), over the run's names.
+References = dict[str, tuple[np.ndarray, np.ndarray]]
+
+
+@dataclass(frozen=True)
+class ComparisonsResult:
+    """Pose error of every estimate against every reference, and which set the plots use.
+
+    ``primary`` are the comparisons against the most trustworthy reference (ground truth, a
+    reference model, else COLMAP); ``up`` is that reference's mean camera up direction.
+    """
+
+    comparisons: tuple[PoseComparison, ...]
+    primary: tuple[PoseComparison, ...]
+    up: np.ndarray | None  # [3] in the primary reference's world frame; None without comparisons
+
+    def by_label(self, estimate: str, reference: str) -> PoseComparison | None:
+        """The comparison of ``estimate`` against ``reference`` (e.g. "feed-forward", "COLMAP")."""
+        return next((c for c in self.comparisons if (c.estimate, c.reference) == (estimate, reference)), None)
+
+
+def load_references(ground_truth: Path | None, reference: Path | None, names: Sequence[str]) -> References:
+    """Ground truth of a synthetic scene folder and/or a reference COLMAP model, over ``names``."""
+    refs: References = {}
+    if ground_truth is not None:
+        from ffrecon.synthetic import load_scene
+
+        scene = load_scene(Path(ground_truth))
+        index = {n: k for k, n in enumerate(scene.names)}
+        have = np.array([n in index for n in names])
+        poses = np.stack([scene.cam_from_world[index[n]] if n in index else np.eye(3, 4) for n in names])
+        refs["ground truth"] = (poses, have)
+    if reference is not None:
+        refs["reference model"] = cam_from_world_by_name(pycolmap.Reconstruction(str(reference)), list(names))
+    return refs
+
+
+def run_comparisons(names: Sequence[str], estimates: References, references: References) -> ComparisonsResult:
+    """Compare the estimates with COLMAP (feed-forward only) and with every given reference.
+
+    Args:
+        names: the run's image names, in order.
+        estimates: by label, e.g. ``{"feed-forward": ..., "COLMAP": ..., "refined": ...}``; a
+            "COLMAP" entry is also the cross-check reference of the feed-forward cameras.
+        references: ground truth and/or a reference model (:func:`load_references`).
+    """
+    names = list(names)
+    comparisons: list[PoseComparison] = []
+    if "COLMAP" in estimates and "feed-forward" in estimates:
+        poses, reg = estimates["COLMAP"]
+        ff_poses, ff_reg = estimates["feed-forward"]
+        comparisons.append(
+            compare_poses(
+                ff_poses, poses, names, ff_reg, ref_registered=reg, estimate="feed-forward", reference="COLMAP"
+            )
+        )
+    primary: list[PoseComparison] = []
+    for ref_label, (ref_poses, ref_have) in references.items():
+        group = [
+            compare_poses(poses, ref_poses, names, reg, ref_registered=ref_have, estimate=label, reference=ref_label)
+            for label, (poses, reg) in estimates.items()
+        ]
+        comparisons += group
+        primary = primary or group
+    primary = primary or comparisons[:1]
+    up = None
+    if primary:
+        label = primary[0].reference
+        up = up_from_cameras(references[label][0] if label in references else estimates["COLMAP"][0])
+    return ComparisonsResult(tuple(comparisons), tuple(primary), up)
