@@ -106,6 +106,11 @@ def _add_export_parser(sub) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     export.add_argument("family", choices=list(FAMILIES), help="model family")
+    _add_export_arguments(export)
+
+
+def _add_export_arguments(export: argparse.ArgumentParser) -> None:
+    """The options of ``export-model``. Long because it is one declaration per option, a few lines each."""
     export.add_argument(
         "-o",
         "--out",

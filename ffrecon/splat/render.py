@@ -159,6 +159,9 @@ def render(
         with_depth: also composite the camera z (training leaves it off).
     Returns:
         :class:`RenderOutput` with ``rgb [H, W, 3]``, ``alpha [H, W]``, ``depth [H, W]`` (or None).
+
+    Long because its 14 parameters and the projection call take a line each; the body is one straight
+    pass (project, bin, composite) that reads best in one place.
     """
     dtype = means.dtype
     proj = project_gaussians(
