@@ -239,19 +239,18 @@ def predict_monodepth(
     model: ModelInfo,
     *,
     focal_px: float | None = None,
-    options: object | None = None,
+    max_depth_side: int | None = None,
 ) -> Prediction:
     """Preprocess one photo, run the model (``infer``: ``pixel_values`` batch to outputs), decode.
 
     Args:
         image: ``[H, W, 3]`` uint8 RGB; name: its frame name.
         focal_px: its focal length in its own pixels (EXIF), if known.
-        options: a :class:`~ffrecon.models.multiview.MultiviewOptions` (only ``max_depth_side`` is
-            used: the family has one preprocessing, with the processor settings the export recorded).
+        max_depth_side: the longest side depth is returned at (None: the photo's size); the family has
+            one preprocessing, with the processor settings the export recorded.
     """
     batch, transforms = preprocess_monodepth([image], settings=ProcessorSettings.from_model(model))
-    max_side = getattr(options, "max_depth_side", None)
-    return decode_monodepth(infer(batch), transforms, [name], model, max_side, focal_px=focal_px)
+    return decode_monodepth(infer(batch), transforms, [name], model, max_depth_side, focal_px=focal_px)
 
 
 ADAPTER = MultiviewAdapter(

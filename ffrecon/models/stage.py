@@ -109,7 +109,7 @@ def predict(model: OnnxModel, capture: Capture, images: list[np.ndarray], option
             infer,
             model.info(),
             focal_px=capture.frames[0].focal_prior_px,
-            options=options.multiview,
+            max_depth_side=options.multiview.max_depth_side,
         )
         validate_prediction(
             prediction, camera_outputs="(EXIF focal or the stated guess)", depth_outputs="predicted_depth"
