@@ -111,11 +111,10 @@ def _run_stages(
     )
     colmap, k_colmap = _colmap(capture, ff, options, work, stages, [k_capture, k_ff])
     gates, _ = _gates(capture, ff, colmap, options, stages, [k_capture, k_ff, k_colmap])
-    blocked = isinstance(gates, GatesResult) and gates.blocking
-    refine, k_refine = _refine(capture, ff, colmap, blocked, gates, options, work, stages, [k_capture, k_ff, k_colmap])
+    refine, k_refine = _refine(capture, ff, colmap, gates, options, work, stages, [k_capture, k_ff, k_colmap])
     comparisons, _ = _comparisons(capture, ff, colmap, refine, options, stages, [k_capture, k_ff, k_colmap, k_refine])
     final = _final_cameras(refine)
-    splat, _ = _splat(capture, ff, final, blocked, gates, options, work, stages, [k_capture, k_ff, k_refine])
+    splat, _ = _splat(capture, ff, final, gates, options, work, stages, [k_capture, k_ff, k_refine])
     exports, _ = stages.run(
         "exports",
         lambda: run_exports(
@@ -155,6 +154,16 @@ def _skip(stages: StageRunner, stage: str, label: str, reason: str) -> tuple[Ski
     return Skipped(label, reason), f"skipped:{stage}"
 
 
+def _why_not(capture: Capture, gates, *, enabled: bool = True, flag: str = "") -> str | None:
+    """Why a stage after the feed-forward one does not run (one view, a blocking gate, turned off), or None."""
+    if len(capture.frames) < 2:
+        return ONE_VIEW
+    if isinstance(gates, GatesResult) and gates.blocking:
+        first = gates.failed[0]
+        return f"gate '{first.name}' failed: {first.reason}"
+    return None if enabled else f"turned off ({flag})"
+
+
 def _focal_prior(capture: Capture, ff: FeedForwardResult) -> list[float]:
     """Per-image focal prior for COLMAP: EXIF where known, else the feed-forward model's."""
     cameras = ff.prediction.cameras
@@ -162,10 +171,8 @@ def _focal_prior(capture: Capture, ff: FeedForwardResult) -> list[float]:
 
 
 def _colmap(capture, ff, options: RunOptions, work: Path, stages: StageRunner, inputs) -> tuple:
-    if len(capture.frames) < 2:
-        return _skip(stages, "colmap", "colmap cross-check", ONE_VIEW)
-    if not options.colmap.enabled:
-        return _skip(stages, "colmap", "colmap cross-check", "turned off (--no-colmap)")
+    if reason := _why_not(capture, None, enabled=options.colmap.enabled, flag="--no-colmap"):
+        return _skip(stages, "colmap", "colmap cross-check", reason)
     return stages.run(
         "colmap",
         lambda: run_colmap(
@@ -178,8 +185,8 @@ def _colmap(capture, ff, options: RunOptions, work: Path, stages: StageRunner, i
 
 
 def _gates(capture: Capture, ff, colmap, options: RunOptions, stages: StageRunner, inputs) -> tuple:
-    if len(capture.frames) < 2:
-        return _skip(stages, "gates", "gates", ONE_VIEW)
+    if reason := _why_not(capture, None):
+        return _skip(stages, "gates", "gates", reason)
 
     def check() -> GatesResult:
         colmap_result = colmap if isinstance(colmap, ColmapResult) else None
@@ -191,18 +198,9 @@ def _gates(capture: Capture, ff, colmap, options: RunOptions, stages: StageRunne
     return stages.run("gates", check, options=(options.gates, options.force), inputs=inputs)
 
 
-def _blocked_reason(gates: GatesResult) -> str:
-    first = gates.failed[0]
-    return f"gate '{first.name}' failed: {first.reason}"
-
-
-def _refine(capture, ff, colmap, blocked: bool, gates, options: RunOptions, work, stages, inputs) -> tuple:
-    if len(capture.frames) < 2:
-        return _skip(stages, "refine", "refinement", ONE_VIEW)
-    if blocked:
-        return _skip(stages, "refine", "refinement", _blocked_reason(gates))
-    if not options.refine.enabled:
-        return _skip(stages, "refine", "refinement", "turned off (--no-refine)")
+def _refine(capture, ff, colmap, gates, options: RunOptions, work, stages, inputs) -> tuple:
+    if reason := _why_not(capture, gates, enabled=options.refine.enabled, flag="--no-refine"):
+        return _skip(stages, "refine", "refinement", reason)
     refine_options = options.refine
     if isinstance(colmap, ColmapResult) and refine_options.reuse_features_from is None:  # SIFT once, used twice
         refine_options = dataclasses.replace(refine_options, reuse_features_from=colmap.database_path)
@@ -216,8 +214,8 @@ def _refine(capture, ff, colmap, blocked: bool, gates, options: RunOptions, work
 
 
 def _comparisons(capture, ff, colmap, refine, options: RunOptions, stages: StageRunner, inputs):
-    if len(capture.frames) < 2:
-        return _skip(stages, "comparisons", "pose comparison", ONE_VIEW)
+    if reason := _why_not(capture, None):
+        return _skip(stages, "comparisons", "pose comparison", reason)
     names = capture.names
     estimates = {"feed-forward": (ff.prediction.cam_from_world, np.ones(len(names), bool))}
     if isinstance(colmap, ColmapResult) and colmap.num_registered >= 2:
@@ -246,13 +244,9 @@ def _final_cameras(refine) -> tuple[np.ndarray, tuple] | None:
     return None
 
 
-def _splat(capture, ff, final, blocked: bool, gates, options: RunOptions, work, stages, inputs) -> tuple:
-    if len(capture.frames) < 2:
-        return _skip(stages, "splat", "splat", ONE_VIEW)
-    if blocked:
-        return _skip(stages, "splat", "splat", _blocked_reason(gates))
-    if not options.splat.enabled:
-        return _skip(stages, "splat", "splat", "turned off (--no-splat)")
+def _splat(capture, ff, final, gates, options: RunOptions, work, stages, inputs) -> tuple:
+    if reason := _why_not(capture, gates, enabled=options.splat.enabled, flag="--no-splat"):
+        return _skip(stages, "splat", "splat", reason)
     cam_from_world, cameras = final or (ff.prediction.cam_from_world, ff.prediction.cameras)
 
     def splat() -> SplatResult:

@@ -26,9 +26,9 @@ import torch
 
 from ffrecon.geometry.projection import unproject_depth
 from ffrecon.splat.optimize import cpu_threads, optimize, scene_scale, torch_threads
-from ffrecon.splat.render import RasterOptions, render
+from ffrecon.splat.render import RasterOptions, render, render_view
 from ffrecon.splat.seed import initial_gaussians, reduce_points
-from ffrecon.splat.stage import SplatOptions, image_metrics, render_view, split_views
+from ffrecon.splat.stage import SplatOptions, image_metrics, split_views
 from ffrecon.synthetic import SceneOptions, make_scene
 from ffrecon.synthetic.simulated_model import SimulationOptions, simulate
 

@@ -19,9 +19,10 @@ import math
 from dataclasses import dataclass
 
 import kornia
+import numpy as np
 import torch
 
-from ffrecon.splat.gaussians import sh_to_rgb
+from ffrecon.splat.gaussians import Gaussians, sh_to_rgb
 from ffrecon.splat.raster import (
     ALPHA_MIN,
     TileLayout,
@@ -29,6 +30,7 @@ from ffrecon.splat.raster import (
     composite,
     pair_coefficients,
 )
+from ffrecon.types import PinholeCamera
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -213,3 +215,31 @@ def render(
         extent=proj.extent,
         layout=layout,
     )
+
+
+def render_view(
+    g: Gaussians,
+    cam_from_world: np.ndarray,
+    camera: PinholeCamera,
+    *,
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    raster: RasterOptions | None = None,
+) -> torch.Tensor:
+    """``[H, W, 3]`` render of ``g`` seen by ``camera`` at ``cam_from_world [3, 4]``, on the CPU (no gradient)."""
+    with torch.no_grad():
+        out = render(
+            g.means,
+            g.quats_wxyz,
+            g.log_scales,
+            g.opacity_logits,
+            g.sh,
+            torch.tensor(cam_from_world, dtype=torch.float32),
+            torch.tensor(camera.K, dtype=torch.float32),
+            camera.width,
+            camera.height,
+            background=torch.tensor(background, dtype=torch.float32),
+            sh_degree=g.sh_degree,
+            with_depth=False,
+            options=raster or RasterOptions(),
+        )
+    return out.rgb.clamp(0, 1)

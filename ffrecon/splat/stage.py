@@ -37,7 +37,7 @@ from ffrecon.splat.optimize import (
     torch_threads,
 )
 from ffrecon.splat.ply import write_splat_ply
-from ffrecon.splat.render import RasterOptions, render
+from ffrecon.splat.render import render_view
 from ffrecon.splat.render_gsplat import gsplat_available
 from ffrecon.splat.seed import initial_gaussians, reduce_points, seed_from_prediction
 from ffrecon.splat.video import write_flythrough
@@ -156,34 +156,6 @@ def image_metrics(rendered: torch.Tensor, truth: torch.Tensor) -> tuple[float, f
     psnr = 10 * np.log10(1.0 / max(mse, 1e-12))
     ssim = float(kornia.metrics.ssim(a, b, 11).mean())
     return float(psnr), ssim
-
-
-def render_view(
-    g: Gaussians,
-    cam_from_world: np.ndarray,
-    camera: PinholeCamera,
-    *,
-    background: tuple[float, float, float] = (0.0, 0.0, 0.0),
-    raster: RasterOptions | None = None,
-) -> torch.Tensor:
-    """``[H, W, 3]`` render of ``g`` seen by ``camera`` at ``cam_from_world [3, 4]``, on the CPU (no gradient)."""
-    with torch.no_grad():
-        out = render(
-            g.means,
-            g.quats_wxyz,
-            g.log_scales,
-            g.opacity_logits,
-            g.sh,
-            torch.tensor(cam_from_world, dtype=torch.float32),
-            torch.tensor(camera.K, dtype=torch.float32),
-            camera.width,
-            camera.height,
-            background=torch.tensor(background, dtype=torch.float32),
-            sh_degree=g.sh_degree,
-            with_depth=False,
-            options=raster or RasterOptions(),
-        )
-    return out.rgb.clamp(0, 1)
 
 
 def split_views(num: int, holdout_every: int) -> tuple[list[int], list[int]]:

@@ -2,17 +2,17 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from pathlib import Path
 
 import cv2
 import numpy as np
-import torch
 
 from ffrecon.geometry.poses import camera_centers
 from ffrecon.geometry.rotations import matrix_to_quat_xyzw, quat_xyzw_to_matrix
 from ffrecon.splat.gaussians import Gaussians
-from ffrecon.splat.render import RasterOptions, render
+from ffrecon.splat.render import RasterOptions, render_view
 from ffrecon.types import PinholeCamera
 
 logger = logging.getLogger("ffrecon.splat")
@@ -101,29 +101,13 @@ def write_flythrough(
     if not writer.isOpened():
         logger.warning("OpenCV cannot write %s (no mp4v encoder): skipping the fly-through", path)
         return None
-    K = torch.tensor(camera.K, dtype=torch.float32)
-    bg = torch.tensor(background, dtype=torch.float32)
-    raster = raster or RasterOptions()
+    frame_camera = dataclasses.replace(camera, width=width, height=height)  # even sizes for the encoder
     g = gaussians.detached()
     try:
-        with torch.no_grad():
-            for pose in smooth_camera_path(cam_from_world, num_frames):
-                out = render(
-                    g.means,
-                    g.quats_wxyz,
-                    g.log_scales,
-                    g.opacity_logits,
-                    g.sh,
-                    torch.tensor(pose, dtype=torch.float32),
-                    K,
-                    width,
-                    height,
-                    background=bg,
-                    sh_degree=g.sh_degree,
-                    options=raster,
-                )
-                frame = (out.rgb.clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
-                writer.write(cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
+        for pose in smooth_camera_path(cam_from_world, num_frames):
+            rgb = render_view(g, pose, frame_camera, background=background, raster=raster)
+            frame = (rgb.numpy() * 255 + 0.5).astype(np.uint8)
+            writer.write(cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
     finally:
         writer.release()
     logger.info("wrote %s (%d frames)", path, num_frames)
