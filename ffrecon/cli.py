@@ -71,8 +71,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument(
         "--model",
         type=Path,
-        required=True,
-        help="ONNX model (any family in docs/models.md; make one with `ffrecon export-model`)",
+        default=None,
+        help="ONNX model (any family in docs/models.md; make one with `ffrecon export-model`); "
+        "without one, COLMAP makes the cameras and the splat is seeded from its points",
     )
     run.add_argument("--video-frames", type=int, default=48, help="frames to keep from a video")
     run.add_argument(

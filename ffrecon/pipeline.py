@@ -17,10 +17,10 @@ from pathlib import Path
 import numpy as np
 
 from ffrecon.capture import Capture, CaptureOptions, run_capture
-from ffrecon.errors import Interrupted
+from ffrecon.errors import InputError, Interrupted
 from ffrecon.export.report import write_report
 from ffrecon.export.stage import OUTPUTS as EXPORT_OUTPUTS
-from ffrecon.export.stage import ExportOptions, run_exports
+from ffrecon.export.stage import ExportOptions, ExportsResult, FinalCameras, fuse_with_final_cameras, run_exports
 from ffrecon.models.stage import FeedForwardOptions, FeedForwardResult, run_feedforward
 from ffrecon.results import RunResults, Skipped
 from ffrecon.resume import StageRunner, file_key, rebase_paths
@@ -28,7 +28,8 @@ from ffrecon.sfm.comparisons import ComparisonsResult, load_references, run_comp
 from ffrecon.sfm.crosscheck import ColmapOptions, ColmapResult, run_colmap
 from ffrecon.sfm.gates import GateOptions, GatesResult, run_gates
 from ffrecon.sfm.refine import RefineOptions, RefineResult, run_refine
-from ffrecon.splat.stage import SplatOptions, SplatResult, run_splat_from_prediction
+from ffrecon.splat.seed import seed_from_reconstruction
+from ffrecon.splat.stage import SplatOptions, SplatResult, run_splat, run_splat_from_prediction
 from ffrecon.workspace import staged_output
 
 log = logging.getLogger("ffrecon")
@@ -67,8 +68,10 @@ class RunOptions:
     command: str = ""  # the command line, recorded in the report
 
 
-def run(source: Path, out_dir: Path, model: Path, options: RunOptions | None = None) -> RunResults:
+def run(source: Path, out_dir: Path, model: Path | None, options: RunOptions | None = None) -> RunResults:
     """Reconstruct ``source`` (folder of photos or a video) with ``model`` into ``out_dir``.
+
+    Without a model (None) the cameras come from COLMAP and the splat is seeded from its points.
 
     Raises :class:`~ffrecon.errors.Interrupted` on Ctrl-C (KeyboardInterrupt), naming the stages
     kept for ``--resume``; other :class:`~ffrecon.errors.FFReconError` for unusable input.
@@ -78,7 +81,7 @@ def run(source: Path, out_dir: Path, model: Path, options: RunOptions | None = N
     with staged_output(Path(out_dir), overwrite=options.overwrite, resume=options.resume, fresh=options.fresh) as work:
         stages = StageRunner(work, reuse=not options.fresh)
         try:
-            results = _run_stages(Path(source), Path(model), options, work, stages, created)
+            results = _run_stages(Path(source), model and Path(model), options, work, stages, created)
         except KeyboardInterrupt:
             resume = options.command or "the same command"
             raise Interrupted(stages.current, stages.finished, str(work), _resume_command(resume)) from None
@@ -92,7 +95,7 @@ def _resume_command(command: str) -> str:
 
 
 def _run_stages(
-    source: Path, model: Path, options: RunOptions, work: Path, stages: StageRunner, created: str
+    source: Path, model: Path | None, options: RunOptions, work: Path, stages: StageRunner, created: str
 ) -> RunResults:
     """The whole run: one typed call per stage (those that cannot or should not run are Skipped)."""
     capture, k_capture = stages.run(
@@ -102,34 +105,14 @@ def _run_stages(
         inputs=[file_key(source)],
         outputs=STAGE_OUTPUTS["capture"],
     )
-    ff, k_ff = stages.run(
-        "feedforward",
-        lambda: run_feedforward(capture, model, options.feedforward, work),
-        options=options.feedforward,
-        inputs=[k_capture, file_key(model)],
-        outputs=STAGE_OUTPUTS["feedforward"],
-    )
+    ff, k_ff = _feedforward(capture, model, options, work, stages, [k_capture])
     colmap, k_colmap = _colmap(capture, ff, options, work, stages, [k_capture, k_ff])
     gates, _ = _gates(capture, ff, colmap, options, stages, [k_capture, k_ff, k_colmap])
     refine, k_refine = _refine(capture, ff, colmap, gates, options, work, stages, [k_capture, k_ff, k_colmap])
     comparisons, _ = _comparisons(capture, ff, colmap, refine, options, stages, [k_capture, k_ff, k_colmap, k_refine])
-    final = _final_cameras(refine)
-    splat, _ = _splat(capture, ff, final, gates, options, work, stages, [k_capture, k_ff, k_refine])
-    exports, _ = stages.run(
-        "exports",
-        lambda: run_exports(
-            ff.prediction,
-            capture.read_images,
-            final,
-            (ff.points_xyz, ff.points_rgb),
-            options.feedforward.fuse,
-            options.exports,
-            work,
-        ),
-        options=(options.exports, options.feedforward.fuse),
-        inputs=[k_capture, k_ff, k_refine],
-        outputs=STAGE_OUTPUTS["exports"],
-    )
+    final = _final_cameras(capture, ff, colmap, refine)
+    splat, _ = _splat(capture, ff, colmap, final, gates, options, work, stages, [k_capture, k_ff, k_colmap, k_refine])
+    exports, _ = _exports(capture, ff, colmap, final, options, work, stages, [k_capture, k_ff, k_colmap, k_refine])
     return RunResults(
         out_dir=work,
         created=created,
@@ -164,8 +147,29 @@ def _why_not(capture: Capture, gates, *, enabled: bool = True, flag: str = "") -
     return None if enabled else f"turned off ({flag})"
 
 
-def _focal_prior(capture: Capture, ff: FeedForwardResult) -> list[float]:
-    """Per-image focal prior for COLMAP: EXIF where known, else the feed-forward model's."""
+def _feedforward(capture: Capture, model: Path | None, options: RunOptions, work: Path, stages, inputs) -> tuple:
+    if model is None:
+        if len(capture.frames) < 2:
+            raise InputError("one photo and no model: nothing can place a camera", "pass --model, or more photos")
+        if not options.colmap.enabled:
+            raise InputError(
+                "no model and --no-colmap: nothing would make the cameras", "pass --model or drop --no-colmap"
+            )
+        reason = "no model given (--model): the cameras come from COLMAP and the splat is seeded from its points"
+        return _skip(stages, "feedforward", "feed-forward", reason)
+    return stages.run(
+        "feedforward",
+        lambda: run_feedforward(capture, model, options.feedforward, work),
+        options=options.feedforward,
+        inputs=[*inputs, file_key(model)],
+        outputs=STAGE_OUTPUTS["feedforward"],
+    )
+
+
+def _focal_prior(capture: Capture, ff) -> list[float | None]:
+    """Per-image focal prior for COLMAP: EXIF where known, else the feed-forward model's (if any)."""
+    if not isinstance(ff, FeedForwardResult):
+        return [f.focal_prior_px for f in capture.frames]
     cameras = ff.prediction.cameras
     return [f.focal_prior_px or float(np.sqrt(c.fx * c.fy)) for f, c in zip(capture.frames, cameras)]
 
@@ -191,8 +195,9 @@ def _gates(capture: Capture, ff, colmap, options: RunOptions, stages: StageRunne
     def check() -> GatesResult:
         colmap_result = colmap if isinstance(colmap, ColmapResult) else None
         quality = capture.quality
+        prediction = ff.prediction if isinstance(ff, FeedForwardResult) else None
         return run_gates(
-            colmap=colmap_result, prediction=ff.prediction, quality=quality, options=options.gates, force=options.force
+            colmap=colmap_result, prediction=prediction, quality=quality, options=options.gates, force=options.force
         )
 
     return stages.run("gates", check, options=(options.gates, options.force), inputs=inputs)
@@ -201,6 +206,8 @@ def _gates(capture: Capture, ff, colmap, options: RunOptions, stages: StageRunne
 def _refine(capture, ff, colmap, gates, options: RunOptions, work, stages, inputs) -> tuple:
     if reason := _why_not(capture, gates, enabled=options.refine.enabled, flag="--no-refine"):
         return _skip(stages, "refine", "refinement", reason)
+    if isinstance(ff, Skipped):
+        return _skip(stages, "refine", "refinement", "needs a model's cameras to refine; COLMAP's are final")
     refine_options = options.refine
     if isinstance(colmap, ColmapResult) and refine_options.reuse_features_from is None:  # SIFT once, used twice
         refine_options = dataclasses.replace(refine_options, reuse_features_from=colmap.database_path)
@@ -217,7 +224,9 @@ def _comparisons(capture, ff, colmap, refine, options: RunOptions, stages: Stage
     if reason := _why_not(capture, None):
         return _skip(stages, "comparisons", "pose comparison", reason)
     names = capture.names
-    estimates = {"feed-forward": (ff.prediction.cam_from_world, np.ones(len(names), bool))}
+    estimates = {}
+    if isinstance(ff, FeedForwardResult):
+        estimates["feed-forward"] = (ff.prediction.cam_from_world, np.ones(len(names), bool))
     if isinstance(colmap, ColmapResult) and colmap.num_registered >= 2:
         estimates["COLMAP"] = (colmap.cam_from_world, colmap.registered)
     if isinstance(refine, RefineResult):
@@ -227,7 +236,7 @@ def _comparisons(capture, ff, colmap, refine, options: RunOptions, stages: Stage
         return run_comparisons(names, estimates, load_references(options.ground_truth, options.reference, names))
 
     refs = [file_key(p) for p in (options.ground_truth, options.reference) if p is not None]
-    if "COLMAP" not in estimates and not refs:
+    if len(estimates) < 2 and not refs:
         colmap_state = "did not run" if isinstance(colmap, Skipped) else "registered fewer than two images"
         reason = (
             f"no reference cameras: the COLMAP cross-check {colmap_state} and no ground truth or --reference was given"
@@ -237,20 +246,56 @@ def _comparisons(capture, ff, colmap, refine, options: RunOptions, stages: Stage
     return stages.run("comparisons", compare, options=references, inputs=[*inputs, *refs])
 
 
-def _final_cameras(refine) -> tuple[np.ndarray, tuple] | None:
-    """The refined cameras when refinement kept at least two frames, else None (feed-forward ones)."""
+def _final_cameras(capture: Capture, ff, colmap, refine) -> FinalCameras | None:
+    """Refined cameras when refinement kept two frames or more; else the model's; else COLMAP's registered ones."""
+    every = tuple(range(len(capture.frames)))
     if isinstance(refine, RefineResult) and refine.registered.sum() >= 2:
-        return refine.cam_from_world, tuple(refine.cameras)
+        return FinalCameras(every, capture.names, refine.cam_from_world, tuple(refine.cameras), "refined")
+    if isinstance(ff, FeedForwardResult):
+        pred = ff.prediction
+        return FinalCameras(every, capture.names, pred.cam_from_world, tuple(pred.cameras), "feed-forward")
+    if isinstance(colmap, ColmapResult) and colmap.num_registered >= 2:
+        kept = tuple(int(i) for i in np.flatnonzero(colmap.registered))
+        names = tuple(capture.names[i] for i in kept)
+        return FinalCameras(
+            kept, names, colmap.cam_from_world[list(kept)], tuple(colmap.cameras[i] for i in kept), "COLMAP"
+        )
     return None
 
 
-def _splat(capture, ff, final, gates, options: RunOptions, work, stages, inputs) -> tuple:
+def _splat(capture, ff, colmap, final, gates, options: RunOptions, work, stages, inputs) -> tuple:
     if reason := _why_not(capture, gates, enabled=options.splat.enabled, flag="--no-splat"):
         return _skip(stages, "splat", "splat", reason)
-    cam_from_world, cameras = final or (ff.prediction.cam_from_world, ff.prediction.cameras)
+    if final is None:
+        return _skip(stages, "splat", "splat", "no cameras: COLMAP registered fewer than two images")
 
     def splat() -> SplatResult:
-        images = capture.read_images()
-        return run_splat_from_prediction(ff.prediction, images, cam_from_world, cameras, options.splat, work)
+        images = capture.read_images(list(final.indices))
+        if isinstance(ff, FeedForwardResult):
+            args = (ff.prediction, images, final.cam_from_world, final.cameras, options.splat, work)
+            return run_splat_from_prediction(*args)
+        xyz, rgb = seed_from_reconstruction(colmap.reconstruction)  # no model: COLMAP's points
+        args = (images, final.names, final.cam_from_world, final.cameras, xyz, rgb, options.splat, work)
+        return run_splat(*args)
 
     return stages.run("splat", splat, options=options.splat, inputs=inputs, outputs=STAGE_OUTPUTS["splat"])
+
+
+def _exports(capture, ff, colmap, final, options: RunOptions, work, stages, inputs) -> tuple:
+    if final is None:
+        reason = "no cameras to export: COLMAP registered fewer than two images and no model was given"
+        return _skip(stages, "exports", "exports", reason)
+
+    def export() -> ExportsResult:
+        if not isinstance(ff, FeedForwardResult):
+            points, what = seed_from_reconstruction(colmap.reconstruction), "COLMAP's sparse points"
+        elif final.source == "refined":
+            fuse = options.feedforward.fuse
+            points = fuse_with_final_cameras(ff.prediction, final, capture.read_images, fuse)
+            what = "depth maps fused with the refined cameras"
+        else:
+            points, what = (ff.points_xyz, ff.points_rgb), "depth maps fused with the model's cameras"
+        return run_exports(final, points, what, options.exports, work)
+
+    opts = (options.exports, options.feedforward.fuse)
+    return stages.run("exports", export, options=opts, inputs=inputs, outputs=STAGE_OUTPUTS["exports"])

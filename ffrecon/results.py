@@ -44,19 +44,19 @@ class RunResults:
     created: str  # ISO time the run started
     command: str
     capture: Capture
-    feedforward: FeedForwardResult
+    feedforward: FeedForwardResult | Skipped  # Skipped when no model was given
     colmap: ColmapResult | Skipped
     gates: GatesResult | Skipped
     comparisons: ComparisonsResult | Skipped
     refine: RefineResult | Skipped
     splat: SplatResult | Skipped
-    exports: ExportsResult
+    exports: ExportsResult | Skipped
     timings: tuple[StageTiming, ...]
     forced: bool
 
     @property
     def skipped(self) -> tuple[Skipped, ...]:
-        stages = (self.colmap, self.gates, self.comparisons, self.refine, self.splat)
+        stages = (self.feedforward, self.colmap, self.gates, self.comparisons, self.refine, self.splat, self.exports)
         return tuple(s for s in stages if isinstance(s, Skipped))
 
     @property

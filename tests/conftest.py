@@ -27,6 +27,18 @@ def small_demo(demo_cache):
     return prepare_demo(DemoOptions(scene=SceneOptions(num_frames=8, width=224, height=168, seed=1)))
 
 
+@pytest.fixture(scope="session")
+def demo12(demo_cache):
+    """12 frames at 320x240 with the simulated model: COLMAP registers them all, so every stage runs."""
+    import os
+
+    from ffrecon.demo import DemoOptions, prepare_demo
+    from ffrecon.synthetic import SceneOptions
+
+    os.environ["FFRECON_CACHE"] = str(demo_cache)
+    return prepare_demo(DemoOptions(scene=SceneOptions(num_frames=12, width=320, height=240, seed=1)))
+
+
 @pytest.fixture
 def one_torch_thread():
     """torch on one thread: on a shared 2-core machine two OpenMP threads can run ten times slower

@@ -16,14 +16,12 @@ from plyfile import PlyData
 
 import ffrecon.pipeline as pipeline
 from ffrecon.cli import main
-from ffrecon.demo import DemoOptions, prepare_demo
 from ffrecon.errors import Interrupted
 from ffrecon.pipeline import RunOptions, run
 from ffrecon.results import Skipped
 from ffrecon.sfm.gates import GateOptions
 from ffrecon.splat.optimize import OptimizeOptions
 from ffrecon.splat.stage import SplatOptions
-from ffrecon.synthetic import SceneOptions
 from ffrecon.workspace import staging_path
 
 BEFORE_SPLAT = ["capture", "feedforward", "colmap", "gates", "refine", "comparisons"]
@@ -38,13 +36,6 @@ def _options(**kw) -> RunOptions:
 def _ply(path: Path) -> dict[str, np.ndarray]:
     vertex = PlyData.read(str(path))["vertex"]
     return {name: np.asarray(vertex[name]) for name in vertex.data.dtype.names}
-
-
-@pytest.fixture(scope="module")
-def demo12(demo_cache):
-    """12 frames at 320x240 with the simulated model: COLMAP registers them all, so every stage runs."""
-    os.environ["FFRECON_CACHE"] = str(demo_cache)
-    return prepare_demo(DemoOptions(scene=SceneOptions(num_frames=12, width=320, height=240, seed=1)))
 
 
 @pytest.fixture(scope="module")

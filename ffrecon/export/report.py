@@ -82,16 +82,17 @@ def _outputs(results: RunResults) -> dict[str, str]:
     """Files for people, relative to the run folder (only those the run wrote)."""
     out = results.out_dir
     ex = results.exports
+    ff_sparse = getattr(results.feedforward, "sparse_dir", None)
     candidates = {
         "refined COLMAP model (use this)": getattr(results.refine, "model_path", None),
         "COLMAP cross-check model": getattr(results.colmap, "model_path", None),
-        "feed-forward COLMAP model": results.feedforward.sparse_dir,
-        "feed-forward depth maps": out / "feedforward" / "depth",
-        "nerfstudio transforms": ex.transforms_json,
-        "point cloud": ex.points_ply,
+        "feed-forward COLMAP model": ff_sparse,
+        "feed-forward depth maps": None if ff_sparse is None else ff_sparse.parent / "depth",
+        "nerfstudio transforms": getattr(ex, "transforms_json", None),
+        "point cloud": getattr(ex, "points_ply", None),
         "Gaussian splat": getattr(results.splat, "ply_path", None),
         "fly-through video": getattr(results.splat, "video_path", None),
-        "mesh": ex.mesh_glb,
+        "mesh": getattr(ex, "mesh_glb", None),
         "held-out renders": getattr(results.splat, "renders_dir", None),
         "images": results.capture.image_dir,
     }
@@ -102,10 +103,19 @@ def build_report(results: RunResults) -> dict:
     """The run's machine-readable record (JSON-serialisable; numbers, names, relative paths)."""
     pose_errors, pose_plot = _pose_section(results)
     out = results.out_dir
-    ex = results.exports
 
     def rel(p: Path | None) -> str | None:
         return None if p is None else str(Path(p).relative_to(out))
+
+    def exports(ex) -> dict:
+        return {
+            "points_ply": rel(ex.points_ply),
+            "num_points": ex.num_points,
+            "points": ex.points_from,
+            "transforms_json": rel(ex.transforms_json),
+            "mesh": {"ply": rel(ex.mesh_ply), "glb": rel(ex.mesh_glb)} if ex.mesh_ply else None,
+            "cameras": ex.cameras_from,
+        }
 
     report = {
         "ffrecon_version": __version__,
@@ -114,20 +124,14 @@ def build_report(results: RunResults) -> dict:
         "forced": results.forced,
         "verdict": _verdict(results),
         "inputs": results.capture.to_report(),
-        "feedforward": results.feedforward.to_report(),
+        "feedforward": _section(results.feedforward),
         "colmap": _section(results.colmap),
         "gates": _section(results.gates, lambda g: [v.to_report() for v in g.verdicts]),
         "refine": _section(results.refine),
         "pose_errors": pose_errors,
         "pose_plot": pose_plot,
         "splat": _section(results.splat),
-        "exports": {
-            "points_ply": rel(ex.points_ply),
-            "num_points": ex.num_points,
-            "transforms_json": rel(ex.transforms_json),
-            "mesh": {"ply": rel(ex.mesh_ply), "glb": rel(ex.mesh_glb)} if ex.mesh_ply else None,
-            "cameras": ex.cameras_from,
-        },
+        "exports": _section(results.exports, exports),
         "skipped_stages": [{"stage": s.stage, "reason": s.reason} for s in results.skipped],
         "timings": {
             t.stage: {"seconds": t.seconds, "reused": t.reused, "first_seconds": t.first_seconds}

@@ -139,6 +139,8 @@ def _capture(report: dict, run_dir: Path) -> tuple[list[dict], str]:
 
 def _feedforward(report: dict, run_dir: Path) -> tuple[list[dict], str]:
     ff = report["feedforward"]
+    if "skipped" in ff:
+        return [], ""
     model = ff["model"]
     items = [
         ("world frame", ff.get("world_frame")),
@@ -284,12 +286,20 @@ _SECTIONS = (
 def summary_rows(report: dict) -> list[tuple[str, str]]:
     """``(item, value)`` lines of the run's summary, for the page and the terminal."""
     ff = report["feedforward"]
-    model = ff["model"]
-    rows = [
-        ("frames", str(report["inputs"]["num_frames"])),
-        ("model", f"{Path(model['path']).name} ({model['family']}{', SIMULATED' if model['simulated'] else ''})"),
-        ("fused points", str(ff["num_points"])),
-    ]
+    rows = [("frames", str(report["inputs"]["num_frames"]))]
+    if "skipped" in ff:
+        rows.append(("model", "none: cameras from COLMAP"))
+    else:
+        model = ff["model"]
+        rows.append(
+            ("model", f"{Path(model['path']).name} ({model['family']}{', SIMULATED' if model['simulated'] else ''})")
+        )
+        rows.append(("fused points", str(ff["num_points"])))
+    exports = report["exports"]
+    if "skipped" not in exports:
+        rows.append(
+            ("exported cameras", f"{exports['cameras']}; points.ply: {exports['num_points']} {exports['points']}")
+        )
     colmap, refine, splat = report["colmap"], report["refine"], report["splat"]
     if "skipped" not in colmap:
         rows.append(("COLMAP registered", f"{colmap['num_registered']}/{colmap['num_images']}"))
@@ -337,7 +347,7 @@ def render_html(report: dict, run_dir: Path) -> str:
     banner = "ok" if verdict["status"] == "ok" else "bad"
     status = html.escape(verdict["status"].upper())
     parts.append(f"<div class='banner {banner}'><b>{status}</b> — {html.escape(verdict['message'])}</div>")
-    if report["feedforward"]["model"].get("simulated"):
+    if report["feedforward"].get("model", {}).get("simulated"):
         parts.append(_SIMULATED)
     for item in report["skipped_stages"]:
         stage, reason = html.escape(item["stage"]), html.escape(item["reason"])

@@ -1,6 +1,7 @@
 """The export stage: the files other tools read, written with the final cameras.
 
-``run_exports`` writes ``points.ply`` (the depth maps fused with the final cameras), the nerfstudio
+``run_exports`` writes ``points.ply`` (the depth maps fused with the final cameras, or COLMAP's
+sparse points when no model was given), the nerfstudio
 ``transforms.json`` and, on request, a Poisson mesh (``mesh.ply``, ``mesh.glb``). The COLMAP models
 are written by the stages that make them; the report by :mod:`ffrecon.export.report`.
 """
@@ -9,7 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -32,53 +33,58 @@ class ExportOptions:
 
 
 @dataclass(frozen=True)
+class FinalCameras:
+    """The cameras the exports (and the splat) use: all frames, or COLMAP's registered ones."""
+
+    indices: tuple[int, ...]  # into the capture's frames
+    names: tuple[str, ...]
+    cam_from_world: np.ndarray  # [M, 3, 4] float64, OpenCV
+    cameras: tuple[PinholeCamera, ...]
+    source: str  # "refined", "feed-forward" or "COLMAP"
+
+
+@dataclass(frozen=True)
 class ExportsResult:
     """Files written by the export stage (paths in the run folder)."""
 
     points_ply: Path
     num_points: int
+    points_from: str  # what the cloud is: fused depth maps, or COLMAP's sparse points
     transforms_json: Path
     mesh_ply: Path | None
     mesh_glb: Path | None
-    cameras_from: str  # "refined" or "feed-forward": the cameras the files use
+    cameras_from: str  # FinalCameras.source
+
+
+def fuse_with_final_cameras(
+    prediction: Prediction, final: FinalCameras, read_images: Callable[[], list[np.ndarray]], fuse: FuseOptions
+) -> tuple[np.ndarray, np.ndarray]:
+    """The depth maps fused again with the final (refined) cameras, so points.ply agrees with sparse/0."""
+    moved = dataclasses.replace(prediction, cam_from_world=final.cam_from_world, cameras=final.cameras)
+    return fuse_prediction(moved, read_images(), fuse)
 
 
 def run_exports(
-    prediction: Prediction,
-    read_images: Callable[[], list[np.ndarray]],
-    final: tuple[np.ndarray, Sequence[PinholeCamera]] | None,
-    fused: tuple[np.ndarray, np.ndarray],
-    fuse: FuseOptions,
-    options: ExportOptions,
-    out_dir: Path,
+    final: FinalCameras, points: tuple[np.ndarray, np.ndarray], points_from: str, options: ExportOptions, out_dir: Path
 ) -> ExportsResult:
-    """Write the point cloud, transforms.json and the optional mesh.
+    """Write the point cloud, transforms.json (the final cameras) and the optional mesh.
 
     Args:
-        prediction: the feed-forward prediction (depth maps, feed-forward cameras).
-        read_images: returns the frames as ``[H, W, 3]`` uint8 RGB (read only when re-fusing).
-        final: refined ``(cam_from_world [N, 3, 4], cameras)`` in the prediction's world frame, or
-            None to keep the feed-forward cameras.
-        fused: the feed-forward stage's fused cloud ``(xyz [M, 3], rgb [M, 3] in [0, 1])``, used as
-            it is when the cameras are the feed-forward ones.
+        final: the cameras to write; transforms.json lists exactly these frames.
+        points: ``(xyz [M, 3] world, rgb [M, 3] in [0, 1])`` in the frame of ``final``.
+        points_from: what the points are, for the report.
     """
     out_dir = Path(out_dir)
-    xyz, rgb = fused
-    cam_from_world, cameras = prediction.cam_from_world, prediction.cameras
-    if final is not None:
-        # Re-fuse the depth maps with the refined cameras so points.ply agrees with sparse/0.
-        cam_from_world, cameras = final[0], tuple(final[1])
-        moved = dataclasses.replace(prediction, cam_from_world=cam_from_world, cameras=cameras)
-        xyz, rgb = fuse_prediction(moved, read_images(), fuse)
-    points = write_point_cloud(out_dir / "points.ply", xyz, rgb)
-    files = [f"images/{n}" for n in prediction.names]
+    xyz, rgb = points
+    cloud = write_point_cloud(out_dir / "points.ply", xyz, rgb)
+    files = [f"images/{n}" for n in final.names]
     transforms = write_transforms(
-        out_dir / "transforms.json", files, cam_from_world, cameras, ply_file_path="points.ply"
+        out_dir / "transforms.json", files, final.cam_from_world, final.cameras, ply_file_path="points.ply"
     )
     mesh_ply = mesh_glb = None
     if options.mesh:
+        centers = camera_centers(final.cam_from_world)
         mesh_ply, mesh_glb = write_mesh(
-            out_dir / "mesh.ply", out_dir / "mesh.glb", xyz, rgb, camera_centers(cam_from_world), options.mesh_options
+            out_dir / "mesh.ply", out_dir / "mesh.glb", xyz, rgb, centers, options.mesh_options
         )
-    cameras_from = "refined" if final is not None else "feed-forward"
-    return ExportsResult(points, int(len(xyz)), transforms, mesh_ply, mesh_glb, cameras_from)
+    return ExportsResult(cloud, int(len(xyz)), points_from, transforms, mesh_ply, mesh_glb, final.source)

@@ -1,0 +1,47 @@
+"""No model: photos -> COLMAP -> gates -> splat seeded from COLMAP's points -> exports and report."""
+
+import json
+
+import pycolmap
+
+from ffrecon.cli import main
+from ffrecon.pipeline import RunOptions, run
+from ffrecon.results import Skipped
+from ffrecon.splat.optimize import OptimizeOptions
+from ffrecon.splat.stage import SplatOptions
+
+
+def test_no_model_reconstructs_from_colmap_alone(demo12, tmp_path):
+    out = tmp_path / "out"
+    splat = SplatOptions(optimize=OptimizeOptions.brief(iterations=30, max_seconds=1e6, progress=False), video=False)
+    result = run(demo12.images, out, None, RunOptions(splat=splat, ground_truth=demo12.scene_dir))
+    assert result.exit_code == 0
+    assert isinstance(result.feedforward, Skipped) and "--model" in result.feedforward.reason
+    assert isinstance(result.refine, Skipped)
+    assert result.colmap.num_registered == 12
+    # COLMAP's cameras are the final ones (no focal prior: the PNGs carry no EXIF): within 0.25 deg of truth.
+    errors = result.comparisons.by_label("COLMAP", "ground truth").errors
+    assert errors.median_rotation_deg < 0.25 and errors.auc[5] > 0.9
+    # The splat is seeded from COLMAP's points and measured on held-out views it never saw.
+    assert result.splat.count_seed <= result.colmap.num_points and result.splat.heldout == (0, 8)
+    assert result.splat.mean("psnr_cleaned") > result.splat.mean("psnr_seed") + 1.0
+    # Exports use COLMAP's cameras and points; nerfstudio's file lists the registered frames.
+    assert result.exports.cameras_from == "COLMAP" and "COLMAP" in result.exports.points_from
+    transforms = json.loads((out / "transforms.json").read_text())
+    assert len(transforms["frames"]) == 12
+    rec = pycolmap.Reconstruction(str(out / "colmap" / "sparse" / "0"))
+    assert result.exports.num_points == rec.num_points3D()
+    report = json.loads((out / "report.json").read_text())
+    assert report["feedforward"] == {"skipped": result.feedforward.reason}
+    assert "none: cameras from COLMAP" in (out / "report.html").read_text()
+
+
+def test_no_model_and_no_colmap_is_refused(demo12, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(["run", str(demo12.images), "-o", str(out), "--no-colmap", "-q"]) == 2
+    assert "--model" in capsys.readouterr().err
+    assert not out.exists()
+    one = tmp_path / "one"
+    one.mkdir()
+    (one / "a.png").write_bytes(next(iter(sorted(demo12.images.iterdir()))).read_bytes())
+    assert main(["run", str(one), "-o", str(out), "-q"]) == 2
