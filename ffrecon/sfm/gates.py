@@ -32,6 +32,9 @@ class GateStatus(enum.Enum):
 class FailureCause(enum.Enum):
     BLUR = "blur"
     TEXTURE = "texture"
+    EXPOSURE = "exposure"
+    DISCONNECTED = "disconnected"  # several models: groups of photos that share no views
+    SMALL_PARALLAX = "small_parallax"  # plenty of verified matches, too little baseline to triangulate
     OVERLAP = "overlap"
 
 
@@ -89,6 +92,9 @@ class GateOptions:
     # A cause is named when this share of the images carries its capture flag ("blur", "texture";
     # thresholds in ffrecon.capture.quality.QualityOptions).
     cause_share: float = 0.3
+    # Median verified inlier matches per image above which the photos clearly overlap: a failed
+    # registration is then small parallax (or disconnected groups), never "too little overlap".
+    overlap_matches: int = 500
 
 
 _FIXES = {
@@ -96,35 +102,57 @@ _FIXES = {
     "and drop blurred frames (for video, keep the sharpest frame of each second)",
     FailureCause.TEXTURE: "the surfaces show too little texture for feature matching: add texture (objects, "
     "posters), light the scene evenly, or accept the feed-forward cameras with --force",
+    FailureCause.EXPOSURE: "the exposure changes between photos: lock exposure and white balance while capturing",
+    FailureCause.DISCONNECTED: "COLMAP built several separate models: some photos share no views with the rest; "
+    "add photos that bridge the groups",
+    FailureCause.SMALL_PARALLAX: "the photos overlap well but their viewpoints barely differ (walking straight "
+    "forward, or turning on the spot), so nothing can be triangulated: move sideways between shots, or give a "
+    "model (--model) whose cameras can carry the run",
     FailureCause.OVERLAP: "the images overlap too little or change viewpoint too much: take more photos, each "
     "sharing about two thirds of its view with the previous one, and move less between shots",
 }
 
 
 def diagnose_registration(
-    quality: CaptureQuality | None, names: Sequence[str], median_keypoints: int, options: GateOptions
+    quality: CaptureQuality | None,
+    names: Sequence[str],
+    median_keypoints: int,
+    options: GateOptions,
+    *,
+    median_verified_matches: int = 0,
+    num_models: int = 1,
 ) -> tuple[FailureCause, ...]:
-    """Likely causes of poor registration of ``names``, most likely first; OVERLAP when the images look fine.
+    """Likely causes of poor registration of ``names``, most likely first.
 
-    Blur and lack of texture come from the capture flags on those images (blur lowers the edge
-    sharpness; a textureless image has a low mean gradient but sharp edges). Without capture
-    measures for them, few SIFT features point at blur or texture.
+    Blur, lack of texture and exposure drift come from the capture flags on those images (blur
+    lowers the edge sharpness; a textureless image has a low mean gradient but sharp edges).
+    Without capture measures for them, few SIFT features point at blur or texture. When the images
+    look fine, the matches decide: several models mean disconnected groups; many verified matches
+    (``median_verified_matches`` per image, summed over its verified pairs) mean the photos overlap
+    but lack parallax; only few mean too little overlap.
     """
     measured = set(names) & set(quality.names) if quality is not None else set()
-    if not measured:
-        if median_keypoints < options.min_keypoints:
-            return (FailureCause.BLUR, FailureCause.TEXTURE)
-        return (FailureCause.OVERLAP,)
+    if not measured and median_keypoints < options.min_keypoints:
+        return (FailureCause.BLUR, FailureCause.TEXTURE)
     causes = []
-    for cause in (FailureCause.BLUR, FailureCause.TEXTURE):
-        if len(measured & set(quality.flagged(cause.value))) >= options.cause_share * len(measured):
+    for cause in (FailureCause.BLUR, FailureCause.TEXTURE, FailureCause.EXPOSURE):
+        if measured and len(measured & set(quality.flagged(cause.value))) >= options.cause_share * len(measured):
             causes.append(cause)
+    if causes:
+        return tuple(causes)
+    if num_models > 1:
+        causes.append(FailureCause.DISCONNECTED)
+    if median_verified_matches >= options.overlap_matches:
+        causes.append(FailureCause.SMALL_PARALLAX)
     return tuple(causes) or (FailureCause.OVERLAP,)
 
 
 _LIKELY = {
     FailureCause.BLUR: "blur",
     FailureCause.TEXTURE: "lack of texture",
+    FailureCause.EXPOSURE: "exposure changes",
+    FailureCause.DISCONNECTED: "groups of photos that share no views",
+    FailureCause.SMALL_PARALLAX: "too little parallax (viewpoints too alike)",
     FailureCause.OVERLAP: "too little overlap",
 }
 
@@ -143,11 +171,15 @@ def registration_gate(
             f"COLMAP registered {colmap.num_registered} of {len(colmap.names)} images",
         )
     kps = int(np.median(colmap.features.num_keypoints)) if len(colmap.names) else 0
-    causes = diagnose_registration(quality, colmap.names, kps, options)
+    matches = int(np.median(colmap.features.num_inlier_matches)) if len(colmap.names) else 0
+    causes = diagnose_registration(
+        quality, colmap.names, kps, options, median_verified_matches=matches, num_models=colmap.num_models
+    )
     reason = (
         f"COLMAP registered only {colmap.num_registered} of {len(colmap.names)} images ({ratio:.0%} < "
         f"{options.min_registration_ratio:.0%}); median {kps} SIFT features per image, "
-        f"{colmap.features.num_pairs_verified} verified image pairs; "
+        f"{colmap.features.num_pairs_verified} verified image pairs, median {matches} verified matches per image"
+        f"{f', {colmap.num_models} separate models' if colmap.num_models > 1 else ''}; "
         f"likely cause: {' or '.join(_LIKELY[c] for c in causes)}"
     )
     return GateVerdict(
