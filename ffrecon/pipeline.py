@@ -26,6 +26,7 @@ from ffrecon.results import RunResults, Skipped
 from ffrecon.resume import StageRunner, file_key, rebase_paths
 from ffrecon.sfm.comparisons import ComparisonsResult, load_references, run_comparisons
 from ffrecon.sfm.crosscheck import ColmapOptions, ColmapResult, run_colmap
+from ffrecon.sfm.evidence import EvidenceOptions, EvidenceResult, judge_final_cameras
 from ffrecon.sfm.gates import GateOptions, GatesResult, run_gates
 from ffrecon.sfm.refine import RefineOptions, RefineResult, run_refine
 from ffrecon.splat.seed import seed_from_reconstruction
@@ -41,6 +42,7 @@ STAGE_OUTPUTS = {
     "colmap": ("colmap",),
     "gates": (),
     "refine": ("sparse", "refine"),
+    "evidence": (),
     "comparisons": (),
     "splat": ("splat.ply", "renders", "flythrough.mp4"),
     "exports": EXPORT_OUTPUTS,
@@ -58,6 +60,7 @@ class RunOptions:
     gates: GateOptions = field(default_factory=GateOptions)
     refine: RefineOptions = field(default_factory=RefineOptions)
     splat: SplatOptions = field(default_factory=SplatOptions)
+    evidence: EvidenceOptions = field(default_factory=EvidenceOptions)
     exports: ExportOptions = field(default_factory=ExportOptions)
     force: bool = False  # go on past failed gates
     overwrite: bool = False  # replace results already in OUT
@@ -109,9 +112,13 @@ def _run_stages(
     colmap, k_colmap = _colmap(capture, ff, options, work, stages, [k_capture, k_ff])
     gates, _ = _gates(capture, ff, colmap, options, stages, [k_capture, k_ff, k_colmap])
     refine, k_refine = _refine(capture, ff, colmap, gates, options, work, stages, [k_capture, k_ff, k_colmap])
+    evidence, _ = _evidence(capture, ff, colmap, gates, refine, options, stages, [k_ff, k_colmap, k_refine])
+    verdicts = (gates, evidence.gates if isinstance(evidence, EvidenceResult) else None)
     comparisons, _ = _comparisons(capture, ff, colmap, refine, options, stages, [k_capture, k_ff, k_colmap, k_refine])
-    final = _final_cameras(capture, ff, colmap, refine)
-    splat, _ = _splat(capture, ff, colmap, final, gates, options, work, stages, [k_capture, k_ff, k_colmap, k_refine])
+    final = _final_cameras(capture, ff, colmap, refine, evidence)
+    splat, _ = _splat(
+        capture, ff, colmap, final, verdicts, options, work, stages, [k_capture, k_ff, k_colmap, k_refine]
+    )
     exports, _ = _exports(capture, ff, colmap, final, options, work, stages, [k_capture, k_ff, k_colmap, k_refine])
     return RunResults(
         out_dir=work,
@@ -123,6 +130,7 @@ def _run_stages(
         gates=gates,
         comparisons=comparisons,
         refine=refine,
+        evidence=evidence,
         splat=splat,
         exports=exports,
         timings=tuple(stages.timings),
@@ -138,12 +146,16 @@ def _skip(stages: StageRunner, stage: str, label: str, reason: str) -> tuple[Ski
 
 
 def _why_not(capture: Capture, gates, *, enabled: bool = True, flag: str = "") -> str | None:
-    """Why a stage after the feed-forward one does not run (one view, a blocking gate, turned off), or None."""
+    """Why a stage after the feed-forward one does not run (one view, a blocking gate, turned off), or None.
+
+    ``gates``: a :class:`GatesResult`, or a tuple of them (and None for those that did not run).
+    """
     if len(capture.frames) < 2:
         return ONE_VIEW
-    if isinstance(gates, GatesResult) and gates.blocking:
-        first = gates.failed[0]
-        return f"gate '{first.name}' failed: {first.reason}"
+    for result in gates if isinstance(gates, tuple) else (gates,):
+        if isinstance(result, GatesResult) and result.blocking:
+            first = result.failed[0]
+            return f"gate '{first.name}' failed: {first.reason}"
     return None if enabled else f"turned off ({flag})"
 
 
@@ -197,7 +209,12 @@ def _gates(capture: Capture, ff, colmap, options: RunOptions, stages: StageRunne
         quality = capture.quality
         prediction = ff.prediction if isinstance(ff, FeedForwardResult) else None
         return run_gates(
-            colmap=colmap_result, prediction=prediction, quality=quality, options=options.gates, force=options.force
+            colmap=colmap_result,
+            prediction=prediction,
+            quality=quality,
+            options=options.gates,
+            force=options.force,
+            witness=prediction is not None,  # with a model, the final cameras are judged on evidence instead
         )
 
     return stages.run("gates", check, options=(options.gates, options.force), inputs=inputs)
@@ -246,35 +263,50 @@ def _comparisons(capture, ff, colmap, refine, options: RunOptions, stages: Stage
     return stages.run("comparisons", compare, options=references, inputs=[*inputs, *refs])
 
 
-def _final_cameras(capture: Capture, ff, colmap, refine) -> FinalCameras | None:
-    """Refined cameras when refinement kept two frames or more; else the model's; else COLMAP's registered ones."""
+def _evidence(capture, ff, colmap, gates, refine, options: RunOptions, stages: StageRunner, inputs) -> tuple:
+    if not isinstance(refine, RefineResult):
+        return _skip(stages, "evidence", "evidence on the final cameras", f"no refinement ({refine.reason})")
+    witness = gates if isinstance(gates, GatesResult) else GatesResult((), options.force)
+    colmap_result = colmap if isinstance(colmap, ColmapResult) else None
+
+    def judge() -> EvidenceResult:
+        pred = ff.prediction
+        args = (capture.names, pred.cam_from_world, refine, colmap_result, witness, options.evidence)
+        return judge_final_cameras(*args, force=options.force)
+
+    return stages.run("evidence", judge, options=(options.evidence, options.force), inputs=inputs)
+
+
+def _final_cameras(capture: Capture, ff, colmap, refine, evidence) -> FinalCameras | None:
+    """Refined cameras when refinement kept two frames or more; else the model's; else COLMAP's registered
+    ones (also when the model was found unsuited)."""
     every = tuple(range(len(capture.frames)))
-    if isinstance(refine, RefineResult) and refine.registered.sum() >= 2:
+    unsuited = isinstance(evidence, EvidenceResult) and evidence.model_unsuited
+    if not unsuited and isinstance(refine, RefineResult) and refine.registered.sum() >= 2:
         return FinalCameras(every, capture.names, refine.cam_from_world, tuple(refine.cameras), "refined")
-    if isinstance(ff, FeedForwardResult):
+    if not unsuited and isinstance(ff, FeedForwardResult):
         pred = ff.prediction
         return FinalCameras(every, capture.names, pred.cam_from_world, tuple(pred.cameras), "feed-forward")
     if isinstance(colmap, ColmapResult) and colmap.num_registered >= 2:
         kept = tuple(int(i) for i in np.flatnonzero(colmap.registered))
         names = tuple(capture.names[i] for i in kept)
-        return FinalCameras(
-            kept, names, colmap.cam_from_world[list(kept)], tuple(colmap.cameras[i] for i in kept), "COLMAP"
-        )
+        cameras = tuple(colmap.cameras[i] for i in kept)
+        return FinalCameras(kept, names, colmap.cam_from_world[list(kept)], cameras, "COLMAP")
     return None
 
 
-def _splat(capture, ff, colmap, final, gates, options: RunOptions, work, stages, inputs) -> tuple:
-    if reason := _why_not(capture, gates, enabled=options.splat.enabled, flag="--no-splat"):
+def _splat(capture, ff, colmap, final, verdicts: tuple, options: RunOptions, work, stages, inputs) -> tuple:
+    if reason := _why_not(capture, verdicts, enabled=options.splat.enabled, flag="--no-splat"):
         return _skip(stages, "splat", "splat", reason)
     if final is None:
         return _skip(stages, "splat", "splat", "no cameras: COLMAP registered fewer than two images")
 
     def splat() -> SplatResult:
         images = capture.read_images(list(final.indices))
-        if isinstance(ff, FeedForwardResult):
+        if final.source != "COLMAP":
             args = (ff.prediction, images, final.cam_from_world, final.cameras, options.splat, work)
             return run_splat_from_prediction(*args)
-        xyz, rgb = seed_from_reconstruction(colmap.reconstruction)  # no model: COLMAP's points
+        xyz, rgb = seed_from_reconstruction(colmap.reconstruction)  # COLMAP's cameras: its points
         args = (images, final.names, final.cam_from_world, final.cameras, xyz, rgb, options.splat, work)
         return run_splat(*args)
 
@@ -287,7 +319,7 @@ def _exports(capture, ff, colmap, final, options: RunOptions, work, stages, inpu
         return _skip(stages, "exports", "exports", reason)
 
     def export() -> ExportsResult:
-        if not isinstance(ff, FeedForwardResult):
+        if final.source == "COLMAP":
             points, what = seed_from_reconstruction(colmap.reconstruction), "COLMAP's sparse points"
         elif final.source == "refined":
             fuse = options.feedforward.fuse

@@ -18,6 +18,7 @@ from ffrecon.models.stage import FeedForwardResult
 from ffrecon.resume import StageTiming
 from ffrecon.sfm.comparisons import ComparisonsResult
 from ffrecon.sfm.crosscheck import ColmapResult
+from ffrecon.sfm.evidence import EvidenceResult
 from ffrecon.sfm.gates import GatesResult
 from ffrecon.sfm.refine import RefineResult
 from ffrecon.splat.stage import SplatResult
@@ -49,6 +50,7 @@ class RunResults:
     gates: GatesResult | Skipped
     comparisons: ComparisonsResult | Skipped
     refine: RefineResult | Skipped
+    evidence: EvidenceResult | Skipped  # the final cameras judged (with a model)
     splat: SplatResult | Skipped
     exports: ExportsResult | Skipped
     timings: tuple[StageTiming, ...]
@@ -56,12 +58,19 @@ class RunResults:
 
     @property
     def skipped(self) -> tuple[Skipped, ...]:
-        stages = (self.feedforward, self.colmap, self.gates, self.comparisons, self.refine, self.splat, self.exports)
+        stages = (self.feedforward, self.colmap, self.gates, self.refine, self.evidence, self.comparisons, self.splat)
+        stages += (self.exports,)
         return tuple(s for s in stages if isinstance(s, Skipped))
 
     @property
+    def gate_results(self) -> tuple[GatesResult, ...]:
+        """The gates on COLMAP's model and the capture, then those on the final cameras (those that ran)."""
+        evidence = self.evidence.gates if isinstance(self.evidence, EvidenceResult) else None
+        return tuple(g for g in (self.gates, evidence) if isinstance(g, GatesResult))
+
+    @property
     def verdict(self) -> Verdict:
-        blocked = isinstance(self.gates, GatesResult) and self.gates.blocking
+        blocked = any(g.blocking for g in self.gate_results)
         return Verdict.GATE_FAILED if blocked else Verdict.OK
 
     @property

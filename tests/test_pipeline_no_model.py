@@ -9,6 +9,8 @@ from ffrecon.pipeline import RunOptions, run
 from ffrecon.results import Skipped
 from ffrecon.splat.optimize import OptimizeOptions
 from ffrecon.splat.stage import SplatOptions
+from ffrecon.synthetic import SceneOptions, make_scene, write_scene
+from ffrecon.synthetic.simulated_model import SimulationOptions, build_simulated_vggt
 
 
 def test_no_model_reconstructs_from_colmap_alone(demo12, tmp_path):
@@ -45,3 +47,22 @@ def test_no_model_and_no_colmap_is_refused(demo12, tmp_path, capsys):
     one.mkdir()
     (one / "a.png").write_bytes(next(iter(sorted(demo12.images.iterdir()))).read_bytes())
     assert main(["run", str(one), "-o", str(out), "-q"]) == 2
+
+
+def test_unsuited_model_is_set_aside_for_colmaps_cameras(tmp_path):
+    """A model wrong on most frames, against a healthy COLMAP model: the run goes on from COLMAP's cameras."""
+    scene = make_scene(SceneOptions(num_frames=12, width=320, height=240, seed=1))
+    images = write_scene(scene, tmp_path / "scene")
+    bad = SimulationOptions(bad_frames=tuple(range(1, 12)), bad_rotation_deg=25.0, seed=1)
+    build_simulated_vggt(scene, tmp_path / "bad.onnx", bad)
+    splat = SplatOptions(optimize=OptimizeOptions.brief(iterations=10, max_seconds=1e6, progress=False), video=False)
+    options = RunOptions(splat=splat, ground_truth=tmp_path / "scene")
+    result = run(images, tmp_path / "out", tmp_path / "bad.onnx", options)
+    assert result.exit_code == 0
+    assert result.evidence.model_unsuited and "COLMAP's cameras are used" in result.evidence.unsuited_reason
+    assert result.exports.cameras_from == "COLMAP" and "COLMAP" in result.exports.points_from
+    assert not isinstance(result.splat, Skipped)
+    # The exported cameras are COLMAP's, which are right, unlike the model's.
+    errors = result.comparisons.by_label("COLMAP", "ground truth").errors
+    assert errors.median_rotation_deg < 0.25
+    assert result.comparisons.by_label("feed-forward", "ground truth").errors.median_rotation_deg > 10

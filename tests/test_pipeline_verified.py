@@ -10,8 +10,8 @@ from ffrecon.cli import main
 from ffrecon.demo import DemoOptions, prepare_demo
 from ffrecon.geometry.metrics import auc
 from ffrecon.pipeline import RunOptions, run
-from ffrecon.results import Skipped, Verdict
-from ffrecon.sfm.gates import GatesResult
+from ffrecon.results import Verdict
+from ffrecon.sfm.evidence import CameraStatus
 from ffrecon.splat.stage import SplatOptions
 from ffrecon.synthetic import load_scene
 
@@ -81,6 +81,8 @@ def test_refined_model_reaches_colmap_accuracy(demo_run):
     metrics = _independent_metrics(refined, gt)
     assert metrics["AUC@5"] >= 0.98, metrics
     assert result.comparisons.by_label("refined", "ground truth").errors.median_rotation_deg <= 0.1
+    # Every final camera is confirmed by COLMAP, the badly wrong frame of the model included once refined.
+    assert result.evidence.count(CameraStatus.CONFIRMED) == 24 and not result.evidence.gates.blocking
     # The badly wrong frame of the simulated model is named as disagreeing with COLMAP.
     assert "frame_007.png" in result.comparisons.by_label("feed-forward", "COLMAP").disagreeing
 
@@ -109,7 +111,9 @@ def test_report_html_shows_plots_and_verdicts(demo_run):
 
 
 @pytest.mark.slow
-def test_blurred_capture_fails_the_registration_gate(tmp_path, demo_cache, monkeypatch):
+def test_blurred_capture_fails_on_evidence_and_names_blur(tmp_path, demo_cache, monkeypatch):
+    """COLMAP is a witness: its failed registration names blur but does not stop the run by itself;
+    the refinement then finds too few features on the blurred photos, and the evidence gate stops it."""
     monkeypatch.setenv("FFRECON_CACHE", str(demo_cache))
     from ffrecon.synthetic import SceneOptions, make_scene, write_scene
     from ffrecon.synthetic.simulated_model import build_simulated_vggt
@@ -123,11 +127,13 @@ def test_blurred_capture_fails_the_registration_gate(tmp_path, demo_cache, monke
     # The same run through the library, resumed from the CLI's: its stages are reused.
     options = RunOptions(splat=SplatOptions(enabled=False), resume=True)
     result = run(images, out, tmp_path / "sim.onnx", options)
-    assert isinstance(result.gates, GatesResult) and result.gates.blocking and result.exit_code == 5
+    assert result.exit_code == 5 and result.verdict is Verdict.GATE_FAILED
     gate = next(g for g in result.gates.verdicts if g.name == "registration")
-    assert gate.failed and "blur" in [c.value for c in gate.causes]
-    assert "blur" in (gate.reason + gate.fix).lower()
-    assert result.verdict is Verdict.GATE_FAILED
-    assert isinstance(result.refine, Skipped) and "registration" in result.refine.reason
-    assert json.loads((out / "report.json").read_text())["verdict"]["status"] == "gate_failed"
-    assert not (out / "sparse").exists()
+    assert gate.status.value == "fail" and not gate.blocking  # the witness's verdict, reported
+    assert "blur" in [c.value for c in gate.causes] and "blur" in (gate.reason + gate.fix).lower()
+    assert not result.gates.blocking
+    assert result.evidence.gates.blocking
+    assert [v.name for v in result.evidence.gates.failed][0] == "refined_share"
+    assert result.evidence.count(CameraStatus.REJECTED) == 12
+    report = json.loads((out / "report.json").read_text())
+    assert report["verdict"]["status"] == "gate_failed" and "refined_share" in report["verdict"]["message"]

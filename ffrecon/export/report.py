@@ -19,7 +19,7 @@ import numpy as np
 from ffrecon import __version__
 from ffrecon.export.report_html import render_html
 from ffrecon.results import RunResults, Skipped
-from ffrecon.sfm.gates import GatesResult
+from ffrecon.sfm.evidence import CameraStatus, EvidenceResult
 
 
 def _jsonable(obj):
@@ -44,13 +44,23 @@ def _section(result, to_report=lambda r: r.to_report()):
 
 
 def _verdict(results: RunResults) -> dict:
-    gates = results.gates
-    failed = gates.failed if isinstance(gates, GatesResult) else ()
-    if isinstance(gates, GatesResult) and gates.blocking:
+    gates = results.gate_results
+    failed = [v for g in gates for v in g.failed]
+    if any(g.blocking for g in gates):
         message = "; ".join(f"{g.name}: {g.reason} — {g.fix}" for g in failed)
         return {"status": results.verdict.value, "message": message}
     message = f"{len(results.capture.frames)} frame(s) reconstructed"
     return {"status": results.verdict.value, "message": message + (" (failed gates forced past)" if failed else "")}
+
+
+def _evidence(evidence: EvidenceResult) -> dict:
+    return {
+        "gates": [v.to_report() for v in evidence.gates.verdicts],
+        "per_image": [{"name": e.name, "status": e.status.value, "why": e.why} for e in evidence.per_image],
+        "model_unsuited": evidence.model_unsuited,
+        "unsuited_reason": evidence.unsuited_reason,
+        "counts": {s.value: evidence.count(s) for s in CameraStatus},
+    }
 
 
 def _pose_section(results: RunResults) -> tuple[dict, dict | None]:
@@ -128,6 +138,7 @@ def build_report(results: RunResults) -> dict:
         "colmap": _section(results.colmap),
         "gates": _section(results.gates, lambda g: [v.to_report() for v in g.verdicts]),
         "refine": _section(results.refine),
+        "evidence": _section(results.evidence, _evidence),
         "pose_errors": pose_errors,
         "pose_plot": pose_plot,
         "splat": _section(results.splat),

@@ -253,9 +253,35 @@ def _refine(report: dict, run_dir: Path) -> tuple[list[dict], str]:
     return [{"frame": w["name"], "status": "FLAGGED", "why": w["message"]} for w in data["flagged"]], ""
 
 
+def _gate_rows(verdicts: list[dict], witness_note: str) -> list[dict]:
+    keys = ("name", "status", "value", "threshold", "reason", "fix")
+    rows = []
+    for v in verdicts:
+        row = {k: v[k] for k in keys}
+        row["causes"] = v["causes"]
+        row["stops the run"] = "yes" if v["blocking"] else witness_note
+        rows.append(row)
+    return rows
+
+
 def _gates(report: dict, run_dir: Path) -> tuple[list[dict], str]:
     gates = report["gates"]
-    return ([] if isinstance(gates, dict) else gates), ""
+    if isinstance(gates, dict):
+        return [], ""
+    return _gate_rows(gates, "no: COLMAP is a witness; the final cameras are judged below"), ""
+
+
+def _evidence(report: dict, run_dir: Path) -> tuple[list[dict], str]:
+    data = report["evidence"]
+    if "skipped" in data:
+        return [], ""
+    rows = _gate_rows(data["gates"], "no: the run goes on from COLMAP's cameras")
+    per_image = [{"frame": e["name"], "cameras": e["status"], "why": e["why"]} for e in data["per_image"]]
+    counts = ", ".join(f"{k}: {v}" for k, v in data["counts"].items() if v)
+    body = f"<p>Per image ({html.escape(counts)}):</p>" + _table(per_image)
+    if data["model_unsuited"]:
+        body = f"<div class='banner warn'>{html.escape(data['unsuited_reason'])}</div>" + body
+    return rows, body
 
 
 def _timings(report: dict, run_dir: Path) -> tuple[list[dict], str]:
@@ -278,6 +304,7 @@ _SECTIONS = (
     ("Verification gates", _gates),
     ("Pose error", _poses),
     ("Refinement", _refine),
+    ("Final cameras: the evidence", _evidence),
     ("Gaussian splat", _splat),
     ("Timings", _timings),
 )
@@ -321,6 +348,9 @@ def summary_rows(report: dict) -> list[tuple[str, str]]:
                 f"{splat['gaussians']['cleaned']} Gaussians)"
             )
             rows.append(("splat held-out PSNR", value))
+    evidence = report["evidence"]
+    if "skipped" not in evidence:
+        rows.append(("final cameras", ", ".join(f"{k}: {v}" for k, v in evidence["counts"].items() if v)))
     reused = [stage for stage, t in report["timings"].items() if t["reused"]]
     if reused:
         rows.append(("reused from an earlier run", ", ".join(reused)))

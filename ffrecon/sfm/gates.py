@@ -8,6 +8,7 @@ knows what to change; the images are not read again.
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import logging
 from collections.abc import Sequence
@@ -47,6 +48,8 @@ class GateVerdict:
     reason: str
     fix: str = ""
     causes: tuple[FailureCause, ...] = ()  # likely causes, most likely first (registration gate)
+    # False for a witness's verdict: COLMAP's gates when a model's cameras are judged on their own evidence.
+    blocking: bool = True
 
     @property
     def failed(self) -> bool:
@@ -61,6 +64,7 @@ class GateVerdict:
             "reason": self.reason,
             "fix": self.fix,
             "causes": [c.value for c in self.causes],
+            "blocking": self.blocking,
         }
 
 
@@ -71,7 +75,8 @@ class GatesResult:
 
     @property
     def failed(self) -> tuple[GateVerdict, ...]:
-        return tuple(v for v in self.verdicts if v.failed)
+        """Failed verdicts that stop the run (unless forced); a witness's failures are only reported."""
+        return tuple(v for v in self.verdicts if v.failed and v.blocking)
 
     @property
     def blocking(self) -> bool:
@@ -314,11 +319,18 @@ def run_gates(
     quality: CaptureQuality | None,
     options: GateOptions = GateOptions(),
     force: bool = False,
+    witness: bool = False,
 ) -> GatesResult:
-    """The gates stage: :func:`evaluate_gates`, and whether a failure stops the run (not with ``force``)."""
-    result = GatesResult(
-        tuple(evaluate_gates(colmap=colmap, prediction=prediction, quality=quality, options=options)), force
-    )
+    """The gates stage: :func:`evaluate_gates`, and whether a failure stops the run (not with ``force``).
+
+    ``witness``: COLMAP is a witness (a model's cameras will be judged on their own evidence, see
+    :mod:`ffrecon.sfm.evidence`): its registration and sparse-cloud verdicts are reported, not blocking.
+    """
+    verdicts = evaluate_gates(colmap=colmap, prediction=prediction, quality=quality, options=options)
+    if witness:
+        colmap_gates = ("registration", "sparse_cloud")
+        verdicts = [dataclasses.replace(v, blocking=v.name not in colmap_gates) for v in verdicts]
+    result = GatesResult(tuple(verdicts), force)
     if result.failed and force:
         names = ", ".join(v.name for v in result.failed)
         logger.warning("continuing despite %d failed gates (forced): %s", len(result.failed), names)
