@@ -109,17 +109,18 @@ def _run_stages(
         outputs=STAGE_OUTPUTS["capture"],
     )
     ff, k_ff = _feedforward(capture, model, options, work, stages, [k_capture])
-    colmap, k_colmap = _colmap(capture, ff, options, work, stages, [k_capture, k_ff])
-    gates, _ = _gates(capture, ff, colmap, options, stages, [k_capture, k_ff, k_colmap])
+    colmap, k_colmap = _colmap(capture, options, work, stages, [k_capture])  # independent of the model
+    gates, k_gates = _gates(capture, ff, colmap, options, stages, [k_capture, k_ff, k_colmap])
     refine, k_refine = _refine(capture, ff, colmap, gates, options, work, stages, [k_capture, k_ff, k_colmap])
-    evidence, _ = _evidence(capture, ff, colmap, gates, refine, options, stages, [k_ff, k_colmap, k_refine])
+    evidence, k_evidence = _evidence(
+        capture, ff, colmap, gates, refine, options, stages, [k_ff, k_colmap, k_gates, k_refine]
+    )
     verdicts = (gates, evidence.gates if isinstance(evidence, EvidenceResult) else None)
     comparisons, _ = _comparisons(capture, ff, colmap, refine, options, stages, [k_capture, k_ff, k_colmap, k_refine])
     final = _final_cameras(capture, ff, colmap, refine, evidence)
-    splat, _ = _splat(
-        capture, ff, colmap, final, verdicts, options, work, stages, [k_capture, k_ff, k_colmap, k_refine]
-    )
-    exports, _ = _exports(capture, ff, colmap, final, options, work, stages, [k_capture, k_ff, k_colmap, k_refine])
+    final_keys = [k_capture, k_ff, k_colmap, k_refine, k_evidence]  # the final cameras depend on these
+    splat, _ = _splat(capture, ff, colmap, final, verdicts, options, work, stages, final_keys)
+    exports, _ = _exports(capture, ff, colmap, final, options, work, stages, final_keys)
     return RunResults(
         out_dir=work,
         created=created,
@@ -178,21 +179,21 @@ def _feedforward(capture: Capture, model: Path | None, options: RunOptions, work
     )
 
 
-def _focal_prior(capture: Capture, ff) -> list[float | None]:
-    """Per-image focal prior for COLMAP: EXIF where known, else the feed-forward model's (if any)."""
-    if not isinstance(ff, FeedForwardResult):
-        return [f.focal_prior_px for f in capture.frames]
-    cameras = ff.prediction.cameras
-    return [f.focal_prior_px or float(np.sqrt(c.fx * c.fy)) for f, c in zip(capture.frames, cameras)]
+def _focal_prior(capture: Capture) -> list[float | None]:
+    """Per-image focal prior for COLMAP: EXIF where known, else None (COLMAP's own guess).
+
+    Never the model's focal: the cross-check must stay independent evidence of the model's cameras.
+    """
+    return [f.focal_prior_px for f in capture.frames]
 
 
-def _colmap(capture, ff, options: RunOptions, work: Path, stages: StageRunner, inputs) -> tuple:
+def _colmap(capture, options: RunOptions, work: Path, stages: StageRunner, inputs) -> tuple:
     if reason := _why_not(capture, None, enabled=options.colmap.enabled, flag="--no-colmap"):
         return _skip(stages, "colmap", "colmap cross-check", reason)
     return stages.run(
         "colmap",
         lambda: run_colmap(
-            capture.image_dir, capture.names, options.colmap, work / "colmap", focal_prior_px=_focal_prior(capture, ff)
+            capture.image_dir, capture.names, options.colmap, work / "colmap", focal_prior_px=_focal_prior(capture)
         ),
         options=options.colmap,
         inputs=inputs,

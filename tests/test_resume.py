@@ -24,7 +24,7 @@ from ffrecon.splat.optimize import OptimizeOptions
 from ffrecon.splat.stage import SplatOptions
 from ffrecon.workspace import staging_path
 
-BEFORE_SPLAT = ["capture", "feedforward", "colmap", "gates", "refine", "comparisons"]
+BEFORE_SPLAT = ["capture", "feedforward", "colmap", "gates", "refine", "evidence", "comparisons"]
 
 
 def _options(**kw) -> RunOptions:
@@ -91,7 +91,9 @@ def test_resume_recomputes_what_changed_and_drops_what_was_turned_off(demo12, un
     shutil.copytree(whole_dir, out)
     changed = RunOptions(splat=SplatOptions(enabled=False), gates=GateOptions(min_registration_ratio=0.5), resume=True)
     result = run(demo12.images, out, demo12.model, changed)
-    assert [t.stage for t in result.timings if not t.reused] == ["gates"]  # nothing else depends on its threshold
+    # The gates run again, and what reads them: the evidence, and the exports (the evidence picks the
+    # final cameras); the splat is off. Nothing upstream is recomputed.
+    assert [t.stage for t in result.timings if not t.reused] == ["gates", "evidence", "exports"]
     assert isinstance(result.splat, Skipped) and "--no-splat" in result.splat.reason
     assert not (out / "splat.ply").exists() and not (out / "renders").exists()
     # Without --resume an existing OUT is refused (exit 4).
