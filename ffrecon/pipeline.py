@@ -21,6 +21,7 @@ from ffrecon.errors import InputError, Interrupted
 from ffrecon.export.report import write_report
 from ffrecon.export.stage import OUTPUTS as EXPORT_OUTPUTS
 from ffrecon.export.stage import ExportOptions, ExportsResult, FinalCameras, fuse_with_final_cameras, run_exports
+from ffrecon.geometry.undistort import opencv_coefficients, undistort_image
 from ffrecon.models.stage import FeedForwardOptions, FeedForwardResult, run_feedforward
 from ffrecon.results import RunResults, Skipped
 from ffrecon.resume import StageRunner, file_key, rebase_paths
@@ -292,7 +293,9 @@ def _final_cameras(capture: Capture, ff, colmap, refine, evidence) -> FinalCamer
         kept = tuple(int(i) for i in np.flatnonzero(colmap.registered))
         names = tuple(capture.names[i] for i in kept)
         cameras = tuple(colmap.cameras[i] for i in kept)
-        return FinalCameras(kept, names, colmap.cam_from_world[list(kept)], cameras, "COLMAP")
+        by_name = {im.name: im for im in colmap.reconstruction.images.values()}
+        distortion = tuple(opencv_coefficients(colmap.reconstruction.cameras[by_name[n].camera_id]) for n in names)
+        return FinalCameras(kept, names, colmap.cam_from_world[list(kept)], cameras, "COLMAP", distortion)
     return None
 
 
@@ -304,11 +307,15 @@ def _splat(capture, ff, colmap, final, verdicts: tuple, options: RunOptions, wor
 
     def splat() -> SplatResult:
         images = capture.read_images(list(final.indices))
+        cameras = final.cameras
+        if final.distortion is not None:  # the rasteriser is a pinhole camera: train on undistorted photos
+            pairs = [undistort_image(im, c, d) for im, c, d in zip(images, cameras, final.distortion)]
+            images, cameras = [p[0] for p in pairs], tuple(p[1] for p in pairs)
         if final.source != "COLMAP":
             args = (ff.prediction, images, final.cam_from_world, final.cameras, options.splat, work)
             return run_splat_from_prediction(*args)
         xyz, rgb = seed_from_reconstruction(colmap.reconstruction)  # COLMAP's cameras: its points
-        args = (images, final.names, final.cam_from_world, final.cameras, xyz, rgb, options.splat, work)
+        args = (images, final.names, final.cam_from_world, cameras, xyz, rgb, options.splat, work)
         return run_splat(*args)
 
     return stages.run("splat", splat, options=options.splat, inputs=inputs, outputs=STAGE_OUTPUTS["splat"])

@@ -17,6 +17,7 @@ def test_no_model_reconstructs_from_colmap_alone(demo12, tmp_path):
     out = tmp_path / "out"
     splat = SplatOptions(optimize=OptimizeOptions.brief(iterations=30, max_seconds=1e6, progress=False), video=False)
     result = run(demo12.images, out, None, RunOptions(splat=splat, ground_truth=demo12.scene_dir))
+    rec = pycolmap.Reconstruction(str(out / "colmap" / "sparse" / "0"))
     assert result.exit_code == 0
     assert isinstance(result.feedforward, Skipped) and "--model" in result.feedforward.reason
     assert isinstance(result.refine, Skipped)
@@ -31,7 +32,9 @@ def test_no_model_reconstructs_from_colmap_alone(demo12, tmp_path):
     assert result.exports.cameras_from == "COLMAP" and "COLMAP" in result.exports.points_from
     transforms = json.loads((out / "transforms.json").read_text())
     assert len(transforms["frames"]) == 12
-    rec = pycolmap.Reconstruction(str(out / "colmap" / "sparse" / "0"))
+    # COLMAP's SIMPLE_RADIAL camera: transforms.json says OPENCV with its k1 (the splat trained undistorted).
+    k1 = rec.cameras[1].params[3]
+    assert transforms["camera_model"] == "OPENCV" and transforms["k1"] == k1 and transforms["k2"] == 0.0
     assert result.exports.num_points == rec.num_points3D()
     report = json.loads((out / "report.json").read_text())
     assert report["feedforward"] == {"skipped": result.feedforward.reason}

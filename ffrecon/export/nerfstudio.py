@@ -28,6 +28,10 @@ def _intrinsics(cam: PinholeCamera) -> dict:
     return {"fl_x": cam.fx, "fl_y": cam.fy, "cx": cam.cx, "cy": cam.cy, "w": cam.width, "h": cam.height}
 
 
+def _coefficients(d: tuple[float, float, float, float]) -> dict:
+    return dict(zip(("k1", "k2", "p1", "p2"), d))
+
+
 def write_transforms(
     path: Path,
     file_paths: Sequence[str],
@@ -35,19 +39,28 @@ def write_transforms(
     cameras: Sequence[PinholeCamera],
     *,
     ply_file_path: str | None = None,
+    distortion: Sequence[tuple[float, float, float, float]] | None = None,
 ) -> Path:
     """Write transforms.json; ``file_paths`` are relative to the file's folder.
 
     The first camera's intrinsics go at the top level (tools that read only those still work);
     when cameras differ, each frame carries its own, which nerfstudio's dataparser prefers.
+    ``distortion``: per frame OpenCV ``(k1, k2, p1, p2)`` of the (original, distorted) images; when any
+    is non-zero the file says ``OPENCV`` and carries them, and nerfstudio undistorts the images itself.
     """
-    shared = all(c == cameras[0] for c in cameras)
-    out: dict = {"camera_model": "PINHOLE", **_intrinsics(cameras[0])}
+    coeffs = [tuple(float(x) for x in d) for d in distortion] if distortion is not None else None
+    opencv = coeffs is not None and any(any(d) for d in coeffs)
+    per_frame = [
+        {**_intrinsics(c), **(_coefficients(d) if opencv else {})}
+        for c, d in zip(cameras, coeffs or [None] * len(cameras), strict=True)
+    ]
+    shared = all(p == per_frame[0] for p in per_frame)
+    out: dict = {"camera_model": "OPENCV" if opencv else "PINHOLE", **per_frame[0]}
     frames = []
-    for fp, pose, cam in zip(file_paths, world_from_cam_opengl(cam_from_world), cameras, strict=True):
+    for fp, pose, own in zip(file_paths, world_from_cam_opengl(cam_from_world), per_frame, strict=True):
         frame = {"file_path": fp, "transform_matrix": pose.tolist()}
         if not shared:
-            frame.update(_intrinsics(cam))
+            frame.update(own)
         frames.append(frame)
     out["frames"] = frames
     if ply_file_path:

@@ -41,6 +41,9 @@ class FinalCameras:
     cam_from_world: np.ndarray  # [M, 3, 4] float64, OpenCV
     cameras: tuple[PinholeCamera, ...]
     source: str  # "refined", "feed-forward" or "COLMAP"
+    # Per camera OpenCV (k1, k2, p1, p2) of the original photos (None: pinhole). The splat trains on
+    # undistorted copies; transforms.json carries them (OPENCV) for the original images.
+    distortion: tuple[tuple[float, float, float, float], ...] | None = None
 
 
 @dataclass(frozen=True)
@@ -79,7 +82,12 @@ def run_exports(
     cloud = write_point_cloud(out_dir / "points.ply", xyz, rgb)
     files = [f"images/{n}" for n in final.names]
     transforms = write_transforms(
-        out_dir / "transforms.json", files, final.cam_from_world, final.cameras, ply_file_path="points.ply"
+        out_dir / "transforms.json",
+        files,
+        final.cam_from_world,
+        final.cameras,
+        ply_file_path="points.ply",
+        distortion=final.distortion,
     )
     mesh_ply = mesh_glb = None
     if options.mesh:
