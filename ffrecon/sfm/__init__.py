@@ -9,11 +9,20 @@ Stage functions (one per stage, typed in and out):
 """
 
 from ffrecon.sfm.compare import DisagreementOptions, PoseComparison, compare_models, compare_poses
-from ffrecon.sfm.crosscheck import ColmapOptions, ColmapResult, ColmapStatus, MapperKind, PairingMode, run_colmap
+from ffrecon.sfm.crosscheck import (
+    CameraSharing,
+    ColmapOptions,
+    ColmapResult,
+    ColmapStatus,
+    MapperKind,
+    PairingMode,
+    run_colmap,
+)
 from ffrecon.sfm.gates import FailureCause, GateOptions, GatesResult, GateStatus, GateVerdict, evaluate_gates, run_gates
 from ffrecon.sfm.refine import RefineOptions, RefineResult, RefineStatus, WeakFrame, WeakReason, run_refine
 
 __all__ = [
+    "CameraSharing",
     "ColmapOptions",
     "ColmapResult",
     "ColmapStatus",

@@ -1,16 +1,27 @@
 """The independent COLMAP reconstruction used to cross-check the feed-forward cameras.
 
-``run_colmap`` is plain COLMAP on the same images (SIFT on the CPU, a pairing strategy, incremental
-or global mapping), with one deliberate help: a focal-length prior (from EXIF or the feed-forward
-model) is written into the database cameras, because two images with no prior form an
-uncalibrated pair that default incremental mapping cannot initialise from.
+``run_colmap`` is plain COLMAP on the same images: SIFT on the CPU, a pairing strategy, then
+mapping. Its choices aim at real captures:
+
+- one shared SIMPLE_RADIAL camera when all images have one size and one focal prior (or none is
+  known), a camera per image otherwise;
+- focal priors are written as COLMAP *priors*: they calibrate two-view geometry and bundle
+  adjustment still refines them. They should come from EXIF only, never from the feed-forward
+  model, so that the check stays independent. Where none is given COLMAP reads the file's EXIF
+  itself, or guesses 1.2 x the longest side;
+- an image counts as registered only when it sees ``min_points_per_image`` model points;
+- incremental mapping first, and COLMAP 4's global mapper too when incremental leaves images out
+  (forward motion along a street gives small triangulation angles, the hard case for incremental
+  SfM); the model with most registered images is kept.
 """
 
 from __future__ import annotations
 
 import enum
 import logging
+import numbers
 import shutil
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,6 +39,8 @@ from ffrecon.sfm.features import (
     create_database,
     extract_sift,
     feature_stats,
+    focal_prior_flags,
+    image_sizes_wh,
     matching_options,
 )
 from ffrecon.timing import StageTimer, Timings
@@ -35,18 +48,34 @@ from ffrecon.types import PinholeCamera
 
 logger = logging.getLogger("ffrecon.sfm")
 
+# Focal priors closer than this (relative) are one lens setting: EXIF values of one camera are equal.
+_SAME_FOCAL_RTOL = 1e-3
+# Iteration limits written out (COLMAP's own defaults) so that every solver in mapping is bounded.
+_INCREMENTAL_LOCAL_BA_ITERATIONS = 25
+_INCREMENTAL_GLOBAL_BA_ITERATIONS = 50
+_GLOBAL_BA_ITERATIONS = 200  # per bundle adjustment; the global mapper runs ``ba_num_iterations`` (3) of them
+
 
 class PairingMode(enum.Enum):
     AUTO = "auto"  # exhaustive up to ``exhaustive_max_images``, then vocabulary tree if given, else sequential
     EXHAUSTIVE = "exhaustive"
-    SEQUENTIAL = "sequential"  # video order: each frame against its ``sequential_overlap`` successors
+    # video order: each frame against its ``sequential_overlap`` successors and successors 2^k apart
+    # (quadratic overlap); with ``vocab_tree_path`` also against similar-looking frames (loop detection)
+    SEQUENTIAL = "sequential"
     SPATIAL = "spatial"  # nearest GPS positions (needs position priors in the database, e.g. from EXIF)
     VOCAB_TREE = "vocab_tree"  # image retrieval; needs ``vocab_tree_path``
 
 
 class MapperKind(enum.Enum):
+    AUTO = "auto"  # incremental; then the global mapper too when incremental leaves images out
     INCREMENTAL = "incremental"
     GLOBAL = "global"  # GLOMAP, merged into COLMAP 4
+
+
+class CameraSharing(enum.Enum):
+    AUTO = "auto"  # one camera when all images have one size and one focal prior (or none is known)
+    SHARED = "shared"  # one camera for all images (they must have one size)
+    PER_IMAGE = "per_image"
 
 
 class ColmapStatus(enum.Enum):
@@ -60,18 +89,51 @@ class ColmapOptions:
     pairing: PairingMode = PairingMode.AUTO
     exhaustive_max_images: int = 150
     sequential_overlap: int = 10
-    vocab_tree_path: Path | None = None
-    mapper: MapperKind = MapperKind.INCREMENTAL
+    vocab_tree_path: Path | None = None  # COLMAP vocabulary tree: retrieval pairing, loop detection
+    mapper: MapperKind = MapperKind.AUTO
     camera_model: CameraModel = CameraModel.SIMPLE_RADIAL
-    single_camera: bool = True  # one camera for all images (a phone video, one lens)
+    camera_sharing: CameraSharing = CameraSharing.AUTO
     sift: SiftOptions = SiftOptions()
-    num_threads: int = -1
+    max_mapping_seconds: int = 600  # per mapper; the incremental mapper stops, global bundle adjustment is capped
+    # An image counts as registered when it sees this many model points (COLMAP's incremental mapper
+    # registers an image on 30 2D-3D inliers; the global mapper places every connected image, however weak).
+    min_points_per_image: int = 30
+    num_threads: int = -1  # feature extraction and matching; -1: all cores
+    mapper_num_threads: int = 1  # 1 makes mapping repeatable (COLMAP's multi-threaded solvers are not); -1: all
     seed: int = 0
 
 
 @dataclass(frozen=True)
+class MapperRun:
+    """What one mapper built: its number of models and the best one's size and error."""
+
+    mapper: MapperKind  # INCREMENTAL or GLOBAL
+    num_models: int
+    num_registered: int  # images in its best model (most images, then lowest error); 0 without a model
+    num_points: int
+    mean_reprojection_error_px: float  # of its best model; nan without a model
+    num_weak_dropped: int  # images it placed on fewer than ``min_points_per_image`` points, left out (all models)
+    seconds: float
+
+    def to_report(self) -> dict:
+        error = self.mean_reprojection_error_px
+        return {
+            "mapper": self.mapper.value,
+            "num_models": self.num_models,
+            "num_registered": self.num_registered,
+            "num_points": self.num_points,
+            "mean_reprojection_error_px": float(error) if np.isfinite(error) else None,
+            "num_weak_dropped": self.num_weak_dropped,
+            "seconds": round(self.seconds, 4),
+        }
+
+
+@dataclass(frozen=True)
 class ColmapResult:
-    """COLMAP's answer for ``names``; poses are cam_from_world in COLMAP's own world frame."""
+    """COLMAP's answer for ``names``; poses are cam_from_world in COLMAP's own world frame.
+
+    Everything but ``reconstruction`` pickles; ``reconstruction`` is read back from ``model_path``.
+    """
 
     status: ColmapStatus
     names: tuple[str, ...]
@@ -80,9 +142,12 @@ class ColmapResult:
     cameras: tuple[PinholeCamera | None, ...]  # pinhole part of COLMAP's cameras; None if not registered
     num_points: int
     mean_reprojection_error_px: float  # nan without a model
-    num_models: int  # disconnected models COLMAP built; the largest is the one kept
+    num_models: int  # models the kept model's mapper built (0 without a model); the kept one is the largest
     pairing: PairingMode  # the pairing that ran (AUTO resolved)
-    mapper: MapperKind
+    mapper: MapperKind | None  # the mapper that built the kept model (INCREMENTAL or GLOBAL); None without one
+    mapper_runs: tuple[MapperRun, ...]  # every mapper that ran, in order
+    shared_camera: bool  # one COLMAP camera for all images
+    focal_prior: np.ndarray  # [N] bool: the image's database camera carried a focal-length prior
     features: FeatureStats
     timings: Timings
     database_path: Path
@@ -110,7 +175,10 @@ class ColmapResult:
             else self.mean_reprojection_error_px,
             "num_models": self.num_models,
             "pairing": self.pairing.value,
-            "mapper": self.mapper.value,
+            "mapper": None if self.mapper is None else self.mapper.value,
+            "mapper_runs": [run.to_report() for run in self.mapper_runs],
+            "shared_camera": self.shared_camera,
+            "num_focal_priors": int(np.sum(self.focal_prior)),
             "model_path": None if self.model_path is None else str(self.model_path),
             "timings_s": self.timings.to_report(),
             "features": self.features.to_report(),
@@ -125,16 +193,64 @@ def resolve_pairing(options: ColmapOptions, num_images: int) -> PairingMode:
     return PairingMode.VOCAB_TREE if options.vocab_tree_path is not None else PairingMode.SEQUENTIAL
 
 
+def resolve_camera_sharing(
+    sharing: CameraSharing, sizes_wh: Sequence[tuple[int, int] | None], focal_prior_px: Sequence[float | None]
+) -> bool:
+    """Whether one COLMAP camera serves all images.
+
+    Args:
+        sizes_wh: per image ``(width, height)`` in pixels, None where unreadable.
+        focal_prior_px: per image focal prior in pixels, None where unknown.
+    AUTO shares when all sizes are known and equal and the priors are either all unknown or all equal
+    (within 0.1 %): one phone, one lens setting. Mixed known and unknown priors get a camera each.
+
+    >>> resolve_camera_sharing(CameraSharing.AUTO, [(640, 480)] * 2, [500.0, None])
+    False
+    """
+    one_size = None not in sizes_wh and len(set(sizes_wh)) <= 1
+    if sharing is CameraSharing.PER_IMAGE:
+        return False
+    if sharing is CameraSharing.SHARED:
+        if not one_size:
+            raise InputError(
+                f"one shared camera needs images of one size; these have {sorted(set(map(str, sizes_wh)))}",
+                "use a camera per image (camera_sharing=PER_IMAGE) or resize the images alike",
+            )
+        return True
+    known = [float(f) for f in focal_prior_px if f is not None]
+    if not known:
+        return one_size
+    return one_size and len(known) == len(focal_prior_px) and max(known) <= min(known) * (1 + _SAME_FOCAL_RTOL)
+
+
+def _check_vocab_tree(options: ColmapOptions, what: str) -> str:
+    if options.vocab_tree_path is None or not Path(options.vocab_tree_path).is_file():
+        raise InputError(
+            f"{what} needs a vocabulary tree file (got {options.vocab_tree_path})",
+            "download one of COLMAP's vocabulary trees and pass its path, or use sequential pairing",
+        )
+    return str(options.vocab_tree_path)
+
+
+def _sequential_pairing(options: ColmapOptions) -> pycolmap.SequentialPairingOptions:
+    """Consecutive frames, frames 2^k apart, and, given a vocabulary tree, loop closures."""
+    pairing = pycolmap.SequentialPairingOptions()
+    pairing.overlap = options.sequential_overlap
+    pairing.quadratic_overlap = True
+    pairing.num_threads = options.num_threads
+    if options.vocab_tree_path is not None:
+        pairing.loop_detection = True
+        pairing.vocab_tree_path = _check_vocab_tree(options, "loop detection")
+    return pairing
+
+
 def _match(db_path: Path, mode: PairingMode, options: ColmapOptions) -> None:
     matching, verification = matching_options(options.sift)
     common = dict(matching_options=matching, verification_options=verification, device=pycolmap.Device.cpu)
     if mode is PairingMode.EXHAUSTIVE:
         pycolmap.match_exhaustive(str(db_path), **common)
     elif mode is PairingMode.SEQUENTIAL:
-        pairing = pycolmap.SequentialPairingOptions()
-        pairing.overlap = options.sequential_overlap
-        pairing.num_threads = options.num_threads
-        pycolmap.match_sequential(str(db_path), pairing_options=pairing, **common)
+        pycolmap.match_sequential(str(db_path), pairing_options=_sequential_pairing(options), **common)
     elif mode is PairingMode.SPATIAL:
         db = pycolmap.Database.open(str(db_path))
         has_priors = db.num_pose_priors() > 0
@@ -148,45 +264,146 @@ def _match(db_path: Path, mode: PairingMode, options: ColmapOptions) -> None:
         pairing.num_threads = options.num_threads
         pycolmap.match_spatial(str(db_path), pairing_options=pairing, **common)
     elif mode is PairingMode.VOCAB_TREE:
-        if options.vocab_tree_path is None or not Path(options.vocab_tree_path).is_file():
-            raise InputError(
-                f"vocabulary-tree pairing needs a vocabulary tree file (got {options.vocab_tree_path})",
-                "download one of COLMAP's vocabulary trees and pass its path, or use sequential pairing",
-            )
         pairing = pycolmap.VocabTreePairingOptions()
-        pairing.vocab_tree_path = str(options.vocab_tree_path)
+        pairing.vocab_tree_path = _check_vocab_tree(options, "retrieval pairing")
         pairing.num_threads = options.num_threads
         pycolmap.match_vocabtree(str(db_path), pairing_options=pairing, **common)
     else:
         raise ValueError(f"unresolved pairing mode {mode}")
 
 
-def _map(
-    db_path: Path, image_dir: Path, work_dir: Path, options: ColmapOptions, num_images: int
-) -> dict[int, pycolmap.Reconstruction]:
-    if options.mapper is MapperKind.INCREMENTAL:
-        mapping = pycolmap.IncrementalPipelineOptions()
-        mapping.num_threads = options.num_threads
-        mapping.random_seed = options.seed
-        mapping.min_model_size = min(3, num_images)
-        # Every track of a two-image capture is a two-view track, which COLMAP skips by default.
-        mapping.triangulation.ignore_two_view_tracks = num_images > 2
-        return pycolmap.incremental_mapping(str(db_path), str(image_dir), str(work_dir), mapping)
-    mapping = pycolmap.GlobalPipelineOptions()
-    mapping.num_threads = options.num_threads
+def _incremental_options(options: ColmapOptions, num_images: int) -> pycolmap.IncrementalPipelineOptions:
+    mapping = pycolmap.IncrementalPipelineOptions()
+    mapping.num_threads = options.mapper_num_threads
     mapping.random_seed = options.seed
     mapping.min_model_size = min(3, num_images)
-    mapping.mapper.global_positioning.use_gpu = False
-    mapping.mapper.bundle_adjustment.ceres.use_gpu = False
-    return pycolmap.global_mapping(str(db_path), str(image_dir), str(work_dir), mapping)
+    # Every track of a two-image capture is a two-view track, which COLMAP skips by default.
+    mapping.triangulation.ignore_two_view_tracks = num_images > 2
+    mapping.max_runtime_seconds = int(options.max_mapping_seconds)
+    mapping.ba_local_max_num_iterations = _INCREMENTAL_LOCAL_BA_ITERATIONS
+    mapping.ba_global_max_num_iterations = _INCREMENTAL_GLOBAL_BA_ITERATIONS
+    return mapping
+
+
+def _global_options(options: ColmapOptions, num_images: int) -> pycolmap.GlobalPipelineOptions:
+    """The global mapper on the CPU, every stage bounded.
+
+    Rotation averaging (5 L1 and 100 IRLS iterations) and global positioning (100 iterations) keep
+    COLMAP's limits; each bundle adjustment gets ``_GLOBAL_BA_ITERATIONS`` and a quarter of
+    ``max_mapping_seconds``.
+    """
+    mapping = pycolmap.GlobalPipelineOptions()
+    mapping.num_threads = options.mapper_num_threads
+    mapping.random_seed = options.seed
+    mapping.min_model_size = min(3, num_images)
+    mapper = mapping.mapper
+    mapper.global_positioning.use_gpu = False
+    mapper.bundle_adjustment.ceres.use_gpu = False
+    solver = mapper.bundle_adjustment.ceres.solver_options
+    solver.max_num_iterations = _GLOBAL_BA_ITERATIONS
+    solver.max_solver_time_in_seconds = options.max_mapping_seconds / 4
+    return mapping
+
+
+def _run_mapper(
+    kind: MapperKind, db_path: Path, image_dir: Path, work_dir: Path, options: ColmapOptions, num_images: int
+) -> tuple[list[pycolmap.Reconstruction], MapperRun]:
+    """One mapper on the database: its non-empty models and a summary (errors of each model updated)."""
+    work_dir = work_dir / kind.value
+    shutil.rmtree(work_dir, ignore_errors=True)
+    work_dir.mkdir(parents=True)
+    start = time.perf_counter()
+    if kind is MapperKind.INCREMENTAL:
+        mapping = _incremental_options(options, num_images)
+        built = pycolmap.incremental_mapping(str(db_path), str(image_dir), str(work_dir), mapping)
+    else:
+        mapping = _global_options(options, num_images)
+        built = pycolmap.global_mapping(str(db_path), str(image_dir), str(work_dir), mapping)
+    seconds = time.perf_counter() - start
+    shutil.rmtree(work_dir, ignore_errors=True)
+    dropped = sum(drop_weak_images(rec, options.min_points_per_image) for rec in built.values())
+    models = [rec for rec in built.values() if rec.num_reg_images() > 0]
+    for rec in models:
+        rec.update_point_3d_errors()
+    best = max(models, key=_model_rank, default=None)
+    run = MapperRun(
+        mapper=kind,
+        num_models=len(models),
+        num_registered=0 if best is None else best.num_reg_images(),
+        num_points=0 if best is None else best.num_points3D(),
+        mean_reprojection_error_px=float("nan") if best is None else float(best.compute_mean_reprojection_error()),
+        num_weak_dropped=dropped,
+        seconds=seconds,
+    )
+    return models, run
+
+
+def drop_weak_images(rec: pycolmap.Reconstruction, min_points: int) -> int:
+    """De-register (in place) every image that sees fewer than ``min_points`` 3D points of ``rec``.
+
+    Dropping an image removes its observations, which can leave others short in turn, so this
+    repeats until every registered image passes (at most once per image). Returns how many were dropped.
+    """
+    dropped = 0
+    while True:
+        weak = {image.frame_id for image in rec.images.values() if image.has_pose and image.num_points3D < min_points}
+        if not weak:
+            return dropped
+        for frame_id in weak:
+            rec.deregister_frame(frame_id)
+        dropped += len(weak)
+
+
+def _model_rank(rec: pycolmap.Reconstruction) -> tuple[int, float]:
+    """Most registered images first, then the lower mean reprojection error (errors must be updated)."""
+    error = float(rec.compute_mean_reprojection_error())
+    return rec.num_reg_images(), -error if np.isfinite(error) else -np.inf
+
+
+def _map(
+    db_path: Path, image_dir: Path, work_dir: Path, options: ColmapOptions, num_images: int
+) -> tuple[pycolmap.Reconstruction | None, MapperRun | None, tuple[MapperRun, ...]]:
+    """Run the mapper(s) ``options.mapper`` asks for: ``(kept model, the run that built it, all runs)``.
+
+    AUTO runs the incremental mapper and, unless it registered every image in one model, the global
+    mapper too; the model with most registered images (then the lower error) is kept.
+    """
+    if options.mapper is MapperKind.AUTO:
+        kinds = (MapperKind.INCREMENTAL, MapperKind.GLOBAL)
+    else:
+        kinds = (options.mapper,)
+    runs: list[MapperRun] = []
+    kept: tuple[pycolmap.Reconstruction, MapperRun] | None = None
+    for kind in kinds:
+        models, run = _run_mapper(kind, db_path, image_dir, work_dir, options, num_images)
+        runs.append(run)
+        best = max(models, key=_model_rank, default=None)
+        if best is not None and (kept is None or _model_rank(best) > _model_rank(kept[0])):
+            kept = (best, run)
+        if run.num_models == 1 and run.num_registered == num_images:
+            break
+        if kind is not kinds[-1]:
+            logger.info(
+                "%s mapping registered %d/%d images in %d model(s); trying the %s mapper",
+                kind.value,
+                run.num_registered,
+                num_images,
+                run.num_models,
+                kinds[-1].value,
+            )
+    shutil.rmtree(work_dir, ignore_errors=True)
+    return (None, None, tuple(runs)) if kept is None else (*kept, tuple(runs))
 
 
 def _as_priors(focal_prior_px: float | Sequence[float | None] | None, n: int) -> list[float | None]:
-    if focal_prior_px is None:
-        return [None] * n
-    if isinstance(focal_prior_px, (int, float)):
-        return [float(focal_prior_px)] * n
-    return list(focal_prior_px)
+    """``n`` focal priors in pixels, None where unknown (a non-finite or non-positive value counts as unknown)."""
+    if focal_prior_px is None or isinstance(focal_prior_px, numbers.Real):
+        values = [focal_prior_px] * n
+    else:
+        values = list(focal_prior_px)
+        if len(values) != n:
+            raise ValueError(f"focal_prior_px: expected {n} values, got {len(values)}")
+    return [float(f) if f is not None and np.isfinite(f) and f > 0 else None for f in values]
 
 
 def run_colmap(
@@ -200,8 +417,10 @@ def run_colmap(
     """COLMAP on ``names`` in ``image_dir``; writes ``out_dir/database.db`` and ``out_dir/sparse/0``.
 
     Args:
-        focal_prior_px: focal length in pixels of the original images (one value for all, or one per
-            image, None where unknown). Without it COLMAP guesses 1.2 x the longest side.
+        focal_prior_px: focal length in pixels of the images as they are in ``image_dir`` (one value
+            for all, or one per image, None where unknown), e.g. from EXIF. Written as a prior that
+            bundle adjustment refines. Without it COLMAP reads the file's EXIF itself or guesses
+            1.2 x the longest side.
     Returns:
         A :class:`ColmapResult`; ``status`` is NO_MODEL (not an exception) when nothing registered,
         so that the registration gate can explain why.
@@ -211,29 +430,35 @@ def run_colmap(
     timer = StageTimer()
     db_path = out_dir / "database.db"
     pairing = resolve_pairing(options, len(names))
-    stats = _features_and_matches(db_path, image_dir, names, options, pairing, focal_prior_px, timer)
-    work_dir = out_dir / "mapper"
-    shutil.rmtree(work_dir, ignore_errors=True)
+    if pairing is PairingMode.VOCAB_TREE or (pairing is PairingMode.SEQUENTIAL and options.vocab_tree_path):
+        _check_vocab_tree(options, "loop detection" if pairing is PairingMode.SEQUENTIAL else "retrieval pairing")
+    priors = _as_priors(focal_prior_px, len(names))
+    shared = resolve_camera_sharing(options.camera_sharing, image_sizes_wh(image_dir, names), priors)
+    stats = _features_and_matches(db_path, image_dir, names, options, pairing, priors, shared, timer)
     with timer.stage("mapping"), colmap_log_level():
-        models = _map(db_path, image_dir, work_dir, options, len(names)) if stats.num_pairs_verified else {}
-    shutil.rmtree(work_dir, ignore_errors=True)
+        best, run, runs = (None, None, ())
+        if stats.num_pairs_verified:
+            best, run, runs = _map(db_path, image_dir, out_dir / "mapper", options, len(names))
     model_dir = out_dir / "sparse" / "0"
     shutil.rmtree(model_dir, ignore_errors=True)
-    best = max(models.values(), key=lambda r: (r.num_reg_images(), r.num_points3D()), default=None)
     provenance = dict(
-        num_models=len(models),
+        num_models=0 if run is None else run.num_models,
         pairing=pairing,
-        mapper=options.mapper,
+        mapper=None if run is None else run.mapper,
+        mapper_runs=runs,
+        shared_camera=shared,
+        focal_prior=focal_prior_flags(db_path, names),
         features=stats,
         timings=timer.freeze(),
         database_path=db_path,
     )
-    if best is None or best.num_reg_images() == 0:
+    if best is None:
         logger.warning("COLMAP built no model from %d images (%d verified pairs)", len(names), stats.num_pairs_verified)
         return _no_model_result(names, **provenance)
     result = _model_result(best, names, model_dir, **provenance)
     logger.info(
-        "COLMAP registered %d/%d images, %d points, %.2f px reprojection error (%.1f s)",
+        "COLMAP (%s mapper) registered %d/%d images, %d points, %.2f px reprojection error (%.1f s)",
+        result.mapper.value,
         result.num_registered,
         len(names),
         result.num_points,
@@ -249,7 +474,8 @@ def _features_and_matches(
     names: tuple[str, ...],
     options: ColmapOptions,
     pairing: PairingMode,
-    focal_prior_px: float | Sequence[float | None] | None,
+    focal_prior_px: list[float | None],
+    shared_camera: bool,
     timer: StageTimer,
 ) -> FeatureStats:
     """Create the database (cameras with the focal priors), extract SIFT and match with ``pairing``."""
@@ -259,11 +485,16 @@ def _features_and_matches(
         image_dir,
         names,
         camera_model=options.camera_model,
-        single_camera=options.single_camera,
-        focal_prior_px=_as_priors(focal_prior_px, len(names)),
+        single_camera=shared_camera,
+        focal_prior_px=focal_prior_px,
     )
     logger.info(
-        "COLMAP cross-check: %d images, %s pairing, %s mapping", len(names), pairing.value, options.mapper.value
+        "COLMAP cross-check: %d images, %s camera, %d focal priors, %s pairing, %s mapping",
+        len(names),
+        "one shared" if shared_camera else "one per image",
+        sum(f is not None for f in focal_prior_px),
+        pairing.value,
+        options.mapper.value,
     )
     with timer.stage("feature_extraction"):
         extract_sift(db_path, image_dir, names, options.sift)

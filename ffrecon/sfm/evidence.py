@@ -155,7 +155,15 @@ def judge_final_cameras(
     """
     unsuited = _unsuited(names, ff_cam_from_world, colmap, witness, options)
     per_image, comparison = _per_image(names, refine, colmap, options)
-    n = len(names)
+    verdicts = _verdicts(len(names), refine, colmap, per_image, comparison is not None, options)
+    if unsuited:  # reported, not blocking: the run goes on from COLMAP's cameras
+        verdicts = [
+            GateVerdict("model_suited", GateStatus.FAIL, None, options.unsuited_share, unsuited, blocking=False)
+        ]
+    return EvidenceResult(GatesResult(tuple(verdicts), force), per_image, bool(unsuited), unsuited)
+
+
+def _verdicts(n, refine: RefineResult, colmap, per_image, compared: bool, options: EvidenceOptions) -> list:
     refined = int(refine.registered.sum())
     err = refine.mean_reprojection_error_px
     track = _track_length(refine)
@@ -185,7 +193,7 @@ def judge_final_cameras(
             "points are seen in too few images: take photos that overlap more",
         ),
     ]
-    if comparison is not None:
+    if compared:
         both = int((refine.registered & colmap.registered).sum())
         agree = sum(e.status is CameraStatus.CONFIRMED for e in per_image)
         verdicts.append(
@@ -198,9 +206,4 @@ def judge_final_cameras(
                 "the model and COLMAP place the cameras differently: look at the per-image table and the camera plot",
             )
         )
-    if unsuited:  # reported, not blocking: the run goes on from COLMAP's cameras
-        verdicts = [
-            GateVerdict("model_suited", GateStatus.FAIL, None, options.unsuited_share, unsuited, blocking=False)
-        ]
-    result = GatesResult(tuple(verdicts), force)
-    return EvidenceResult(result, per_image, bool(unsuited), unsuited)
+    return verdicts

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pycolmap
+from PIL import Image, UnidentifiedImageError
 
 from ffrecon.errors import InputError
 
@@ -152,6 +153,35 @@ def create_database(
     finally:
         db.close()
     return {name: ids[name] for name in names}
+
+
+def image_sizes_wh(image_dir: Path, names: Sequence[str]) -> list[tuple[int, int] | None]:
+    """``(width, height)`` in pixels of each image file as stored (read from the header only).
+
+    None where the file cannot be read here; COLMAP, which reads the pixels, then decides.
+    """
+    sizes: list[tuple[int, int] | None] = []
+    for name in names:
+        try:
+            with Image.open(Path(image_dir) / name) as img:
+                sizes.append((int(img.width), int(img.height)))
+        except (OSError, UnidentifiedImageError, ValueError):
+            sizes.append(None)
+    return sizes
+
+
+def focal_prior_flags(db_path: Path, names: Sequence[str]) -> np.ndarray:
+    """``[N]`` bool: the database camera of each of ``names`` carries a focal-length prior.
+
+    The prior is ffrecon's (see :func:`create_database`) or one COLMAP read from the file's EXIF.
+    """
+    db = pycolmap.Database.open(str(db_path))
+    try:
+        cameras = {camera.camera_id: camera for camera in db.read_all_cameras()}
+        prior = {image.name: cameras[image.camera_id].has_prior_focal_length for image in db.read_all_images()}
+    finally:
+        db.close()
+    return np.array([bool(prior.get(name, False)) for name in names], dtype=bool)
 
 
 def set_database_cameras(db_path: Path, cameras: Sequence[pycolmap.Camera]) -> None:

@@ -6,10 +6,21 @@ import numpy as np
 import pycolmap
 import pytest
 
+from ffrecon.errors import InputError
 from ffrecon.geometry.metrics import pose_errors
 from ffrecon.sfm.colmap_io import cam_from_world_by_name, reconstruction_from_cameras, write_reconstruction
 from ffrecon.sfm.compare import compare_models
-from ffrecon.sfm.crosscheck import ColmapOptions, ColmapStatus, MapperKind, PairingMode, resolve_pairing, run_colmap
+from ffrecon.sfm.crosscheck import (
+    CameraSharing,
+    ColmapOptions,
+    ColmapStatus,
+    MapperKind,
+    PairingMode,
+    drop_weak_images,
+    resolve_camera_sharing,
+    resolve_pairing,
+    run_colmap,
+)
 
 
 def test_colmap_registers_the_orbit_accurately(orbit24, colmap24):
@@ -24,6 +35,13 @@ def test_colmap_registers_the_orbit_accurately(orbit24, colmap24):
     assert result.features.num_keypoints.min() > 500
     assert set(result.timings.to_report()) == {"feature_extraction", "matching", "mapping", "total"}
     assert result.to_report()["registration_ratio"] == 1.0
+    # AUTO mapping: incremental registered everything in one model, so the global mapper did not run.
+    assert result.mapper is MapperKind.INCREMENTAL and [r.mapper for r in result.mapper_runs] == [result.mapper]
+    assert result.num_models == 1 and result.mapper_runs[0].num_registered == 24
+    report = result.to_report()
+    assert report["mapper"] == "incremental" and report["mapper_runs"][0]["num_weak_dropped"] == 0
+    # The conftest's priors differ per image (the simulated model's focal lengths): a camera each.
+    assert not result.shared_camera and report["num_focal_priors"] == 24
 
 
 def _independent_metrics(est: pycolmap.Reconstruction, ref: pycolmap.Reconstruction, names: list[str]) -> dict:
@@ -83,6 +101,33 @@ def test_pairing_resolution():
     assert resolve_pairing(ColmapOptions(pairing=PairingMode.SEQUENTIAL), 3) is PairingMode.SEQUENTIAL
 
 
+def test_camera_sharing_resolution():
+    size = [(640, 480)] * 3
+    assert resolve_camera_sharing(CameraSharing.AUTO, size, [None] * 3)  # one size, nothing known: one camera
+    assert resolve_camera_sharing(CameraSharing.AUTO, size, [500.0, 500.0, 500.2])  # one lens setting
+    assert not resolve_camera_sharing(CameraSharing.AUTO, size, [500.0, 500.0, 520.0])  # a zoom changed
+    assert not resolve_camera_sharing(CameraSharing.AUTO, size, [500.0, None, 500.0])  # mixed sources
+    assert not resolve_camera_sharing(CameraSharing.AUTO, [(640, 480), (480, 640), (640, 480)], [None] * 3)
+    assert not resolve_camera_sharing(CameraSharing.AUTO, [(640, 480), None, (640, 480)], [None] * 3)
+    assert not resolve_camera_sharing(CameraSharing.PER_IMAGE, size, [None] * 3)
+    assert resolve_camera_sharing(CameraSharing.SHARED, size, [500.0, 510.0, None])
+    with pytest.raises(InputError, match="one size"):
+        resolve_camera_sharing(CameraSharing.SHARED, [(640, 480), (480, 640)], [None] * 2)
+
+
+def test_dropping_weak_images_deregisters_them_and_their_points(colmap24):
+    rec = pycolmap.Reconstruction(colmap24[0].reconstruction)
+    fewest = min(image.num_points3D for image in rec.images.values())
+    assert drop_weak_images(rec, fewest) == 0 and rec.num_reg_images() == 24
+    assert drop_weak_images(rec, 10**9) == 24 and rec.num_reg_images() == 0 and rec.num_points3D() == 0
+
+
+def test_sequential_loop_detection_needs_a_vocabulary_tree(orbit24, tmp_path):
+    options = ColmapOptions(pairing=PairingMode.SEQUENTIAL, vocab_tree_path=tmp_path / "missing_tree.bin")
+    with pytest.raises(InputError, match="loop detection needs a vocabulary tree"):
+        run_colmap(orbit24.image_dir, orbit24.scene.names[:3], options, tmp_path, focal_prior_px=None)
+
+
 def test_two_images_need_a_focal_prior(orbit24, tmp_path):
     """Two images form an uncalibrated pair: without a focal prior COLMAP keeps its guess (1.2 x width)
     and gets the relative rotation wrong; the feed-forward focal as a prior fixes that."""
@@ -103,6 +148,7 @@ def test_sequential_pairing_and_global_mapper(orbit24, tmp_path):
     options = ColmapOptions(pairing=PairingMode.SEQUENTIAL, sequential_overlap=3, mapper=MapperKind.GLOBAL)
     result = run_colmap(orbit24.image_dir, names, options, tmp_path, focal_prior_px=orbit24.scene.camera.fx)
     assert result.pairing is PairingMode.SEQUENTIAL and result.mapper is MapperKind.GLOBAL
+    assert [run.mapper for run in result.mapper_runs] == [MapperKind.GLOBAL] and result.shared_camera
     assert result.features.num_pairs_matched < 8 * 7 // 2
     assert result.num_registered == 8
     poses, registered = cam_from_world_by_name(pycolmap.Reconstruction(str(tmp_path / "sparse" / "0")), names)
