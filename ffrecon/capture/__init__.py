@@ -62,10 +62,18 @@ class Capture:
         }
 
 
+DATASET_DOCUMENTS = frozenset({"license", "licence", "readme", "copying", "credits", "attribution", "authors"})
+
+
 def _list_inputs(folder: Path, options: CaptureOptions) -> tuple[list[Path], list[tuple[str, str]]]:
     """The image files to load (at most ``max_images``, evenly spaced) and the files left out, with why."""
     paths, others = list_images(folder)
-    skipped: list[tuple[str, str]] = []
+    # A dataset's license and readme files travel with its photos: leave them out, and say so.
+    docs = [p for p in others if p.stem.lower() in DATASET_DOCUMENTS]
+    others = [p for p in others if p not in docs]
+    skipped: list[tuple[str, str]] = [(p.name, "a dataset's documentation, not an image") for p in docs]
+    for p in docs:
+        log.info("leaving out %s (a dataset's documentation, not an image)", p.name)
     if others:
         listed = ", ".join(p.name for p in others[:5]) + (" ..." if len(others) > 5 else "")
         if not options.skip_bad_images:

@@ -166,13 +166,20 @@ def test_bad_inputs_have_clear_messages(tmp_path):
     mixed = tmp_path / "mixed"
     mixed.mkdir()
     Image.fromarray(_pattern()).save(mixed / "a.png")
+    (mixed / "LICENSE").write_text("CC BY")  # a dataset's documentation is left out, not an error
+    (mixed / "README.md").write_text("photos")
     (mixed / "notes.txt").write_text("hello")
-    with pytest.raises(InputError, match="not images.*notes.txt") as err:
+    with pytest.raises(InputError, match="holds 1 file.*not images.*notes.txt") as err:
         run_capture(mixed, CaptureOptions(), tmp_path / "o2")
     assert "--skip-bad-images" in err.value.fix
     (mixed / "broken.jpg").write_bytes(b"\xff\xd8\xff\xe0 not really a jpeg")
     cap = run_capture(mixed, CaptureOptions(skip_bad_images=True), tmp_path / "o3")
-    assert cap.names == ("a.png",) and {n for n, _ in cap.skipped} == {"notes.txt", "broken.jpg"}
+    assert cap.names == ("a.png",) and {n for n, _ in cap.skipped} == {
+        "notes.txt",
+        "broken.jpg",
+        "LICENSE",
+        "README.md",
+    }
     (mixed / "notes.txt").unlink()
     with pytest.raises(InputError, match="cannot decode image broken.jpg"):
         run_capture(mixed, CaptureOptions(), tmp_path / "o4")
