@@ -256,10 +256,11 @@ def _comparisons(capture, ff, colmap, refine, options: RunOptions, stages: Stage
 
     refs = [file_key(p) for p in (options.ground_truth, options.reference) if p is not None]
     if len(estimates) < 2 and not refs:
-        colmap_state = "did not run" if isinstance(colmap, Skipped) else "registered fewer than two images"
-        reason = (
-            f"no reference cameras: the COLMAP cross-check {colmap_state} and no ground truth or --reference was given"
-        )
+        if "feed-forward" not in estimates:
+            reason = "no model, and no ground truth or --reference: COLMAP's cameras are the only ones"
+        else:
+            state = "did not run" if isinstance(colmap, Skipped) else "registered fewer than two images"
+            reason = f"no reference cameras: the COLMAP cross-check {state} and no ground truth or --reference"
         return _skip(stages, "comparisons", "pose comparison", reason)
     references = (options.ground_truth, options.reference)
     return stages.run("comparisons", compare, options=references, inputs=[*inputs, *refs])

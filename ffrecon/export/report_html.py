@@ -329,7 +329,13 @@ def summary_rows(report: dict) -> list[tuple[str, str]]:
         )
     colmap, refine, splat = report["colmap"], report["refine"], report["splat"]
     if "skipped" not in colmap:
-        rows.append(("COLMAP registered", f"{colmap['num_registered']}/{colmap['num_images']}"))
+        runs = "; ".join(f"{r['mapper']}: {r['num_registered']}" for r in colmap.get("mapper_runs", []))
+        mapper = (
+            f" ({colmap['mapper']} mapper; {runs})" if colmap.get("mapper") and len(colmap["mapper_runs"]) > 1 else ""
+        )
+        err = colmap.get("mean_reprojection_error_px")
+        err_text = f", {err:.2f} px" if err is not None else ""
+        rows.append(("COLMAP registered", f"{colmap['num_registered']}/{colmap['num_images']}{mapper}{err_text}"))
     if "skipped" not in refine:
         err = refine.get("mean_reprojection_error_px")
         err_text = f"{err:.2f}" if err is not None else "nan"

@@ -1,0 +1,55 @@
+"""Real photos from shutter to splat, with no model: 29 phone photos walking along two streets (lund).
+
+The photos are downscaled to keep CI short; PIL keeps their EXIF, so the focal prior comes from the
+35 mm-equivalent focal length exactly as for the originals.
+"""
+
+import json
+from pathlib import Path
+
+import pytest
+from PIL import Image
+
+from ffrecon.pipeline import RunOptions, run
+from ffrecon.results import Skipped, Verdict
+from ffrecon.splat.optimize import OptimizeOptions
+from ffrecon.splat.stage import SplatOptions
+
+LUND = Path(__file__).resolve().parents[2] / "shared" / "data" / "lund"
+LONG_SIDE_PX = 512
+
+pytestmark = [
+    pytest.mark.slow,  # about a minute on 2 cores
+    pytest.mark.skipif(len(list(LUND.glob("*.jpg"))) < 29, reason=f"the real capture is not at {LUND}"),
+]
+
+
+@pytest.fixture(scope="module")
+def lund_small(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("lund")
+    for path in sorted(LUND.glob("*.jpg")):
+        with Image.open(path) as im:
+            exif = im.info["exif"]
+            im.thumbnail((LONG_SIDE_PX, LONG_SIDE_PX), Image.Resampling.LANCZOS)
+            im.save(out / path.name, quality=95, exif=exif)
+    (out / "LICENSE").write_text((LUND / "LICENSE").read_text())  # as the dataset ships
+    return out
+
+
+def test_lund_without_a_model(lund_small, tmp_path):
+    splat = SplatOptions(optimize=OptimizeOptions.brief(iterations=40, max_seconds=1e6, progress=False), video=False)
+    out = tmp_path / "out"
+    result = run(lund_small, out, None, RunOptions(splat=splat))
+    assert result.verdict is Verdict.OK and result.exit_code == 0
+    assert isinstance(result.feedforward, Skipped)
+    colmap = result.colmap
+    assert colmap.num_registered >= 28 and colmap.num_models == 1
+    assert colmap.mean_reprojection_error_px < 1.0
+    assert all(f.focal_prior_px is not None for f in result.capture.frames)  # EXIF survived the downscale
+    assert not any(v.failed for v in result.gates.verdicts)
+    # A splat seeded from COLMAP's points, scored on held-out photos it never saw.
+    assert len(result.splat.heldout) >= 3 and result.splat.mean("psnr_cleaned") > result.splat.mean("psnr_seed")
+    transforms = json.loads((out / "transforms.json").read_text())
+    assert transforms["camera_model"] == "OPENCV" and len(transforms["frames"]) == colmap.num_registered
+    report = json.loads((out / "report.json").read_text())
+    assert report["splat"]["heldout_mean"]["psnr_cleaned"] == pytest.approx(result.splat.mean("psnr_cleaned"))
