@@ -53,3 +53,18 @@ def test_lund_without_a_model(lund_small, tmp_path):
     assert transforms["camera_model"] == "OPENCV" and len(transforms["frames"]) == colmap.num_registered
     report = json.loads((out / "report.json").read_text())
     assert report["splat"]["heldout_mean"]["psnr_cleaned"] == pytest.approx(result.splat.mean("psnr_cleaned"))
+
+
+def test_two_photos_walking_forward_name_small_parallax(lund_small, tmp_path):
+    """Two consecutive photos of a forward walk: hundreds of verified matches, too little parallax for
+    COLMAP's initial pair. The diagnosis says so, never "too little overlap"."""
+    pair = tmp_path / "pair"
+    pair.mkdir()
+    for name in ("01.jpg", "02.jpg"):
+        (pair / name).write_bytes((lund_small / name).read_bytes())
+    result = run(pair, tmp_path / "out", None, RunOptions(splat=SplatOptions(enabled=False)))
+    assert result.exit_code == 5
+    gate = result.gates.verdicts[0]
+    assert gate.name == "registration" and gate.failed
+    assert [c.value for c in gate.causes] == ["small_parallax"] and "overlap too little" not in gate.fix
+    assert int(result.colmap.features.num_inlier_matches.min()) > 100

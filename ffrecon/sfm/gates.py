@@ -97,9 +97,10 @@ class GateOptions:
     # A cause is named when this share of the images carries its capture flag ("blur", "texture";
     # thresholds in ffrecon.capture.quality.QualityOptions).
     cause_share: float = 0.3
-    # Median verified inlier matches per image above which the photos clearly overlap: a failed
-    # registration is then small parallax (or disconnected groups), never "too little overlap".
-    overlap_matches: int = 500
+    # Median verified inlier matches per image from which the photos clearly overlap: a failed
+    # registration is then small parallax (or disconnected groups), never "too little overlap". 100 is
+    # what COLMAP's incremental mapper asks of an initial pair (init_min_num_inliers).
+    overlap_matches: int = 100
 
 
 _FIXES = {

@@ -74,10 +74,10 @@ def test_diagnosis_uses_capture_flags_of_the_images_colmap_saw():
     assert diagnose_registration(None, scene.names, 10, options) == (FailureCause.BLUR, FailureCause.TEXTURE)
     # Photos that look fine: the verified matches decide between overlap and parallax.
     fine = scene.names[2:]
-    assert diagnose_registration(quality, fine, 1000, options, median_verified_matches=499) == (FailureCause.OVERLAP,)
+    assert diagnose_registration(quality, fine, 1000, options, median_verified_matches=99) == (FailureCause.OVERLAP,)
     many = diagnose_registration(quality, fine, 1000, options, median_verified_matches=1528)
     assert many == (FailureCause.SMALL_PARALLAX,)  # a stereo pair's 1,528 matches: never "too little overlap"
-    split = diagnose_registration(quality, fine, 1000, options, median_verified_matches=100, num_models=2)
+    split = diagnose_registration(quality, fine, 1000, options, median_verified_matches=50, num_models=2)
     assert split == (FailureCause.DISCONNECTED,)
 
 
