@@ -112,6 +112,13 @@ def _reload_reconstruction(obj):
     return obj
 
 
+def _same_shape(obj) -> bool:
+    """Whether a stored result has the fields its class has now (a record from older code may not)."""
+    if not dataclasses.is_dataclass(obj):
+        return True
+    return set(vars(obj)) == {f.name for f in dataclasses.fields(obj)}
+
+
 class StageRunner:
     """Runs the stages of one run folder, reusing finished ones whose key is unchanged.
 
@@ -141,6 +148,9 @@ class StageRunner:
                 stored = pickle.load(fh)
         except (OSError, ValueError, pickle.UnpicklingError, EOFError, AttributeError, ImportError) as err:
             log.warning("the record of stage %s cannot be read (%s); running it again", stage, err)
+            return None, None
+        if not _same_shape(stored):
+            log.info("the record of stage %s was written by another version of ffrecon; running it again", stage)
             return None, None
         return _reload_reconstruction(rebase_paths(stored, _RUN_ROOT, self.run_dir)), meta
 

@@ -5,11 +5,19 @@ Usage (from the repository root):
     .venv/bin/python tools/bench_splat.py                  # both parts, demo-sized scene, 120 s budget
     .venv/bin/python tools/bench_splat.py --render-only
     .venv/bin/python tools/bench_splat.py --seconds 60 --eval-every 50 --threads 1
+    # exposure compensation off and on, a fixed budget of 300 iterations, constant or varying exposure:
+    .venv/bin/python tools/bench_splat.py --optimize-only --iterations 300 --seconds 1e9 --appearance both
+    .venv/bin/python tools/bench_splat.py --optimize-only --iterations 300 --seconds 1e9 --appearance both \
+        --exposure 0.3
 
 The scene is the demo's synthetic one (24 views at 320x240, every 8th held out). Seeds come from the
 simulated model's depth maps (a smooth ~3 % error field, as the demo's simulated VGGT) unprojected
-with the ground-truth cameras of the training views. Timings on a shared machine are pessimistic:
-other processes take cores, and the numbers say how busy the machine was (load average).
+with the ground-truth cameras of the training views. ``--exposure g`` changes every photo's colours
+(training and held-out) as auto-exposure and white balance would: per-channel gains in [1 - g, 1 + g]
+and offsets within g / 10, seeded (see :func:`ffrecon.splat.appearance.random_color_changes`).
+Held-out PSNR is printed plain and colour-corrected (see :func:`ffrecon.splat.stage.color_corrected`).
+Timings on a shared machine are pessimistic: other processes take cores, and the numbers say how
+busy the machine was (load average).
 """
 
 from __future__ import annotations
@@ -25,21 +33,23 @@ import numpy as np
 import torch
 
 from ffrecon.geometry.projection import unproject_depth
+from ffrecon.splat.appearance import change_photo_colors, random_color_changes
 from ffrecon.splat.optimize import cpu_threads, optimize, scene_scale, torch_threads
 from ffrecon.splat.render import RasterOptions, render, render_view
 from ffrecon.splat.seed import initial_gaussians, reduce_points
-from ffrecon.splat.stage import SplatOptions, image_metrics, split_views
+from ffrecon.splat.stage import SplatOptions, color_corrected, image_metrics, split_views
 from ffrecon.synthetic import SceneOptions, make_scene
 from ffrecon.synthetic.simulated_model import SimulationOptions, simulate
 
 
-def noisy_seed(scene, views: list[int], seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """Points of ``views`` from the simulated model's noisy depth at the true cameras, with colours."""
+def noisy_seed(scene, images, views: list[int], seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Points of ``views`` from the simulated model's noisy depth at the true cameras, with the colours of
+    ``images`` (per frame ``[H, W, 3]`` uint8)."""
     truth, _ = simulate(scene, SimulationOptions(seed=seed))
     xyz = np.concatenate(
         [unproject_depth(truth.depth[i], scene.camera.K, scene.cam_from_world[i]).reshape(-1, 3) for i in views]
     )
-    rgb = np.concatenate([scene.images[i].reshape(-1, 3) for i in views]).astype(np.float32) / 255.0
+    rgb = np.concatenate([images[i].reshape(-1, 3) for i in views]).astype(np.float32) / 255.0
     return xyz, rgb
 
 
@@ -77,32 +87,44 @@ def bench_render(xyz: np.ndarray, rgb: np.ndarray, scene, counts: list[int], ras
         )
 
 
-def heldout_psnr(g, scene, poses: np.ndarray, test: list[int]) -> float:
-    """Mean PSNR of ``g`` over the views ``test`` of ``scene`` seen from ``poses``."""
-    values = []
+def heldout_psnr(g, scene, images, poses: np.ndarray, test: list[int]) -> str:
+    """Mean PSNR of ``g`` over the views ``test`` of ``scene`` seen from ``poses``, plain and colour-corrected
+    against ``images`` (per frame ``[H, W, 3]`` uint8), formatted for the table."""
+    plain, corrected = [], []
     for i in test:
         rendered = render_view(g, poses[i], scene.camera)
-        values.append(image_metrics(rendered, torch.from_numpy(scene.images[i]).float() / 255.0)[0])
-    return float(np.mean(values))
+        truth = torch.from_numpy(images[i]).float() / 255.0
+        plain.append(image_metrics(rendered, truth)[0])
+        corrected.append(image_metrics(color_corrected(rendered, truth), truth)[0])
+    return f"{np.mean(plain):>14.2f} {np.mean(corrected):>10.2f}"
 
 
-def bench_optimize(scene, xyz, rgb, train, test, args) -> None:
+def bench_optimize(scene, images, xyz, rgb, train, test, args, appearance: bool) -> None:
     options = SplatOptions()
-    opt = replace(options.optimize, max_seconds=args.seconds, progress=False, threads=args.threads)
+    opt = replace(
+        options.optimize,
+        max_seconds=args.seconds,
+        progress=False,
+        threads=args.threads,
+        appearance=appearance,
+        **({"iterations": args.iterations} if args.iterations else {}),
+    )
     x, c = reduce_points(xyz, rgb, voxel_size=None, max_points=min(options.max_seed_points, opt.max_gaussians), seed=0)
     seed = initial_gaussians(x, c, sh_degree=opt.sh_degree)
-    targets = [torch.from_numpy(im).float() / 255.0 for im in scene.images]
+    targets = [torch.from_numpy(im).float() / 255.0 for im in images]
     Ks = np.stack([scene.camera.K] * len(scene))
     print(
         f"\noptimisation: {len(train)} training / {len(test)} held-out views, seed {len(seed)} Gaussians, "
-        f"budget {args.seconds:.0f} s, {torch.get_num_threads()} thread(s); evaluation time excluded"
+        f"budget {opt.iterations} iterations or {args.seconds:.0f} s, {torch.get_num_threads()} thread(s), "
+        f"exposure changes {args.exposure}, appearance compensation {'on' if appearance else 'off'}; "
+        "evaluation time excluded"
     )
-    print(f"{'iteration':>9} {'seconds':>8} {'it/s':>6} {'gaussians':>10} {'held-out PSNR':>14}")
-    print(f"{0:>9} {0.0:>8.1f} {'':>6} {len(seed):>10} {heldout_psnr(seed, scene, scene.cam_from_world, test):>14.2f}")
+    print(f"{'iteration':>9} {'seconds':>8} {'it/s':>6} {'gaussians':>10} {'held-out PSNR':>14} {'corrected':>10}")
+    print(f"{0:>9} {0.0:>8.1f} {'':>6} {len(seed):>10} {heldout_psnr(seed, scene, images, scene.cam_from_world, test)}")
 
     def callback(it, seconds, g, poses):
-        psnr = heldout_psnr(g, scene, poses, test)
-        print(f"{it:>9} {seconds:>8.1f} {it / seconds:>6.2f} {len(g):>10} {psnr:>14.2f}", flush=True)
+        psnr = heldout_psnr(g, scene, images, poses, test)
+        print(f"{it:>9} {seconds:>8.1f} {it / seconds:>6.2f} {len(g):>10} {psnr}", flush=True)
 
     scale = scene_scale(scene.cam_from_world[train], x)
     result = optimize(
@@ -116,16 +138,19 @@ def bench_optimize(scene, xyz, rgb, train, test, args) -> None:
         callback=callback,
         callback_every=args.eval_every,
     )
-    psnr = heldout_psnr(result.gaussians, scene, result.cam_from_world, test)
+    psnr = heldout_psnr(result.gaussians, scene, images, result.cam_from_world, test)
     rate = result.iterations / result.seconds
     count = len(result.gaussians)
-    print(f"{result.iterations:>9} {result.seconds:>8.1f} {rate:>6.2f} {count:>10} {psnr:>14.2f}   (final)")
+    print(f"{result.iterations:>9} {result.seconds:>8.1f} {rate:>6.2f} {count:>10} {psnr}   (final)")
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--frames", type=int, default=24)
     parser.add_argument("--seconds", type=float, default=120.0)
+    parser.add_argument("--iterations", type=int, default=0, help="iteration budget (default: the options')")
+    parser.add_argument("--appearance", choices=("on", "off", "both"), default="on", help="exposure compensation")
+    parser.add_argument("--exposure", type=float, default=0.0, help="per-photo colour gain spread (0: constant)")
     parser.add_argument("--eval-every", type=int, default=50, help="iterations between held-out evaluations")
     parser.add_argument("--threads", type=int, default=None, help="torch threads (default: all cores but one)")
     parser.add_argument("--counts", default="30000,60000,100000", help="Gaussian counts for the renderer benchmark")
@@ -140,12 +165,17 @@ def main(argv: list[str] | None = None) -> int:
     print(f"torch {torch.__version__}, {os.cpu_count()} CPUs, load average {load:.2f} at start")
     scene = make_scene(SceneOptions(num_frames=args.frames))
     train, test = split_views(len(scene), SplatOptions().holdout_every)
-    xyz, rgb = noisy_seed(scene, train)
+    images = list(scene.images)
+    if args.exposure:
+        changes = random_color_changes(len(scene), gain_spread=args.exposure, offset_spread=args.exposure / 10)
+        images = [change_photo_colors(im, t) for im, t in zip(images, changes)]
+    xyz, rgb = noisy_seed(scene, images, train)
     with torch_threads(cpu_threads(args.threads)):
         if not args.optimize_only:
             bench_render(xyz, rgb, scene, [int(c) for c in args.counts.split(",")], RasterOptions(tile_size=args.tile))
         if not args.render_only:
-            bench_optimize(scene, xyz, rgb, train, test, args)
+            for appearance in {"on": [True], "off": [False], "both": [False, True]}[args.appearance]:
+                bench_optimize(scene, images, xyz, rgb, train, test, args, appearance)
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     print(f"load average {load:.2f} at the end")
     return 0

@@ -226,6 +226,12 @@ def _splat(report: dict, run_dir: Path) -> tuple[list[dict], str]:
         {"measure": f"held-out {label}", **{col: mean.get(f"{key}_{s}") for col, s in _SPLAT_COLUMNS}}
         for label, key in (("PSNR (dB)", "psnr"), ("SSIM", "ssim"))
     ]
+    corrected = {f"{key}_cleaned_color_corrected": key for key in ("psnr", "ssim")}
+    rows += [
+        {"measure": f"held-out {key.upper()}, colour-corrected", "after cleaning": mean.get(name)}
+        for name, key in corrected.items()
+        if mean.get(name) is not None
+    ]
     counts = data["gaussians"]
     rows.append({"measure": "Gaussians", **{col: counts[s] for col, s in _SPLAT_COLUMNS}})
     rate = f"{data['iterations']} ({data['iterations_per_second']:.2f}/s)"

@@ -7,7 +7,11 @@ seed cloud. Both write, under ``out_dir``: ``splat.ply`` (3DGS layout, see :mod:
 
 The held-out views (every ``holdout_every``-th frame, starting with the first) are chosen once, by
 :func:`split_views`, in each entry: they are never trained on nor seeded from, and PSNR and SSIM
-are measured on them for the seed, the optimised and the cleaned (exported) splat.
+are measured on them for the seed, the optimised and the cleaned (exported) splat. The cleaned
+splat is also scored after a colour correction, as is usual for photos whose exposure and white
+balance vary: an affine colour transform from its render to the held-out photo, fitted by least
+squares on that photo (see :func:`ffrecon.splat.appearance.fit_color_transform`), so that a
+held-out frame's own exposure, which no training image shows, does not count as an error.
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import ClassVar
 
 import cv2
 import kornia
@@ -26,6 +31,7 @@ import torch
 
 from ffrecon.checks import check_shape, require_finite
 from ffrecon.errors import InputError
+from ffrecon.splat.appearance import apply_color_transform, fit_color_transform
 from ffrecon.splat.clean import CleanOptions, CleanReport, clean_gaussians
 from ffrecon.splat.gaussians import Gaussians
 from ffrecon.splat.optimize import (
@@ -58,9 +64,9 @@ class SplatOptions:
     """Settings of the splat stage; each setting lives in one place.
 
     The optimisation's settings (iterations, time budget, SH degree, Gaussian cap, pose refinement,
-    background, rasteriser, seed, CPU threads, progress bar, learning rates) are in ``optimize``, the
-    cleaning's (crop box included) in ``clean``. ``optimize.device`` is not read: the stage resolves
-    ``device`` (see :func:`resolve_device`) and gives the optimiser the result.
+    exposure compensation, background, rasteriser, seed, CPU threads, progress bar, learning rates) are
+    in ``optimize``, the cleaning's (crop box included) in ``clean``. ``optimize.device`` is not read:
+    the stage resolves ``device`` (see :func:`resolve_device`) and gives the optimiser the result.
     """
 
     enabled: bool = True  # read by the pipeline (False: skip the stage); the functions here ignore it
@@ -76,6 +82,8 @@ class SplatOptions:
 
 @dataclass(frozen=True)
 class ViewMetrics:
+    """PSNR (dB) and SSIM of one held-out view; ``*_color_corrected`` after :func:`color_corrected`."""
+
     name: str
     psnr_seed: float
     ssim_seed: float
@@ -83,6 +91,19 @@ class ViewMetrics:
     ssim_optimized: float
     psnr_cleaned: float
     ssim_cleaned: float
+    psnr_cleaned_color_corrected: float
+    ssim_cleaned_color_corrected: float
+
+    KEYS: ClassVar[tuple[str, ...]] = (
+        "psnr_seed",
+        "ssim_seed",
+        "psnr_optimized",
+        "ssim_optimized",
+        "psnr_cleaned",
+        "ssim_cleaned",
+        "psnr_cleaned_color_corrected",
+        "ssim_cleaned_color_corrected",
+    )
 
 
 @dataclass(frozen=True)
@@ -104,6 +125,9 @@ class SplatResult:
     clean: CleanReport
     backend: str  # "cpu" (ffrecon's renderer) or "gsplat"
     cam_from_world: np.ndarray = field(repr=False)  # [N, 3, 4] the cameras used (refined when refine_poses)
+    # [N, 3, 4] float64 [A | b] per frame, the learnt exposure/white-balance compensation of the training
+    # frames (optimize.appearance); [I | 0] for held-out frames and without it. Not part of splat.ply.
+    color_transforms: np.ndarray = field(repr=False)
 
     def mean(self, key: str) -> float:
         """Mean over held-out views of a :class:`ViewMetrics` field (nan without held-out views)."""
@@ -129,7 +153,7 @@ class SplatResult:
         def rel(p: Path | None) -> str | None:
             return None if p is None else str(Path(p).relative_to(self.out_dir))
 
-        keys = ("psnr_seed", "ssim_seed", "psnr_optimized", "ssim_optimized", "psnr_cleaned", "ssim_cleaned")
+        keys = ViewMetrics.KEYS
         return {
             "backend": self.backend,
             "splat_ply": rel(self.ply_path),
@@ -156,6 +180,20 @@ def image_metrics(rendered: torch.Tensor, truth: torch.Tensor) -> tuple[float, f
     psnr = 10 * np.log10(1.0 / max(mse, 1e-12))
     ssim = float(kornia.metrics.ssim(a, b, 11).mean())
     return float(psnr), ssim
+
+
+def color_corrected(rendered: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
+    """``rendered [H, W, 3]`` (clamped to [0, 1]) after the affine colour transform that best maps it to
+    ``truth [H, W, 3]`` (see :func:`~ffrecon.splat.appearance.fit_color_transform`), clamped to [0, 1];
+    float32.
+
+    >>> truth = torch.rand(8, 8, 3, generator=torch.Generator().manual_seed(0))
+    >>> bool(torch.allclose(color_corrected(0.8 * truth + 0.05, truth), truth, atol=1e-3))
+    True
+    """
+    source = rendered.clamp(0, 1)
+    transform = fit_color_transform(source, truth).to(source)
+    return apply_color_transform(source, transform).clamp(0, 1)
 
 
 def split_views(num: int, holdout_every: int) -> tuple[list[int], list[int]]:
@@ -306,6 +344,7 @@ def _splat(
         clean=clean_report,
         backend="gsplat" if device == "cuda" else "cpu",
         cam_from_world=poses,
+        color_transforms=result.color_transforms,
     )
     _log_summary(res)
     return res
@@ -377,8 +416,9 @@ def _evaluate_heldout(
     options: SplatOptions,
     out_dir: Path,
 ) -> tuple[tuple[ViewMetrics, ...], tuple[tuple[str, Path, Path, Path], ...]]:
-    """Metrics of the ``seed``, ``optimized`` and ``cleaned`` splats on each held-out view, and
-    ``renders/<stem>_{truth,seed,splat}.png`` for the first ``report_views`` of them."""
+    """Metrics of the ``seed``, ``optimized`` and ``cleaned`` splats on each held-out view (and of the
+    ``cleaned`` one after :func:`color_corrected`), and ``renders/<stem>_{truth,seed,splat}.png`` (plain
+    renders) for the first ``report_views`` of them."""
     renders_dir = out_dir / "renders"
     renders_dir.mkdir(parents=True, exist_ok=True)
     o = options.optimize
@@ -390,7 +430,8 @@ def _evaluate_heldout(
             for key, g in splats.items()
         }
         m = {key: image_metrics(img, truth) for key, img in views.items()}
-        metrics.append(ViewMetrics(names[i], *m["seed"], *m["optimized"], *m["cleaned"]))
+        corrected = image_metrics(color_corrected(views["cleaned"], truth), truth)
+        metrics.append(ViewMetrics(names[i], *m["seed"], *m["optimized"], *m["cleaned"], *corrected))
         if j < options.report_views:
             stem = Path(names[i]).stem
             paths = tuple(
@@ -437,10 +478,12 @@ def _write_outputs(
 def _log_summary(res: SplatResult) -> None:
     if res.heldout_metrics:
         logger.info(
-            "splat: held-out PSNR %.2f -> %.2f dB (cleaned %.2f), SSIM %.3f -> %.3f; %d iterations (%.2f it/s)",
+            "splat: held-out PSNR %.2f -> %.2f dB (cleaned %.2f, colour-corrected %.2f), SSIM %.3f -> %.3f; "
+            "%d iterations (%.2f it/s)",
             res.mean("psnr_seed"),
             res.mean("psnr_optimized"),
             res.mean("psnr_cleaned"),
+            res.mean("psnr_cleaned_color_corrected"),
             res.mean("ssim_seed"),
             res.mean("ssim_optimized"),
             res.iterations,

@@ -63,6 +63,11 @@ def test_run_splat_writes_everything(tiny, tmp_path):
         "splat": "renders/frame_000_splat.png",
     }
     assert all((tmp_path / r[k]).is_file() for r in report["renders"] for k in ("truth", "seed", "splat"))
+    mean, first = report["heldout_mean"], report["heldout_per_view"][0]
+    assert set(mean) == set(first) - {"name"} >= {"psnr_cleaned_color_corrected", "ssim_cleaned_color_corrected"}
+    # A least-squares colour fit cannot make the render worse (up to the light ridge and clipping).
+    assert mean["psnr_cleaned_color_corrected"] >= mean["psnr_cleaned"] - 0.05
+    assert result.color_transforms.shape == (9, 3, 4) and np.allclose(result.color_transforms[[0, 8]], np.eye(3, 4))
     assert len(result.report_images()) == 6
     assert set(result.timings.to_report()) >= {"seed", "optimize", "clean", "evaluate", "write_ply", "video", "total"}
     assert not (tmp_path / "mesh.ply").exists()  # the mesh belongs to the export stage
