@@ -54,6 +54,11 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--force", action="store_true", help="go on past failed verification gates")
     p.add_argument("--min-registration", type=float, default=None, help="registration-ratio gate (default 0.85)")
     p.add_argument("--splat-seconds", type=float, default=None, help="splat optimisation budget in seconds")
+    p.add_argument(
+        "--compare-seeds",
+        action="store_true",
+        help="with a model, also train the splat from COLMAP's points under the same budget, and compare",
+    )
     p.add_argument("--mesh", action="store_true", help="also write a Poisson mesh (mesh.ply, mesh.glb) of the cloud")
     p.add_argument("--reference", type=Path, default=None, help="a reference COLMAP model to score the cameras against")
     p.add_argument("-v", "--verbose", action="count", default=0)
@@ -235,7 +240,9 @@ def _run_options(args: argparse.Namespace, ground_truth: Path | None = None):
         )
     )
     splat = SplatOptions(
-        enabled=not args.no_splat, optimize=OptimizeOptions.brief(**_given(max_seconds=args.splat_seconds))
+        enabled=not args.no_splat,
+        compare_seeds=args.compare_seeds,
+        optimize=OptimizeOptions.brief(**_given(max_seconds=args.splat_seconds)),
     )
     return RunOptions(
         capture=capture,

@@ -25,6 +25,7 @@ from ffrecon.geometry.undistort import opencv_coefficients, undistort_image
 from ffrecon.models.stage import FeedForwardOptions, FeedForwardResult, run_feedforward
 from ffrecon.results import RunResults, Skipped
 from ffrecon.resume import StageRunner, file_key, rebase_paths
+from ffrecon.sfm.compare import compare_poses
 from ffrecon.sfm.comparisons import ComparisonsResult, load_references, run_comparisons
 from ffrecon.sfm.crosscheck import ColmapOptions, ColmapResult, run_colmap
 from ffrecon.sfm.evidence import EvidenceOptions, EvidenceResult, judge_final_cameras
@@ -46,6 +47,7 @@ STAGE_OUTPUTS = {
     "evidence": (),
     "comparisons": (),
     "splat": ("splat.ply", "renders", "flythrough.mp4"),
+    "seed_comparison": ("seed_comparison",),
     "exports": EXPORT_OUTPUTS,
 }
 ONE_VIEW = "needs two or more views; this run has one photo (its depth, camera and point cloud are still produced)"
@@ -120,7 +122,9 @@ def _run_stages(
     comparisons, _ = _comparisons(capture, ff, colmap, refine, options, stages, [k_capture, k_ff, k_colmap, k_refine])
     final = _final_cameras(capture, ff, colmap, refine, evidence)
     final_keys = [k_capture, k_ff, k_colmap, k_refine, k_evidence]  # the final cameras depend on these
+    options = _with_curves(options)
     splat, _ = _splat(capture, ff, colmap, final, verdicts, options, work, stages, final_keys)
+    seeds = _seed_comparison(capture, colmap, final, splat, options, work, stages, final_keys)
     exports, _ = _exports(capture, ff, colmap, final, options, work, stages, final_keys)
     return RunResults(
         out_dir=work,
@@ -134,6 +138,7 @@ def _run_stages(
         refine=refine,
         evidence=evidence,
         splat=splat,
+        seed_comparison=seeds,
         exports=exports,
         timings=tuple(stages.timings),
         forced=options.force,
@@ -320,6 +325,46 @@ def _splat(capture, ff, colmap, final, verdicts: tuple, options: RunOptions, wor
         return run_splat(*args)
 
     return stages.run("splat", splat, options=options.splat, inputs=inputs, outputs=STAGE_OUTPUTS["splat"])
+
+
+CURVE_EVERY = 20  # iterations between held-out scores when the two seeds are compared
+
+
+def _with_curves(options: RunOptions) -> RunOptions:
+    """With --compare-seeds both splats score their held-out views as they train (for the plot)."""
+    splat = options.splat
+    if not splat.compare_seeds or splat.curve_every:
+        return options
+    return dataclasses.replace(options, splat=dataclasses.replace(splat, curve_every=CURVE_EVERY))
+
+
+def _seed_comparison(capture, colmap, final, splat, options: RunOptions, work, stages, inputs):
+    """The same splat trained from COLMAP's points (moved into the final cameras' frame), same budget.
+
+    None when not asked for (``--compare-seeds``); Skipped when it cannot run.
+    """
+    if not options.splat.compare_seeds:
+        stages.forget("seed_comparison", STAGE_OUTPUTS["seed_comparison"])
+        return None
+    label = "seed comparison"
+    if not isinstance(splat, SplatResult):
+        return _skip(stages, "seed_comparison", label, "the splat did not run")[0]
+    if final.source == "COLMAP" or not isinstance(colmap, ColmapResult) or colmap.num_registered < 3:
+        reason = "needs a model's cameras and a COLMAP model of three images or more (seeds differ only then)"
+        return _skip(stages, "seed_comparison", label, reason)[0]
+
+    def train() -> SplatResult:
+        full = np.stack([np.eye(3, 4)] * len(capture.frames))
+        full[list(final.indices)] = final.cam_from_world
+        to_final = compare_poses(colmap.cam_from_world, full, capture.names, colmap.registered).errors.est_to_ref
+        xyz, rgb = seed_from_reconstruction(colmap.reconstruction)
+        images = capture.read_images(list(final.indices))
+        args = (images, final.names, final.cam_from_world, final.cameras, to_final.apply(xyz), rgb)
+        return run_splat(*args, options.splat, work / "seed_comparison")
+
+    opts = options.splat
+    outputs = STAGE_OUTPUTS["seed_comparison"]
+    return stages.run("seed_comparison", train, options=opts, inputs=inputs, outputs=outputs)[0]
 
 
 def _exports(capture, ff, colmap, final, options: RunOptions, work, stages, inputs) -> tuple:

@@ -52,6 +52,7 @@ class RunResults:
     refine: RefineResult | Skipped
     evidence: EvidenceResult | Skipped  # the final cameras judged (with a model)
     splat: SplatResult | Skipped
+    seed_comparison: SplatResult | Skipped | None  # --compare-seeds: the splat from COLMAP's points; None: not asked
     exports: ExportsResult | Skipped
     timings: tuple[StageTiming, ...]
     forced: bool

@@ -2,9 +2,12 @@
 
 import json
 
+import numpy as np
 import pycolmap
 
 from ffrecon.cli import main
+from ffrecon.geometry.alignment import umeyama
+from ffrecon.geometry.poses import camera_centers
 from ffrecon.pipeline import RunOptions, run
 from ffrecon.results import Skipped
 from ffrecon.splat.optimize import OptimizeOptions
@@ -69,3 +72,31 @@ def test_unsuited_model_is_set_aside_for_colmaps_cameras(tmp_path):
     errors = result.comparisons.by_label("COLMAP", "ground truth").errors
     assert errors.median_rotation_deg < 0.25
     assert result.comparisons.by_label("feed-forward", "ground truth").errors.median_rotation_deg > 10
+
+
+def test_compare_seeds_trains_both_under_one_budget(demo12, tmp_path):
+    """--compare-seeds: the feed-forward-seeded splat against one seeded from COLMAP's points."""
+    brief = OptimizeOptions.brief(iterations=40, max_seconds=1e6, progress=False)
+    splat = SplatOptions(optimize=brief, video=False, compare_seeds=True)
+    out = tmp_path / "out"
+    result = run(demo12.images, out, demo12.model, RunOptions(splat=splat))
+    ff, sfm = result.splat, result.seed_comparison
+    assert ff.iterations == sfm.iterations == 40 and ff.heldout == sfm.heldout
+    assert [c[0] for c in ff.heldout_curve] == [c[0] for c in sfm.heldout_curve] == [0, 20, 40]
+    assert sfm.count_seed == min(result.colmap.num_points, splat.max_seed_points)
+    # COLMAP's points were moved into the final cameras' frame: the SfM seed already renders the views.
+    # COLMAP's points moved into the final cameras' frame: they project into the views (an independent
+    # Umeyama fit on the camera centres), and the SfM-seeded splat renders far better than black.
+    final, colmap = result.refine, result.colmap
+    to_final = umeyama(camera_centers(colmap.cam_from_world), camera_centers(final.cam_from_world))
+    xyz = to_final.apply(np.array([p.xyz for p in colmap.reconstruction.points3D.values()]))
+    cam = final.cameras[1]
+    local = xyz @ final.cam_from_world[1][:, :3].T + final.cam_from_world[1][:, 3]
+    u = cam.fx * local[:, 0] / local[:, 2] + cam.cx
+    inside = (local[:, 2] > 0) & (u > 0) & (u < cam.width)
+    assert inside.mean() > 0.3
+    black = np.mean([10 * np.log10(1 / np.mean((im / 255.0) ** 2)) for im in result.capture.read_images([0, 8])])
+    assert sfm.mean("psnr_cleaned") > black + 2 and ff.mean("psnr_cleaned") > sfm.mean("psnr_cleaned")
+    page = (out / "report.html").read_text()
+    assert "Seeds compared" in page and "Held-out quality over time" in page
+    assert (out / "seed_comparison" / "splat.ply").is_file()

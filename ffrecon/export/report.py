@@ -142,6 +142,7 @@ def build_report(results: RunResults) -> dict:
         "pose_errors": pose_errors,
         "pose_plot": pose_plot,
         "splat": _section(results.splat),
+        "seed_comparison": None if results.seed_comparison is None else _section(results.seed_comparison),
         "exports": _section(results.exports, exports),
         "skipped_stages": [{"stage": s.stage, "reason": s.reason} for s in results.skipped],
         "timings": {

@@ -304,6 +304,52 @@ def _timings(report: dict, run_dir: Path) -> tuple[list[dict], str]:
     return rows, _figure("Time per stage", timings_png(shown, reused), caption)
 
 
+def curves_png(curves: dict[str, list[dict]]) -> bytes:
+    """Held-out PSNR and SSIM against optimisation seconds, one line per splat (matplotlib Agg)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure as MplFigure
+
+    fig = MplFigure(figsize=(8.0, 3.2))
+    FigureCanvasAgg(fig)
+    for col, (key, label) in enumerate((("psnr", "held-out PSNR (dB)"), ("ssim", "held-out SSIM")), start=1):
+        ax = fig.add_subplot(1, 2, col)
+        for name, points in curves.items():
+            ax.plot([p["seconds"] for p in points], [p[key] for p in points], "-o", ms=3, label=name)
+        ax.set_xlabel("optimisation seconds")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=100)
+    return buf.getvalue()
+
+
+def _seeds(report: dict, run_dir: Path) -> tuple[list[dict], str]:
+    other = report.get("seed_comparison")
+    if not other or "skipped" in other or "skipped" in report["splat"]:
+        return [], ""
+    ff = report["splat"]
+    rows = []
+    for label, data in (("feed-forward depth (no SfM)", ff), ("COLMAP's points (SfM)", other)):
+        mean = data["heldout_mean"]
+        rows.append(
+            {
+                "seed": label,
+                "seed Gaussians": data["gaussians"]["seed"],
+                "held-out PSNR (dB)": mean.get("psnr_cleaned"),
+                "held-out SSIM": mean.get("ssim_cleaned"),
+                "colour-corrected PSNR": mean.get("psnr_cleaned_color_corrected"),
+                "iterations": data["iterations"],
+            }
+        )
+    curves = {"feed-forward seed": ff["heldout_curve"], "SfM seed": other["heldout_curve"]}
+    if not all(curves.values()):
+        return rows, ""
+    caption = "Both splats train on the same views and cameras under the same budget; scored on held-out views."
+    return rows, _figure("Held-out quality over time", curves_png(curves), caption)
+
+
 _SECTIONS = (
     ("Capture", _capture),
     ("Feed-forward cameras and depth", _feedforward),
@@ -312,6 +358,7 @@ _SECTIONS = (
     ("Refinement", _refine),
     ("Final cameras: the evidence", _evidence),
     ("Gaussian splat", _splat),
+    ("Seeds compared: feed-forward depth vs SfM points", _seeds),
     ("Timings", _timings),
 )
 

@@ -75,6 +75,8 @@ class SplatOptions:
     video: bool = True  # flythrough.mp4 along a smooth path through the cameras
     video_frames: int = 90
     report_views: int = 3  # held-out views rendered into renders/ for the report
+    curve_every: int = 0  # score the held-out views every this many iterations (0: only at the end)
+    compare_seeds: bool = False  # read by the pipeline: also train from COLMAP's points, same budget
     device: SplatDevice | str = SplatDevice.AUTO
     optimize: OptimizeOptions = field(default_factory=OptimizeOptions.brief)
     clean: CleanOptions = field(default_factory=CleanOptions)
@@ -128,6 +130,9 @@ class SplatResult:
     # [N, 3, 4] float64 [A | b] per frame, the learnt exposure/white-balance compensation of the training
     # frames (optimize.appearance); [I | 0] for held-out frames and without it. Not part of splat.ply.
     color_transforms: np.ndarray = field(repr=False)
+    # (iteration, optimisation seconds, mean held-out PSNR dB, SSIM) every ``curve_every`` iterations,
+    # from the seed (iteration 0) on; plain renders of the uncleaned splat. Empty when not asked for.
+    heldout_curve: tuple[tuple[int, float, float, float], ...] = ()
 
     def mean(self, key: str) -> float:
         """Mean over held-out views of a :class:`ViewMetrics` field (nan without held-out views)."""
@@ -169,6 +174,9 @@ class SplatResult:
             "gaussians": {"seed": self.count_seed, "optimized": self.count_optimized, "cleaned": self.count_cleaned},
             "cleaning": self.clean.to_dict(),
             "timings_s": self.timings.to_report(),
+            "heldout_curve": [
+                {"iteration": i, "seconds": t, "psnr": p, "ssim": q} for i, t, p, q in self.heldout_curve
+            ],
         }
 
 
@@ -317,8 +325,9 @@ def _splat(
     out_dir = Path(out_dir)
     device = resolve_device(options.device)
     logger.info("splat: %d training and %d held-out views, device %s", len(train), len(heldout), device)
+    curve: list[tuple[int, float, float, float]] = []
     seed, result, cleaned, clean_report = _fit_and_clean(
-        images, cam_from_world, cameras, seed_xyz, seed_rgb, train, options, device, timer
+        images, cam_from_world, cameras, seed_xyz, seed_rgb, split, options, device, timer, curve
     )
     poses = result.cam_from_world
 
@@ -345,15 +354,18 @@ def _splat(
         backend="gsplat" if device == "cuda" else "cpu",
         cam_from_world=poses,
         color_transforms=result.color_transforms,
+        heldout_curve=tuple(curve),
     )
     _log_summary(res)
     return res
 
 
 def _fit_and_clean(
-    images, cam_from_world, cameras, seed_xyz, seed_rgb, train, options: SplatOptions, device: str, timer: StageTimer
+    images, cam_from_world, cameras, seed_xyz, seed_rgb, split, options: SplatOptions, device: str, timer, curve: list
 ) -> tuple[Gaussians, OptimizeResult, Gaussians, CleanReport]:
-    """Seed Gaussians, optimise them on the ``train`` views, clean the result; adds the step times to ``timer``."""
+    """Seed Gaussians, optimise them on the training views, clean the result; adds the step times to ``timer``
+    and, with ``options.curve_every``, the held-out scores over the optimisation to ``curve``."""
+    train, heldout = split
     opt = dataclasses.replace(options.optimize, device=device)  # the only optimiser field the stage sets
     cam_from_world = np.asarray(cam_from_world, np.float64)
     with timer.stage("seed"):
@@ -362,7 +374,19 @@ def _fit_and_clean(
 
     targets = [torch.from_numpy(np.ascontiguousarray(im)).float() / 255.0 for im in images]
     Ks = np.stack([c.K for c in cameras])
-    result = optimize(seed, targets, cam_from_world, Ks, train, opt, scale=scale)
+    score = None
+    if options.curve_every > 0 and heldout:
+
+        def score(iteration: int, seconds: float, g: Gaussians, poses: np.ndarray) -> None:
+            views = [
+                render_view(g, poses[i], cameras[i], background=opt.background, raster=opt.raster) for i in heldout
+            ]
+            m = np.mean([image_metrics(v, targets[i]) for v, i in zip(views, heldout)], axis=0)
+            curve.append((iteration, seconds, float(m[0]), float(m[1])))
+
+        score(0, 0.0, seed, cam_from_world)
+    every = options.curve_every if score is not None else 0
+    result = optimize(seed, targets, cam_from_world, Ks, train, opt, scale=scale, callback=score, callback_every=every)
     timer.add("optimize", result.seconds)  # the optimiser's own clock (callbacks left out)
 
     poses = result.cam_from_world
