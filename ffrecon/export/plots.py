@@ -146,3 +146,35 @@ def thumbnail_png(image: np.ndarray, *, max_side: int = 160) -> bytes:
     buf = io.BytesIO()
     pil.save(buf, format="PNG")
     return buf.getvalue()
+
+
+def timings_png(seconds: dict[str, float], reused: set[str] = frozenset()) -> bytes:
+    """Horizontal bars of seconds per stage (matplotlib Agg, no global pyplot state); reused stages hatched."""
+    names = list(seconds)[::-1]
+    fig = Figure(figsize=(6.0, 0.45 * len(names) + 0.9))
+    ax = fig.add_subplot()
+    colours = ["#9aa0a6" if n in reused else "#1f77b4" for n in names]
+    ax.barh(names, [seconds[n] for n in names], color=colours)
+    for y, n in enumerate(names):
+        label = f"{seconds[n]:.1f} s" + (" (reused)" if n in reused else "")
+        ax.annotate(label, (seconds[n], y), xytext=(4, 0), textcoords="offset points", va="center", fontsize=8)
+    ax.set_xlabel("seconds")
+    ax.set_title("Time per stage", fontsize=10)
+    ax.margins(x=0.2)
+    fig.tight_layout()
+    return _to_png(fig)
+
+
+def curves_png(curves: dict[str, list[dict]]) -> bytes:
+    """Held-out PSNR and SSIM against optimisation seconds, one line per splat (matplotlib Agg)."""
+    fig = Figure(figsize=(8.0, 3.2))
+    for col, (key, label) in enumerate((("psnr", "held-out PSNR (dB)"), ("ssim", "held-out SSIM")), start=1):
+        ax = fig.add_subplot(1, 2, col)
+        for name, points in curves.items():
+            ax.plot([p["seconds"] for p in points], [p[key] for p in points], "-o", ms=3, label=name)
+        ax.set_xlabel("optimisation seconds")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    return _to_png(fig)

@@ -8,13 +8,12 @@ from __future__ import annotations
 
 import base64
 import html
-import io
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from ffrecon.export.plots import PathSeries, camera_paths_png, error_bars_png, thumbnail_png
+from ffrecon.export.plots import PathSeries, camera_paths_png, curves_png, error_bars_png, thumbnail_png, timings_png
 
 MAX_THUMBNAILS = 12
 
@@ -101,29 +100,6 @@ def depth_preview(depth: np.ndarray) -> np.ndarray:
         colour = cv2.applyColorMap((norm * 255).astype(np.uint8), cv2.COLORMAP_TURBO)
         out[valid] = cv2.cvtColor(colour, cv2.COLOR_BGR2RGB)[valid]
     return out
-
-
-def timings_png(seconds: dict[str, float], reused: set[str] = frozenset()) -> bytes:
-    """Horizontal bars of seconds per stage (matplotlib Agg, no global pyplot state); reused stages hatched."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure as MplFigure
-
-    names = list(seconds)[::-1]
-    fig = MplFigure(figsize=(6.0, 0.45 * len(names) + 0.9))
-    FigureCanvasAgg(fig)
-    ax = fig.add_subplot()
-    colours = ["#9aa0a6" if n in reused else "#1f77b4" for n in names]
-    ax.barh(names, [seconds[n] for n in names], color=colours)
-    for y, n in enumerate(names):
-        label = f"{seconds[n]:.1f} s" + (" (reused)" if n in reused else "")
-        ax.annotate(label, (seconds[n], y), xytext=(4, 0), textcoords="offset points", va="center", fontsize=8)
-    ax.set_xlabel("seconds")
-    ax.set_title("Time per stage", fontsize=10)
-    ax.margins(x=0.2)
-    fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=100)
-    return buf.getvalue()
 
 
 def _every(items: list, limit: int = MAX_THUMBNAILS) -> list:
@@ -302,27 +278,6 @@ def _timings(report: dict, run_dir: Path) -> tuple[list[dict], str]:
     shown = {s: (t["first_seconds"] or 0.0) if t["reused"] else t["seconds"] for s, t in timings.items()}
     caption = "Wall-clock seconds per stage on this machine; grey bars: reused from an earlier run (its time then)."
     return rows, _figure("Time per stage", timings_png(shown, reused), caption)
-
-
-def curves_png(curves: dict[str, list[dict]]) -> bytes:
-    """Held-out PSNR and SSIM against optimisation seconds, one line per splat (matplotlib Agg)."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure as MplFigure
-
-    fig = MplFigure(figsize=(8.0, 3.2))
-    FigureCanvasAgg(fig)
-    for col, (key, label) in enumerate((("psnr", "held-out PSNR (dB)"), ("ssim", "held-out SSIM")), start=1):
-        ax = fig.add_subplot(1, 2, col)
-        for name, points in curves.items():
-            ax.plot([p["seconds"] for p in points], [p[key] for p in points], "-o", ms=3, label=name)
-        ax.set_xlabel("optimisation seconds")
-        ax.set_ylabel(label)
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=8)
-    fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=100)
-    return buf.getvalue()
 
 
 def _seeds(report: dict, run_dir: Path) -> tuple[list[dict], str]:
