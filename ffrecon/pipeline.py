@@ -8,49 +8,40 @@ recorded and reused when the run is resumed (:mod:`ffrecon.resume`).
 
 from __future__ import annotations
 
-import dataclasses
 import datetime as dt
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
-
-from ffrecon.capture import Capture, CaptureOptions, run_capture
-from ffrecon.errors import InputError, Interrupted
+from ffrecon.capture import CaptureOptions, run_capture
+from ffrecon.errors import Interrupted
 from ffrecon.export.report import write_report
-from ffrecon.export.stage import OUTPUTS as EXPORT_OUTPUTS
-from ffrecon.export.stage import ExportOptions, ExportsResult, FinalCameras, fuse_with_final_cameras, run_exports
-from ffrecon.geometry.undistort import opencv_coefficients, undistort_image
-from ffrecon.models.stage import FeedForwardOptions, FeedForwardResult, run_feedforward
-from ffrecon.results import RunResults, Skipped
+from ffrecon.export.stage import ExportOptions
+from ffrecon.models.stage import FeedForwardOptions
+from ffrecon.results import RunResults
 from ffrecon.resume import StageRunner, file_key, rebase_paths
-from ffrecon.sfm.compare import compare_poses
-from ffrecon.sfm.comparisons import ComparisonsResult, load_references, run_comparisons
-from ffrecon.sfm.crosscheck import ColmapOptions, ColmapResult, run_colmap
-from ffrecon.sfm.evidence import EvidenceOptions, EvidenceResult, judge_final_cameras
-from ffrecon.sfm.gates import GateOptions, GatesResult, run_gates
-from ffrecon.sfm.refine import RefineOptions, RefineResult, run_refine
-from ffrecon.splat.seed import seed_from_reconstruction
-from ffrecon.splat.stage import SplatOptions, SplatResult, run_splat, run_splat_from_prediction
+from ffrecon.sfm.crosscheck import ColmapOptions
+from ffrecon.sfm.evidence import EvidenceOptions, EvidenceResult
+from ffrecon.sfm.gates import GateOptions
+from ffrecon.sfm.refine import RefineOptions
+from ffrecon.splat.stage import SplatOptions
+from ffrecon.stages import (
+    STAGE_OUTPUTS,
+    colmap_stage,
+    comparisons_stage,
+    evidence_stage,
+    exports_stage,
+    feedforward_stage,
+    final_cameras,
+    gates_stage,
+    refine_stage,
+    seed_comparison_stage,
+    splat_stage,
+    with_curves,
+)
 from ffrecon.workspace import staged_output
 
 log = logging.getLogger("ffrecon")
-
-# Files and folders each stage writes (relative to the run folder), removed before it runs again.
-STAGE_OUTPUTS = {
-    "capture": ("images",),
-    "feedforward": ("feedforward",),
-    "colmap": ("colmap",),
-    "gates": (),
-    "refine": ("sparse", "refine"),
-    "evidence": (),
-    "comparisons": (),
-    "splat": ("splat.ply", "renders", "flythrough.mp4"),
-    "seed_comparison": ("seed_comparison",),
-    "exports": EXPORT_OUTPUTS,
-}
-ONE_VIEW = "needs two or more views; this run has one photo (its depth, camera and point cloud are still produced)"
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -111,21 +102,23 @@ def _run_stages(
         inputs=[file_key(source)],
         outputs=STAGE_OUTPUTS["capture"],
     )
-    ff, k_ff = _feedforward(capture, model, options, work, stages, [k_capture])
-    colmap, k_colmap = _colmap(capture, options, work, stages, [k_capture])  # independent of the model
-    gates, k_gates = _gates(capture, ff, colmap, options, stages, [k_capture, k_ff, k_colmap])
-    refine, k_refine = _refine(capture, ff, colmap, gates, options, work, stages, [k_capture, k_ff, k_colmap])
-    evidence, k_evidence = _evidence(
+    ff, k_ff = feedforward_stage(capture, model, options, work, stages, [k_capture])
+    colmap, k_colmap = colmap_stage(capture, options, work, stages, [k_capture])  # independent of the model
+    gates, k_gates = gates_stage(capture, ff, colmap, options, stages, [k_capture, k_ff, k_colmap])
+    refine, k_refine = refine_stage(capture, ff, colmap, gates, options, work, stages, [k_capture, k_ff, k_colmap])
+    evidence, k_evidence = evidence_stage(
         capture, ff, colmap, gates, refine, options, stages, [k_ff, k_colmap, k_gates, k_refine]
     )
     verdicts = (gates, evidence.gates if isinstance(evidence, EvidenceResult) else None)
-    comparisons, _ = _comparisons(capture, ff, colmap, refine, options, stages, [k_capture, k_ff, k_colmap, k_refine])
-    final = _final_cameras(capture, ff, colmap, refine, evidence)
+    comparisons, _ = comparisons_stage(
+        capture, ff, colmap, refine, options, stages, [k_capture, k_ff, k_colmap, k_refine]
+    )
+    final = final_cameras(capture, ff, colmap, refine, evidence)
     final_keys = [k_capture, k_ff, k_colmap, k_refine, k_evidence]  # the final cameras depend on these
-    options = _with_curves(options)
-    splat, _ = _splat(capture, ff, colmap, final, verdicts, options, work, stages, final_keys)
-    seeds = _seed_comparison(capture, colmap, final, splat, options, work, stages, final_keys)
-    exports, _ = _exports(capture, ff, colmap, final, options, work, stages, final_keys)
+    options = with_curves(options)
+    splat, _ = splat_stage(capture, ff, colmap, final, verdicts, options, work, stages, final_keys)
+    seeds = seed_comparison_stage(capture, colmap, final, splat, options, work, stages, final_keys)
+    exports, _ = exports_stage(capture, ff, colmap, final, options, work, stages, final_keys)
     return RunResults(
         out_dir=work,
         created=created,
@@ -143,245 +136,3 @@ def _run_stages(
         timings=tuple(stages.timings),
         forced=options.force,
     )
-
-
-def _skip(stages: StageRunner, stage: str, label: str, reason: str) -> tuple[Skipped, str]:
-    """A typed "skipped, because" result; what the stage wrote in an earlier run is removed."""
-    log.info("skipping %s: %s", label, reason)
-    stages.forget(stage, STAGE_OUTPUTS[stage])
-    return Skipped(label, reason), f"skipped:{stage}"
-
-
-def _why_not(capture: Capture, gates, *, enabled: bool = True, flag: str = "") -> str | None:
-    """Why a stage after the feed-forward one does not run (one view, a blocking gate, turned off), or None.
-
-    ``gates``: a :class:`GatesResult`, or a tuple of them (and None for those that did not run).
-    """
-    if len(capture.frames) < 2:
-        return ONE_VIEW
-    for result in gates if isinstance(gates, tuple) else (gates,):
-        if isinstance(result, GatesResult) and result.blocking:
-            first = result.failed[0]
-            return f"gate '{first.name}' failed: {first.reason}"
-    return None if enabled else f"turned off ({flag})"
-
-
-def _feedforward(capture: Capture, model: Path | None, options: RunOptions, work: Path, stages, inputs) -> tuple:
-    if model is None:
-        if len(capture.frames) < 2:
-            raise InputError("one photo and no model: nothing can place a camera", "pass --model, or more photos")
-        if not options.colmap.enabled:
-            raise InputError(
-                "no model and --no-colmap: nothing would make the cameras", "pass --model or drop --no-colmap"
-            )
-        reason = "no model given (--model): the cameras come from COLMAP and the splat is seeded from its points"
-        return _skip(stages, "feedforward", "feed-forward", reason)
-    return stages.run(
-        "feedforward",
-        lambda: run_feedforward(capture, model, options.feedforward, work),
-        options=options.feedforward,
-        inputs=[*inputs, file_key(model)],
-        outputs=STAGE_OUTPUTS["feedforward"],
-    )
-
-
-def _focal_prior(capture: Capture) -> list[float | None]:
-    """Per-image focal prior for COLMAP: EXIF where known, else None (COLMAP's own guess).
-
-    Never the model's focal: the cross-check must stay independent evidence of the model's cameras.
-    """
-    return [f.focal_prior_px for f in capture.frames]
-
-
-def _colmap(capture, options: RunOptions, work: Path, stages: StageRunner, inputs) -> tuple:
-    if reason := _why_not(capture, None, enabled=options.colmap.enabled, flag="--no-colmap"):
-        return _skip(stages, "colmap", "colmap cross-check", reason)
-    return stages.run(
-        "colmap",
-        lambda: run_colmap(
-            capture.image_dir, capture.names, options.colmap, work / "colmap", focal_prior_px=_focal_prior(capture)
-        ),
-        options=options.colmap,
-        inputs=inputs,
-        outputs=STAGE_OUTPUTS["colmap"],
-    )
-
-
-def _gates(capture: Capture, ff, colmap, options: RunOptions, stages: StageRunner, inputs) -> tuple:
-    if reason := _why_not(capture, None):
-        return _skip(stages, "gates", "gates", reason)
-
-    def check() -> GatesResult:
-        colmap_result = colmap if isinstance(colmap, ColmapResult) else None
-        quality = capture.quality
-        prediction = ff.prediction if isinstance(ff, FeedForwardResult) else None
-        return run_gates(
-            colmap=colmap_result,
-            prediction=prediction,
-            quality=quality,
-            options=options.gates,
-            force=options.force,
-            witness=prediction is not None,  # with a model, the final cameras are judged on evidence instead
-        )
-
-    return stages.run("gates", check, options=(options.gates, options.force), inputs=inputs)
-
-
-def _refine(capture, ff, colmap, gates, options: RunOptions, work, stages, inputs) -> tuple:
-    if reason := _why_not(capture, gates, enabled=options.refine.enabled, flag="--no-refine"):
-        return _skip(stages, "refine", "refinement", reason)
-    if isinstance(ff, Skipped):
-        return _skip(stages, "refine", "refinement", "needs a model's cameras to refine; COLMAP's are final")
-    refine_options = options.refine
-    if isinstance(colmap, ColmapResult) and refine_options.reuse_features_from is None:  # SIFT once, used twice
-        refine_options = dataclasses.replace(refine_options, reuse_features_from=colmap.database_path)
-    return stages.run(
-        "refine",
-        lambda: run_refine(capture.image_dir, ff.prediction, refine_options, work),
-        options=options.refine,
-        inputs=inputs,
-        outputs=STAGE_OUTPUTS["refine"],
-    )
-
-
-def _comparisons(capture, ff, colmap, refine, options: RunOptions, stages: StageRunner, inputs):
-    if reason := _why_not(capture, None):
-        return _skip(stages, "comparisons", "pose comparison", reason)
-    names = capture.names
-    estimates = {}
-    if isinstance(ff, FeedForwardResult):
-        estimates["feed-forward"] = (ff.prediction.cam_from_world, np.ones(len(names), bool))
-    if isinstance(colmap, ColmapResult) and colmap.num_registered >= 2:
-        estimates["COLMAP"] = (colmap.cam_from_world, colmap.registered)
-    if isinstance(refine, RefineResult):
-        estimates["refined"] = (refine.cam_from_world, refine.registered)
-
-    def compare() -> ComparisonsResult:
-        return run_comparisons(names, estimates, load_references(options.ground_truth, options.reference, names))
-
-    refs = [file_key(p) for p in (options.ground_truth, options.reference) if p is not None]
-    if len(estimates) < 2 and not refs:
-        if "feed-forward" not in estimates:
-            reason = "no model, and no ground truth or --reference: COLMAP's cameras are the only ones"
-        else:
-            state = "did not run" if isinstance(colmap, Skipped) else "registered fewer than two images"
-            reason = f"no reference cameras: the COLMAP cross-check {state} and no ground truth or --reference"
-        return _skip(stages, "comparisons", "pose comparison", reason)
-    references = (options.ground_truth, options.reference)
-    return stages.run("comparisons", compare, options=references, inputs=[*inputs, *refs])
-
-
-def _evidence(capture, ff, colmap, gates, refine, options: RunOptions, stages: StageRunner, inputs) -> tuple:
-    if not isinstance(refine, RefineResult):
-        return _skip(stages, "evidence", "evidence on the final cameras", f"no refinement ({refine.reason})")
-    witness = gates if isinstance(gates, GatesResult) else GatesResult((), options.force)
-    colmap_result = colmap if isinstance(colmap, ColmapResult) else None
-
-    def judge() -> EvidenceResult:
-        pred = ff.prediction
-        args = (capture.names, pred.cam_from_world, refine, colmap_result, witness, options.evidence)
-        return judge_final_cameras(*args, force=options.force)
-
-    return stages.run("evidence", judge, options=(options.evidence, options.force), inputs=inputs)
-
-
-def _final_cameras(capture: Capture, ff, colmap, refine, evidence) -> FinalCameras | None:
-    """Refined cameras when refinement kept two frames or more; else the model's; else COLMAP's registered
-    ones (also when the model was found unsuited)."""
-    every = tuple(range(len(capture.frames)))
-    unsuited = isinstance(evidence, EvidenceResult) and evidence.model_unsuited
-    if not unsuited and isinstance(refine, RefineResult) and refine.registered.sum() >= 2:
-        return FinalCameras(every, capture.names, refine.cam_from_world, tuple(refine.cameras), "refined")
-    if not unsuited and isinstance(ff, FeedForwardResult):
-        pred = ff.prediction
-        return FinalCameras(every, capture.names, pred.cam_from_world, tuple(pred.cameras), "feed-forward")
-    if isinstance(colmap, ColmapResult) and colmap.num_registered >= 2:
-        kept = tuple(int(i) for i in np.flatnonzero(colmap.registered))
-        names = tuple(capture.names[i] for i in kept)
-        cameras = tuple(colmap.cameras[i] for i in kept)
-        by_name = {im.name: im for im in colmap.reconstruction.images.values()}
-        distortion = tuple(opencv_coefficients(colmap.reconstruction.cameras[by_name[n].camera_id]) for n in names)
-        return FinalCameras(kept, names, colmap.cam_from_world[list(kept)], cameras, "COLMAP", distortion)
-    return None
-
-
-def _splat(capture, ff, colmap, final, verdicts: tuple, options: RunOptions, work, stages, inputs) -> tuple:
-    if reason := _why_not(capture, verdicts, enabled=options.splat.enabled, flag="--no-splat"):
-        return _skip(stages, "splat", "splat", reason)
-    if final is None:
-        return _skip(stages, "splat", "splat", "no cameras: COLMAP registered fewer than two images")
-
-    def splat() -> SplatResult:
-        images = capture.read_images(list(final.indices))
-        cameras = final.cameras
-        if final.distortion is not None:  # the rasteriser is a pinhole camera: train on undistorted photos
-            pairs = [undistort_image(im, c, d) for im, c, d in zip(images, cameras, final.distortion)]
-            images, cameras = [p[0] for p in pairs], tuple(p[1] for p in pairs)
-        if final.source != "COLMAP":
-            args = (ff.prediction, images, final.cam_from_world, final.cameras, options.splat, work)
-            return run_splat_from_prediction(*args)
-        xyz, rgb = seed_from_reconstruction(colmap.reconstruction)  # COLMAP's cameras: its points
-        args = (images, final.names, final.cam_from_world, cameras, xyz, rgb, options.splat, work)
-        return run_splat(*args)
-
-    return stages.run("splat", splat, options=options.splat, inputs=inputs, outputs=STAGE_OUTPUTS["splat"])
-
-
-CURVE_EVERY = 20  # iterations between held-out scores when the two seeds are compared
-
-
-def _with_curves(options: RunOptions) -> RunOptions:
-    """With --compare-seeds both splats score their held-out views as they train (for the plot)."""
-    splat = options.splat
-    if not splat.compare_seeds or splat.curve_every:
-        return options
-    return dataclasses.replace(options, splat=dataclasses.replace(splat, curve_every=CURVE_EVERY))
-
-
-def _seed_comparison(capture, colmap, final, splat, options: RunOptions, work, stages, inputs):
-    """The same splat trained from COLMAP's points (moved into the final cameras' frame), same budget.
-
-    None when not asked for (``--compare-seeds``); Skipped when it cannot run.
-    """
-    if not options.splat.compare_seeds:
-        stages.forget("seed_comparison", STAGE_OUTPUTS["seed_comparison"])
-        return None
-    label = "seed comparison"
-    if not isinstance(splat, SplatResult):
-        return _skip(stages, "seed_comparison", label, "the splat did not run")[0]
-    if final.source == "COLMAP" or not isinstance(colmap, ColmapResult) or colmap.num_registered < 3:
-        reason = "needs a model's cameras and a COLMAP model of three images or more (seeds differ only then)"
-        return _skip(stages, "seed_comparison", label, reason)[0]
-
-    def train() -> SplatResult:
-        full = np.stack([np.eye(3, 4)] * len(capture.frames))
-        full[list(final.indices)] = final.cam_from_world
-        to_final = compare_poses(colmap.cam_from_world, full, capture.names, colmap.registered).errors.est_to_ref
-        xyz, rgb = seed_from_reconstruction(colmap.reconstruction)
-        images = capture.read_images(list(final.indices))
-        args = (images, final.names, final.cam_from_world, final.cameras, to_final.apply(xyz), rgb)
-        return run_splat(*args, options.splat, work / "seed_comparison")
-
-    opts = options.splat
-    outputs = STAGE_OUTPUTS["seed_comparison"]
-    return stages.run("seed_comparison", train, options=opts, inputs=inputs, outputs=outputs)[0]
-
-
-def _exports(capture, ff, colmap, final, options: RunOptions, work, stages, inputs) -> tuple:
-    if final is None:
-        reason = "no cameras to export: COLMAP registered fewer than two images and no model was given"
-        return _skip(stages, "exports", "exports", reason)
-
-    def export() -> ExportsResult:
-        if final.source == "COLMAP":
-            points, what = seed_from_reconstruction(colmap.reconstruction), "COLMAP's sparse points"
-        elif final.source == "refined":
-            fuse = options.feedforward.fuse
-            points = fuse_with_final_cameras(ff.prediction, final, capture.read_images, fuse)
-            what = "depth maps fused with the refined cameras"
-        else:
-            points, what = (ff.points_xyz, ff.points_rgb), "depth maps fused with the model's cameras"
-        return run_exports(final, points, what, options.exports, work)
-
-    opts = (options.exports, options.feedforward.fuse)
-    return stages.run("exports", export, options=opts, inputs=inputs, outputs=STAGE_OUTPUTS["exports"])

@@ -14,7 +14,7 @@ import pycolmap
 import pytest
 from plyfile import PlyData
 
-import ffrecon.pipeline as pipeline
+import ffrecon.stages as stages
 from ffrecon.cli import main
 from ffrecon.errors import Interrupted
 from ffrecon.pipeline import RunOptions, run
@@ -54,7 +54,7 @@ def test_interrupted_splat_resumes_with_only_the_splat_recomputed(demo12, uninte
         raise KeyboardInterrupt
 
     with monkeypatch.context() as patch:
-        patch.setattr(pipeline, "run_splat_from_prediction", interrupt)
+        patch.setattr(stages, "run_splat_from_prediction", interrupt)
         with pytest.raises(Interrupted) as caught:
             run(demo12.images, out, demo12.model, _options(overwrite=True, command="ffrecon run x"))
     err = caught.value
