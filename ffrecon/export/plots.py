@@ -106,7 +106,7 @@ def error_bars_png(
     rotation_threshold_deg: float | None = None,
     center_threshold: float | None = None,
     center_unit: str = "reference units",
-    title: str = "Per-image pose error after Sim(3) alignment",
+    title: str = "Per-image pose error (rotations aligned by their best common rotation, centres by Sim(3))",
 ) -> bytes:
     """Two panels of grouped bars per image (one group per label); missing values are marked x."""
     n = len(names)

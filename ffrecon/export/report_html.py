@@ -182,7 +182,8 @@ def _poses(report: dict, run_dir: Path) -> tuple[list[dict], str]:
         _figure(
             "Per-image error",
             bars,
-            f"Rotation and centre error of each image against {ref}, after the Sim(3) alignment.",
+            f"Rotation and centre error of each image against {ref}: rotations after their best common "
+            "rotation, centres after a Sim(3) fit of the centres.",
         ),
     ]
     thumbs = []

@@ -23,7 +23,8 @@ logger = logging.getLogger("ffrecon.sfm")
 
 @dataclass(frozen=True, kw_only=True)
 class DisagreementOptions:
-    """An image disagrees when, after the Sim(3) alignment, either error exceeds its threshold."""
+    """An image disagrees when, after the alignment (:func:`~ffrecon.geometry.metrics.pose_errors`), either error
+    exceeds its threshold."""
 
     max_rotation_deg: float = 5.0
     max_center_error: float = 0.05  # as a fraction of the extent of the reference camera centres

@@ -11,7 +11,7 @@ from __future__ import annotations
 import contextlib
 import enum
 import logging
-from collections.abc import Iterator, Sequence
+from collections.abc import Collection, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -236,6 +236,45 @@ def copy_features(src_db: Path, dst_db: Path, names: Sequence[str]) -> list[str]
             dst.write_keypoints(image.image_id, src.read_keypoints(src_image.image_id))
             dst.write_descriptors(image.image_id, src.read_descriptors(src_image.image_id))
             copied.append(image.name)
+    finally:
+        src.close()
+        dst.close()
+    return copied
+
+
+def copy_verified_matches(src_db: Path, dst_db: Path, pairs: Collection[tuple[str, str]]) -> list[tuple[str, str]]:
+    """Copy the raw matches and two-view geometries of those ``pairs`` (either order) verified in ``src_db``.
+
+    Only valid when both images' keypoints were copied from ``src_db`` (:func:`copy_features`): match
+    indices refer to them. Returns the copied pairs (database order); pairs already in ``dst_db`` are
+    left alone. Matching a pair costs far more than reading it, and COLMAP's verification does not
+    depend on any pose, so the cross-check's matches are as good as fresh ones.
+    """
+    src = pycolmap.Database.open(str(src_db))
+    dst = pycolmap.Database.open(str(dst_db))
+    copied: list[tuple[str, str]] = []
+    try:
+        src_names = {image.image_id: image.name for image in src.read_all_images()}
+        dst_ids = {image.name: image.image_id for image in dst.read_all_images()}
+        wanted = {frozenset(pair) for pair in pairs}
+        pair_ids, geometries = src.read_two_view_geometries()
+        for pair_id, geometry in zip(pair_ids, geometries):
+            id_a, id_b = pycolmap.pair_id_to_image_pair(pair_id)
+            name_a, name_b = src_names[id_a], src_names[id_b]
+            if frozenset((name_a, name_b)) not in wanted or len(geometry.inlier_matches) == 0:
+                continue
+            a, b = dst_ids[name_a], dst_ids[name_b]
+            if dst.exists_two_view_geometry(a, b):
+                continue
+            matches = np.asarray(src.read_matches(id_a, id_b))
+            inliers = np.asarray(geometry.inlier_matches)
+            if a > b:  # COLMAP stores a pair once, smaller image id first
+                matches, inliers = matches[:, ::-1], inliers[:, ::-1]
+                geometry.invert()
+            geometry.inlier_matches = np.ascontiguousarray(inliers, dtype=np.uint32)
+            dst.write_matches(min(a, b), max(a, b), np.ascontiguousarray(matches, dtype=np.uint32))
+            dst.write_two_view_geometry(min(a, b), max(a, b), geometry)
+            copied.append((name_a, name_b))
     finally:
         src.close()
         dst.close()

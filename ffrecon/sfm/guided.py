@@ -59,6 +59,7 @@ class GuidanceStats:
     matches_before: int  # FILTER: COLMAP's verified matches; GUIDED: matches of the wide first search
     matches_after: int  # matches handed to geometric verification
     num_unchecked: int  # FILTER: matches with no confident depth at either end, kept
+    median_residual_px: float = float("nan")  # FILTER: kept matches' distance to their mapped predictions
 
     @property
     def rejected_share(self) -> float:
@@ -71,6 +72,7 @@ class GuidanceStats:
             "matches_before": self.matches_before,
             "matches_after": self.matches_after,
             "num_unchecked": self.num_unchecked,
+            "median_residual_px": self.median_residual_px if np.isfinite(self.median_residual_px) else None,
         }
 
 
@@ -119,14 +121,17 @@ def _affine_inliers(pred: np.ndarray, obs: np.ndarray, cand: np.ndarray, tol: fl
 
 def _check_pair(
     prediction: Prediction, i: int, j: int, xy_i: np.ndarray, xy_j: np.ndarray, options: GuidanceOptions
-) -> tuple[np.ndarray, np.ndarray]:
-    """``(keep [M] bool, checked [M] bool)`` for matched keypoints ``xy_i[k] <-> xy_j[k]``.
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(keep [M] bool, checked [M] bool, residual [M] float)`` for matched keypoints ``xy_i[k] <-> xy_j[k]``.
 
     In each direction the predicted positions are mapped onto the matched ones by a homography
     (RANSAC, so a badly predicted frame only shifts the map); matches off the map are dropped.
+    ``residual`` is the larger distance (pixels) of the two directions between a match and its mapped
+    prediction (nan where unchecked): how precisely the model predicts this pair.
     """
     keep = np.ones(len(xy_i), bool)
     checked = np.zeros(len(xy_i), bool)
+    residual = np.full(len(xy_i), np.nan)
     for a, b, src, dst in ((i, j, xy_i, xy_j), (j, i, xy_j, xy_i)):
         cam = prediction.cameras[b]
         pred, ok = predict_positions(prediction, a, b, src, options.min_depth_conf)
@@ -136,9 +141,12 @@ def _check_pair(
             homography, mask = cv2.findHomography(pred[ok], dst[ok], cv2.RANSAC, tol, maxIters=2000, confidence=0.999)
             if homography is not None:
                 inlier[np.flatnonzero(ok)] = mask.ravel().astype(bool)
+                mapped = cv2.perspectiveTransform(pred[ok].reshape(-1, 1, 2), homography).reshape(-1, 2)
+                dist = np.linalg.norm(mapped - dst[ok], axis=1)
+                residual[ok] = np.fmax(residual[ok], dist)
         keep &= inlier | ~ok
         checked |= ok
-    return keep, checked
+    return keep, checked, residual
 
 
 def filter_matches(
@@ -159,6 +167,7 @@ def filter_matches(
     cv2.setRNGSeed(options.seed)
     db = pycolmap.Database.open(str(db_path))
     before = after = unchecked = 0
+    kept_residuals: list[np.ndarray] = []
     try:
         ids: Mapping[str, int] = {image.name: image.image_id for image in db.read_all_images()}
         keypoints: dict[int, np.ndarray] = {}
@@ -176,13 +185,14 @@ def filter_matches(
             matches = np.asarray(geometry.inlier_matches)
             if len(matches) == 0:
                 continue
-            keep, checked = _check_pair(
+            keep, checked, residual = _check_pair(
                 prediction, index[name_a], index[name_b], xy(id_a)[matches[:, 0]], xy(id_b)[matches[:, 1]], options
             )
             kept = int(keep.sum()) if keep.sum() >= min_inliers else 0
             before += len(matches)
             after += kept
             unchecked += int((~checked).sum())
+            kept_residuals.append(residual[keep & checked])
             if kept == 0:
                 db.delete_two_view_geometry(id_a, id_b)
             elif kept < len(matches):
@@ -190,8 +200,18 @@ def filter_matches(
                 db.update_two_view_geometry(id_a, id_b, geometry)
     finally:
         db.close()
-    logger.info("feed-forward match filter kept %d of %d matches over %d pairs", after, before, len(pairs))
-    return GuidanceStats(MatchGuidance.FILTER, len(pairs), before, after, unchecked)
+    kept = np.concatenate(kept_residuals) if kept_residuals else np.zeros(0)
+    kept = kept[np.isfinite(kept)]
+    median_px = float(np.median(kept)) if len(kept) else float("nan")
+    logger.info(
+        "feed-forward match filter kept %d of %d matches over %d pairs (kept matches %.1f px from their mapped "
+        "predictions, median)",
+        after,
+        before,
+        len(pairs),
+        median_px,
+    )
+    return GuidanceStats(MatchGuidance.FILTER, len(pairs), before, after, unchecked, median_px)
 
 
 def _unit_descriptors(desc: np.ndarray) -> np.ndarray:

@@ -36,6 +36,7 @@ from ffrecon.sfm.features import (
     SiftOptions,
     colmap_log_level,
     copy_features,
+    copy_verified_matches,
     create_database,
     extract_sift,
     feature_stats,
@@ -45,7 +46,7 @@ from ffrecon.sfm.features import (
     write_pairs,
 )
 from ffrecon.sfm.guided import GuidanceOptions, GuidanceStats, MatchGuidance, filter_matches, guided_matches
-from ffrecon.sfm.overlap import OverlapOptions, overlap_graph
+from ffrecon.sfm.overlap import OverlapGraph, OverlapOptions, overlap_graph
 from ffrecon.timing import StageTimer, Timings
 from ffrecon.types import PinholeCamera, Prediction
 
@@ -198,11 +199,11 @@ def _colmap_camera(camera: PinholeCamera, camera_id: int, square_pixels: bool) -
 
 def _prepare_database(
     image_dir: Path, prediction: Prediction, options: RefineOptions, db_path: Path, timer: StageTimer
-) -> tuple[dict[str, int], list[PinholeCamera], dict[str, pycolmap.Camera]]:
+) -> tuple[dict[str, int], list[PinholeCamera], dict[str, pycolmap.Camera], list[str]]:
     """Database with the feed-forward cameras and SIFT of every image.
 
-    Returns the database image id of each name, the feed-forward camera used for each frame, and the
-    COLMAP camera of each name (as written to the database).
+    Returns the database image id of each name, the feed-forward camera used for each frame, the
+    COLMAP camera of each name (as written to the database) and the names whose SIFT was reused.
     """
     names = prediction.names
     shared = _shared_camera(prediction) if options.single_camera else None
@@ -228,7 +229,7 @@ def _prepare_database(
             extract_sift(db_path, image_dir, [n for n in names if n not in copied], options.sift)
     if copied:
         logger.info("reused SIFT features of %d images from %s", len(copied), options.reuse_features_from)
-    return image_ids, cameras, {n: colmap_cameras[camera_of[n]] for n in names}
+    return image_ids, cameras, {n: colmap_cameras[camera_of[n]] for n in names}, copied
 
 
 def _initial_model(
@@ -255,13 +256,46 @@ def _initial_model(
     return rec
 
 
+def _reuse_matches(
+    db_path: Path, graph: OverlapGraph, names: tuple[str, ...], copied: list[str], options: RefineOptions
+) -> list[tuple[str, str]]:
+    """The cross-check's verified matches of the pairs that the feed-forward geometry says overlap at all.
+
+    They cost nothing to reuse, so every such pair is taken, not only the best few per image that
+    :func:`overlap_graph` picks for fresh matching: the refinement sees as many constraints as COLMAP did.
+    """
+    if options.reuse_features_from is None or not copied:
+        return []
+    reused_images = set(copied)
+    score = graph.score()
+    overlapping = [
+        (names[i], names[j])
+        for i in range(len(names))
+        for j in range(i + 1, len(names))
+        if score[i, j] >= options.overlap.min_any_overlap and {names[i], names[j]} <= reused_images
+    ]
+    reused = copy_verified_matches(options.reuse_features_from, db_path, overlapping)
+    logger.info("reused the cross-check's verified matches of %d overlapping pairs", len(reused))
+    return reused
+
+
 def _match(
-    db_path: Path, prediction: Prediction, pairs: list[tuple[str, str]], options: RefineOptions, pairs_path: Path
+    db_path: Path,
+    prediction: Prediction,
+    pairs: list[tuple[str, str]],
+    reused: list[tuple[str, str]],
+    options: RefineOptions,
+    pairs_path: Path,
 ) -> GuidanceStats | None:
-    """Match and verify ``pairs``, guided by the prediction as ``options.guidance.mode`` says."""
+    """Match and verify ``pairs`` (those in ``reused`` are verified already), guided by the prediction
+    as ``options.guidance.mode`` says; guided matching redoes ``pairs`` only."""
     mode = options.guidance.mode
     if mode is not MatchGuidance.GUIDED:
-        match_pairs(db_path, pairs, options.sift, pairs_path)
+        done = {frozenset(p) for p in reused}
+        fresh = [p for p in pairs if frozenset(p) not in done]
+        if fresh:
+            match_pairs(db_path, fresh, options.sift, pairs_path)
+        pairs = list(reused) + fresh
         if mode is MatchGuidance.NONE:
             return None
         stats = filter_matches(db_path, prediction, pairs, options.guidance, min_inliers=options.sift.min_num_inliers)
@@ -297,10 +331,11 @@ def run_refine(image_dir: Path, prediction: Prediction, options: RefineOptions, 
     pycolmap.set_random_seed(options.seed)
     with timer.stage("pair_selection"):
         graph = overlap_graph(prediction, options.overlap)
-    image_ids, cameras, colmap_cameras = _prepare_database(image_dir, prediction, options, db_path, timer)
+    image_ids, cameras, colmap_cameras, copied = _prepare_database(image_dir, prediction, options, db_path, timer)
     pairs = [(names[i], names[j]) for i, j in graph.pairs]
     with timer.stage("matching"):
-        guidance = _match(db_path, prediction, pairs, options, work / "pairs.txt")
+        reused = _reuse_matches(db_path, graph, names, copied, options)
+        guidance = _match(db_path, prediction, pairs, reused, options, work / "pairs.txt")
     stats = feature_stats(db_path, names)
     flagged = _weak_by_features(stats, options)
 
@@ -317,7 +352,11 @@ def run_refine(image_dir: Path, prediction: Prediction, options: RefineOptions, 
             flagged += [WeakFrame(n, WeakReason.FEW_OBSERVATIONS, k, options.min_observations) for n, k in weak_obs]
     refined_names = {img.name for img in rec.images.values() if img.has_pose} if summary is not None else set()
     provenance = dict(
-        flagged=tuple(flagged), num_pairs=len(graph.pairs), features=stats, guidance=guidance, bundle=summary
+        flagged=tuple(flagged),
+        num_pairs=len({frozenset(p) for p in pairs + reused}),
+        features=stats,
+        guidance=guidance,
+        bundle=summary,
     )
     if len(refined_names) < 2:
         logger.warning("refinement failed: %d usable frames; keeping the feed-forward cameras", len(refined_names))

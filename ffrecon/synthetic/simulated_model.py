@@ -1,8 +1,13 @@
-"""A simulated VGGT-contract ONNX model: a synthetic scene's ground truth plus controlled, realistic error.
+"""A simulated VGGT-contract ONNX model: a scene's reference cameras and depth plus controlled, realistic error.
 
 No real weights can be downloaded in CI, so the demo and the end-to-end tests run this instead. The
-graph stores, per scene frame, a noisy pose, noisy intrinsics and a noisy depth map at network
-resolution. For any subset and order of the scene's frames it behaves like VGGT:
+scene is either ffrecon's synthetic room (:class:`~ffrecon.synthetic.scene.SyntheticScene`, exact ground
+truth; network-resolution depth is ray-cast) or real photos with a reference reconstruction
+(:class:`~ffrecon.synthetic.real_scene.RealScene`; network-resolution depth is bilinearly resampled from
+its depth maps, where 0 means unknown and is never interpolated across: such pixels get the frame's
+median depth and the lowest confidence, 1). The graph stores, per scene frame, a noisy pose, noisy
+intrinsics and a noisy depth map at network resolution. For any subset and order of the scene's frames
+it behaves like VGGT:
 
 1. it identifies each input frame by a signature (the frame average-pooled to 8 x 8) and gathers the
    stored outputs of the nearest stored signature;
@@ -18,6 +23,7 @@ from __future__ import annotations
 
 import json
 import logging
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -30,6 +36,7 @@ from ffrecon.geometry.rotations import axis_angle_to_matrix, matrix_to_quat_xyzw
 from ffrecon.models.vggt import PreprocessMode, encode_pose_enc, preprocess_vggt
 from ffrecon.synthetic import render
 from ffrecon.synthetic.onnx_graph import GraphBuilder, quat_product_basis
+from ffrecon.synthetic.real_scene import RealScene
 from ffrecon.synthetic.scene import SyntheticScene, scene_geometry
 from ffrecon.types import ModelFamily, ModelInfo, PinholeCamera, Prediction
 
@@ -38,6 +45,11 @@ logger = logging.getLogger("ffrecon.synthetic")
 SIGNATURE_GRID = 8  # frames are identified by their 8 x 8 average-pooled thumbnails
 METADATA_KEY = "ffrecon.simulated"
 _CONF_MAX = 10.0
+_CONF_UNKNOWN = 1.0  # confidence of pixels without reference depth: the contract's minimum
+_SYNTHETIC_DOC = (
+    "SIMULATED VGGT-contract model built by ffrecon.synthetic.simulated_model: it outputs the ground truth of "
+    "one synthetic scene plus injected error, and recognises only that scene's frames. Not a trained network."
+)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -77,10 +89,12 @@ def _eval_field(field: tuple[np.ndarray, np.ndarray], xy_norm: np.ndarray) -> np
     return np.cos(arg).sum(-1) * np.sqrt(2.0 / len(phases))
 
 
-def _inject_pose_error(scene: SyntheticScene, options: SimulationOptions, rng: np.random.Generator) -> np.ndarray:
-    """``[N, 3, 4]`` noisy cam_from_world in the ground-truth world frame."""
+def _inject_pose_error(
+    scene: SyntheticScene | RealScene, options: SimulationOptions, rng: np.random.Generator
+) -> np.ndarray:
+    """``[N, 3, 4]`` noisy cam_from_world in the scene's (reference) world frame."""
     n = len(scene)
-    scene_distance = float(np.mean([np.median(d) for d in scene.depth]))
+    scene_distance = float(np.mean([np.median(d[d > 0]) for d in scene.depth]))  # 0 = unknown (real scenes)
     angles = np.radians(options.rotation_noise_deg) * rng.uniform(0.5, 1.5, n)
     center_err = rng.normal(size=(n, 3)) * options.translation_noise * scene_distance / np.sqrt(3)
     for i in options.bad_frames:
@@ -105,19 +119,56 @@ def _check_geometry(scene: SyntheticScene, geometry: render.Geometry) -> None:
             raise ValueError("scene depth does not match ffrecon's synthetic room; build the scene with make_scene")
 
 
-def simulate(scene: SyntheticScene, options: SimulationOptions = SimulationOptions()) -> tuple[SimulatedTruth, dict]:
+def sample_depth(depth: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Bilinear samples of a depth map that never interpolate across unknown pixels.
+
+    ``depth`` ``[H, W]`` z-depth with 0 where unknown; ``uv`` ``[P, 2]`` pixel positions (COLMAP rule:
+    the top-left pixel's centre is (0.5, 0.5)), clamped to the outermost pixel centres. Returns ``[P]``
+    float64, 0 where a neighbour with non-zero weight is unknown.
+
+    >>> d = np.array([[1.0, 3.0], [0.0, 5.0]])
+    >>> sample_depth(d, np.array([[1.0, 0.5], [1.5, 1.0], [1.0, 1.0]])).tolist()
+    [2.0, 4.0, 0.0]
+    """
+    h, w = depth.shape
+    x = np.clip(uv[:, 0] - 0.5, 0, w - 1)
+    y = np.clip(uv[:, 1] - 0.5, 0, h - 1)
+    x0, y0 = np.minimum(x.astype(int), w - 2).clip(0), np.minimum(y.astype(int), h - 2).clip(0)
+    x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
+    fx, fy = x - x0, y - y0
+    corners = np.stack([depth[y0, x0], depth[y0, x1], depth[y1, x0], depth[y1, x1]])  # [4, P]
+    weights = np.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy])
+    out = (corners * weights).sum(0)
+    return np.where(((corners > 0) | (weights == 0)).all(0), out, 0.0)
+
+
+def _depth_source(scene: SyntheticScene | RealScene) -> Callable[[int, np.ndarray], np.ndarray]:
+    """``depth_at(i, uv [P, 2] original pixels) -> [P]`` z-depth of frame ``i``, 0 where unknown.
+
+    The synthetic room is ray-cast (exact at any resolution); a real scene's depth maps are resampled.
+    """
+    if isinstance(scene, RealScene):
+        return lambda i, uv: sample_depth(scene.depth[i], uv)
+    geometry = scene_geometry()
+    _check_geometry(scene, geometry)
+    return lambda i, uv: render.cast_depth(geometry, scene.cam_from_world[i], scene.camera.K, uv)
+
+
+def simulate(
+    scene: SyntheticScene | RealScene, options: SimulationOptions = SimulationOptions()
+) -> tuple[SimulatedTruth, dict]:
     """Draw the injected errors and the network-resolution outputs (without writing a model).
 
     Returns ``(truth, arrays)``; ``arrays`` holds what the graph stores, per scene frame, at network
     resolution: ``batch``, ``signatures``, ``rot``, ``centers``, ``quat_xyzw``, ``fov_hw``, ``inv_focal``,
-    ``depth``, ``conf``, ``size_hw``.
+    ``depth``, ``conf``, ``size_hw``. Pixels without reference depth (real scenes) get the frame's median
+    depth and confidence 1 at both resolutions.
     """
     bad = [i for i in options.bad_frames if not 0 <= i < len(scene)]
     if bad:
         raise ValueError(f"bad_frames {bad} outside 0..{len(scene) - 1}")
     rng = np.random.default_rng(options.seed)
-    geometry = scene_geometry()
-    _check_geometry(scene, geometry)
+    depth_at = _depth_source(scene)
     n, (h, w) = len(scene), scene.depth.shape[1:]
     cam_from_world = _inject_pose_error(scene, options, rng)
     focal_scale = 1 + options.focal_error * (rng.choice([-1.0, 1.0]) + 0.2 * rng.normal(size=n))
@@ -137,19 +188,32 @@ def simulate(scene: SyntheticScene, options: SimulationOptions = SimulationOptio
     for i in range(n):
         depth_err[i] = options.depth_error * _eval_field(fields[i], orig_uv / [w, h])
         err_net = options.depth_error * _eval_field(fields[i], net_uv / [w, h])
-        true_net = render.cast_depth(geometry, scene.cam_from_world[i], scene.camera.K, net_uv.reshape(-1, 2))
-        net_depth[i] = true_net.reshape(hn, wn) * (1 + err_net)
+        true_net = depth_at(i, net_uv.reshape(-1, 2)).reshape(hn, wn)
+        net_depth[i] = true_net * (1 + err_net)
         net_conf[i] = 1 + (_CONF_MAX - 1) * np.exp(-np.abs(err_net) / max(options.depth_error, 1e-6))
+        _fill_unknown(net_depth[i], net_conf[i], true_net > 0)
     truth = SimulatedTruth(
         cam_from_world=cam_from_world,
         K=K,
         depth=(scene.depth * (1 + depth_err)).astype(np.float32),
         depth_error=depth_err,
     )
+    for i in range(n):
+        _fill_unknown(truth.depth[i], None, scene.depth[i] > 0)
     K_net = K.copy()
     K_net[:, 0] *= t.scale_x
     K_net[:, 1] *= t.scale_y
     return truth, _stored_arrays(batch, cam_from_world, K_net, net_depth, net_conf)
+
+
+def _fill_unknown(depth: np.ndarray, conf: np.ndarray | None, known: np.ndarray) -> None:
+    """In place: unknown pixels of one frame's ``depth`` ``[H, W]`` get the median of its known depth (a
+    plausible value that fusion and refinement ignore), and ``conf`` there the contract's minimum, 1."""
+    if known.all():
+        return  # synthetic scenes: nothing is unknown, and nothing changes
+    depth[~known] = np.median(depth[known]) if known.any() else 1.0
+    if conf is not None:
+        conf[~known] = _CONF_UNKNOWN
 
 
 def _stored_arrays(
@@ -184,7 +248,7 @@ def injected_cam_from_first(truth: SimulatedTruth, frames: list[int]) -> np.ndar
 
 
 def build_simulated_vggt(
-    scene: SyntheticScene, out_path: Path, options: SimulationOptions = SimulationOptions()
+    scene: SyntheticScene | RealScene, out_path: Path, options: SimulationOptions = SimulationOptions()
 ) -> SimulatedTruth:
     """Write the simulated model to ``out_path`` (an ``.onnx`` file) and return the injected errors.
 
@@ -193,14 +257,13 @@ def build_simulated_vggt(
     in any order; its outputs follow the VGGT contract (docs/contracts.md, "Multi-view models"). A
     24-frame 320x240 scene gives ~40 MB. Input frames are matched to the nearest stored signature, so
     frames that are not the scene's (or preprocessed differently) silently get some scene frame's
-    outputs; a different input size is refused by onnxruntime (the size is fixed).
+    outputs; a different input size is refused by onnxruntime (the size is fixed). For a
+    :class:`~ffrecon.synthetic.real_scene.RealScene` the "truth" is its reference reconstruction, and the
+    model's doc string and ``ffrecon.scene`` metadata say so.
     """
     truth, arrays = simulate(scene, options)
     model = _build_graph(arrays)
-    model.doc_string = (
-        "SIMULATED VGGT-contract model built by ffrecon.synthetic.simulated_model: it outputs the ground truth of "
-        "one synthetic scene plus injected error, and recognises only that scene's frames. Not a trained network."
-    )
+    model.doc_string = scene.description if isinstance(scene, RealScene) else _SYNTHETIC_DOC
     meta = {
         METADATA_KEY: "true",
         "ffrecon.scene": json.dumps({**scene.options.to_dict(), "names": list(scene.names)}),
@@ -331,7 +394,7 @@ def _points_in_first_camera(
 
 
 def prediction_from_truth(
-    scene: SyntheticScene, truth: SimulatedTruth, options: SimulationOptions = SimulationOptions()
+    scene: SyntheticScene | RealScene, truth: SimulatedTruth, options: SimulationOptions = SimulationOptions()
 ) -> Prediction:
     """What the simulated model says, at original resolution in the ground-truth world frame.
 
