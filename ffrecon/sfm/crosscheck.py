@@ -148,6 +148,7 @@ class ColmapResult:
     mapper_runs: tuple[MapperRun, ...]  # every mapper that ran, in order
     shared_camera: bool  # one COLMAP camera for all images
     focal_prior: np.ndarray  # [N] bool: the image's database camera carried a focal-length prior
+    camera_groups: np.ndarray  # [N] int: photos of one size and focal prior share a group; 0 is the largest
     features: FeatureStats
     timings: Timings
     database_path: Path
@@ -179,6 +180,7 @@ class ColmapResult:
             "mapper_runs": [run.to_report() for run in self.mapper_runs],
             "shared_camera": self.shared_camera,
             "num_focal_priors": int(np.sum(self.focal_prior)),
+            "num_camera_groups": int(len(set(self.camera_groups.tolist()))),
             "model_path": None if self.model_path is None else str(self.model_path),
             "timings_s": self.timings.to_report(),
             "features": self.features.to_report(),
@@ -191,6 +193,23 @@ def resolve_pairing(options: ColmapOptions, num_images: int) -> PairingMode:
     if num_images <= options.exhaustive_max_images:
         return PairingMode.EXHAUSTIVE
     return PairingMode.VOCAB_TREE if options.vocab_tree_path is not None else PairingMode.SEQUENTIAL
+
+
+def camera_groups(sizes_wh: Sequence[tuple[int, int] | None], focal_prior_px: Sequence[float | None]) -> np.ndarray:
+    """``[N]`` int: images of one size and one focal prior (within 0.1 %) form a group, 0 the largest.
+
+    A group stands for one camera at one zoom setting as far as the files tell; unknown sizes or
+    priors form groups of their own.
+
+    >>> camera_groups([(640, 480), (640, 480), (800, 600)], [500.0, 500.2, None]).tolist()
+    [0, 0, 1]
+    """
+    keys = [
+        (size, None if f is None else round(float(np.log(f)) / np.log1p(1e-3)))
+        for size, f in zip(sizes_wh, focal_prior_px)
+    ]
+    order = sorted(set(keys), key=lambda k: (-keys.count(k), str(k)))
+    return np.array([order.index(k) for k in keys], dtype=int)
 
 
 def resolve_camera_sharing(
@@ -433,7 +452,8 @@ def run_colmap(
     if pairing is PairingMode.VOCAB_TREE or (pairing is PairingMode.SEQUENTIAL and options.vocab_tree_path):
         _check_vocab_tree(options, "loop detection" if pairing is PairingMode.SEQUENTIAL else "retrieval pairing")
     priors = _as_priors(focal_prior_px, len(names))
-    shared = resolve_camera_sharing(options.camera_sharing, image_sizes_wh(image_dir, names), priors)
+    sizes = image_sizes_wh(image_dir, names)
+    shared = resolve_camera_sharing(options.camera_sharing, sizes, priors)
     stats = _features_and_matches(db_path, image_dir, names, options, pairing, priors, shared, timer)
     with timer.stage("mapping"), colmap_log_level():
         best, run, runs = (None, None, ())
@@ -448,6 +468,7 @@ def run_colmap(
         mapper_runs=runs,
         shared_camera=shared,
         focal_prior=focal_prior_flags(db_path, names),
+        camera_groups=camera_groups(sizes, priors),
         features=stats,
         timings=timer.freeze(),
         database_path=db_path,

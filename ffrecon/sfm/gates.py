@@ -34,6 +34,7 @@ class FailureCause(enum.Enum):
     BLUR = "blur"
     TEXTURE = "texture"
     EXPOSURE = "exposure"
+    MIXED_CAMERAS = "mixed_cameras"  # the unregistered photos come from other cameras or zoom settings
     DISCONNECTED = "disconnected"  # several models: groups of photos that share no views
     SMALL_PARALLAX = "small_parallax"  # plenty of verified matches, too little baseline to triangulate
     OVERLAP = "overlap"
@@ -109,6 +110,9 @@ _FIXES = {
     FailureCause.TEXTURE: "the surfaces show too little texture for feature matching: add texture (objects, "
     "posters), light the scene evenly, or accept the feed-forward cameras with --force",
     FailureCause.EXPOSURE: "the exposure changes between photos: lock exposure and white balance while capturing",
+    FailureCause.MIXED_CAMERAS: "the photos COLMAP left out come mostly from another camera or zoom setting (another "
+    "image size or EXIF focal length) than those it registered; each gets its own camera, which few photos "
+    "calibrate poorly: capture with one camera at a fixed zoom, or add more photos from the other camera",
     FailureCause.DISCONNECTED: "COLMAP built several separate models: some photos share no views with the rest; "
     "add photos that bridge the groups",
     FailureCause.SMALL_PARALLAX: "the photos overlap well but their viewpoints barely differ (walking straight "
@@ -127,15 +131,19 @@ def diagnose_registration(
     *,
     median_verified_matches: int = 0,
     num_models: int = 1,
+    camera_groups: np.ndarray | None = None,
+    registered: np.ndarray | None = None,
 ) -> tuple[FailureCause, ...]:
     """Likely causes of poor registration of ``names``, most likely first.
 
     Blur, lack of texture and exposure drift come from the capture flags on those images (blur
     lowers the edge sharpness; a textureless image has a low mean gradient but sharp edges).
     Without capture measures for them, few SIFT features point at blur or texture. When the images
-    look fine, the matches decide: several models mean disconnected groups; many verified matches
-    (``median_verified_matches`` per image, summed over its verified pairs) mean the photos overlap
-    but lack parallax; only few mean too little overlap.
+    look fine, the cameras and matches decide: when the photos come from several cameras
+    (``camera_groups``, ``[N]`` int) and most unregistered ones (``registered``, ``[N]`` bool) are not of
+    the camera most registered ones are of, mixed cameras; several models mean disconnected groups;
+    many verified matches (``median_verified_matches`` per image, summed over its verified pairs) mean
+    the photos overlap but lack parallax; only few mean too little overlap.
     """
     measured = set(names) & set(quality.names) if quality is not None else set()
     if not measured and median_keypoints < options.min_keypoints:
@@ -146,6 +154,8 @@ def diagnose_registration(
             causes.append(cause)
     if causes:
         return tuple(causes)
+    if _mixed_cameras(camera_groups, registered):
+        causes.append(FailureCause.MIXED_CAMERAS)
     if num_models > 1:
         causes.append(FailureCause.DISCONNECTED)
     if median_verified_matches >= options.overlap_matches:
@@ -153,10 +163,23 @@ def diagnose_registration(
     return tuple(causes) or (FailureCause.OVERLAP,)
 
 
+def _mixed_cameras(groups: np.ndarray | None, registered: np.ndarray | None) -> bool:
+    """Several camera groups; the registered images' main group registers at least twice as well as the others
+    together, and at least half of the unregistered images lie outside it."""
+    if groups is None or registered is None or len(set(groups.tolist())) < 2 or registered.all():
+        return False
+    if not registered.any():
+        return False
+    main = groups == int(np.bincount(groups[registered]).argmax())
+    ratio_main, ratio_rest = registered[main].mean(), registered[~main].mean()
+    return bool(ratio_main >= 2 * ratio_rest and np.mean(~main[~registered]) >= 0.5)
+
+
 _LIKELY = {
     FailureCause.BLUR: "blur",
     FailureCause.TEXTURE: "lack of texture",
     FailureCause.EXPOSURE: "exposure changes",
+    FailureCause.MIXED_CAMERAS: "photos from several cameras or zoom settings",
     FailureCause.DISCONNECTED: "groups of photos that share no views",
     FailureCause.SMALL_PARALLAX: "too little parallax (viewpoints too alike)",
     FailureCause.OVERLAP: "too little overlap",
@@ -179,7 +202,14 @@ def registration_gate(
     kps = int(np.median(colmap.features.num_keypoints)) if len(colmap.names) else 0
     matches = int(np.median(colmap.features.num_inlier_matches)) if len(colmap.names) else 0
     causes = diagnose_registration(
-        quality, colmap.names, kps, options, median_verified_matches=matches, num_models=colmap.num_models
+        quality,
+        colmap.names,
+        kps,
+        options,
+        median_verified_matches=matches,
+        num_models=colmap.num_models,
+        camera_groups=colmap.camera_groups,
+        registered=colmap.registered,
     )
     reason = (
         f"COLMAP registered only {colmap.num_registered} of {len(colmap.names)} images ({ratio:.0%} < "

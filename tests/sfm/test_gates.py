@@ -80,6 +80,18 @@ def test_diagnosis_uses_capture_flags_of_the_images_colmap_saw():
     split = diagnose_registration(quality, fine, 1000, options, median_verified_matches=50, num_models=2)
     assert split == (FailureCause.DISCONNECTED,)
 
+    # Two cameras: the left-out photos are the phone's, the registered ones the other camera's.
+    groups = np.array([0, 0, 1, 1])
+    mixed = diagnose_registration(
+        quality, fine, 1000, options, camera_groups=groups, registered=np.array([False, False, True, True])
+    )
+    assert mixed == (FailureCause.MIXED_CAMERAS,)
+    # ... but left-out photos spread over both cameras are not blamed on the mix.
+    spread = diagnose_registration(
+        quality, fine, 1000, options, camera_groups=groups, registered=np.array([False, True, False, True])
+    )
+    assert FailureCause.MIXED_CAMERAS not in spread
+
 
 def _copy(rec: pycolmap.Reconstruction) -> pycolmap.Reconstruction:
     return pycolmap.Reconstruction(rec)
