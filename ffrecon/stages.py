@@ -198,7 +198,8 @@ def final_cameras(capture: Capture, ff, colmap, refine, evidence) -> FinalCamera
     every = tuple(range(len(capture.frames)))
     unsuited = isinstance(evidence, EvidenceResult) and evidence.model_unsuited
     if not unsuited and isinstance(refine, RefineResult) and refine.registered.sum() >= 2:
-        return FinalCameras(every, capture.names, refine.cam_from_world, tuple(refine.cameras), "refined")
+        args = (every, capture.names, refine.cam_from_world, tuple(refine.cameras), "refined", refine.distortion)
+        return FinalCameras(*args)
     if not unsuited and isinstance(ff, FeedForwardResult):
         pred = ff.prediction
         return FinalCameras(every, capture.names, pred.cam_from_world, tuple(pred.cameras), "feed-forward")
@@ -225,7 +226,7 @@ def splat_stage(capture, ff, colmap, final, verdicts: tuple, options: RunOptions
             pairs = [undistort_image(im, c, d) for im, c, d in zip(images, cameras, final.distortion)]
             images, cameras = [p[0] for p in pairs], tuple(p[1] for p in pairs)
         if final.source != "COLMAP":
-            args = (ff.prediction, images, final.cam_from_world, final.cameras, options.splat, work)
+            args = (ff.prediction, images, final.cam_from_world, cameras, options.splat, work)
             return run_splat_from_prediction(*args)
         xyz, rgb = seed_from_reconstruction(colmap.reconstruction)  # COLMAP's cameras: its points
         args = (images, final.names, final.cam_from_world, cameras, xyz, rgb, options.splat, work)

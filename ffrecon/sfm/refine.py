@@ -21,6 +21,7 @@ import pycolmap
 
 from ffrecon.errors import InputError
 from ffrecon.geometry.alignment import Sim3
+from ffrecon.geometry.undistort import NO_DISTORTION, opencv_coefficients
 from ffrecon.models.validate import validate_prediction
 from ffrecon.sfm.bundle import BundleOptions, BundleSummary, refine_tracks, sim3_to_ff_frame
 from ffrecon.sfm.colmap_io import (
@@ -106,6 +107,8 @@ class RefineResult:
     cam_from_world: np.ndarray  # [N, 3, 4] float64; flagged frames keep their feed-forward pose
     registered: np.ndarray  # [N] bool, True where refined
     cameras: tuple[PinholeCamera, ...]  # refined intrinsics (feed-forward ones where not refined)
+    # Per frame OpenCV (k1, k2, p1, p2) of the refined lens (zeros where not refined); None: no distortion kept.
+    distortion: tuple[tuple[float, float, float, float], ...] | None
     flagged: tuple[WeakFrame, ...]
     points_xyz: np.ndarray  # [M, 3] float64, prediction's world frame
     points_rgb: np.ndarray  # [M, 3] uint8
@@ -138,6 +141,7 @@ class RefineResult:
             "num_points": int(len(self.points_xyz)),
             "num_pairs_matched": self.num_pairs,
             "mean_reprojection_error_px": float(err) if np.isfinite(err) else None,
+            "lens_k1": None if self.distortion is None else _median_k1(self.distortion, self.registered),
             "match_guidance": None if self.guidance is None else self.guidance.to_report(),
             "bundle_adjustment": None if self.bundle is None else self.bundle.to_report(),
             "sim3_ff_from_refined_scale": self.ff_from_refined.scale,
@@ -145,6 +149,10 @@ class RefineResult:
             "timings_s": self.timings.to_report(),
             "features": self.features.to_report(),
         }
+
+
+def _median_k1(distortion: tuple[tuple[float, ...], ...], registered: np.ndarray) -> float:
+    return float(np.median([d[0] for d, r in zip(distortion, registered) if r]))
 
 
 def _check_inputs(image_dir: Path, prediction: Prediction) -> None:
@@ -180,19 +188,20 @@ def _weak_by_features(stats: FeatureStats, options: RefineOptions) -> list[WeakF
 
 
 def _colmap_camera(camera: PinholeCamera, camera_id: int, square_pixels: bool) -> pycolmap.Camera:
-    """PINHOLE, or SIMPLE_PINHOLE (one focal length) when pixels are square.
+    """PINHOLE, or SIMPLE_RADIAL (one focal length, radial term starting at 0) when pixels are square.
 
     With fx and fy both free, an orbit of cameras looking at a common point leaves the focal lengths
-    and a common tilt of all cameras nearly undetermined; one focal length removes that freedom.
+    and a common tilt of all cameras nearly undetermined; one focal length removes that freedom. The
+    radial term is refined only in the fine pass (:class:`~ffrecon.sfm.bundle.BundleOptions`).
     """
     if not square_pixels:
         return pinhole_to_colmap(camera, camera_id)
     focal = float(np.sqrt(camera.fx * camera.fy))
     return pycolmap.Camera(
-        model="SIMPLE_PINHOLE",
+        model="SIMPLE_RADIAL",
         width=camera.width,
         height=camera.height,
-        params=[focal, camera.cx, camera.cy],
+        params=[focal, camera.cx, camera.cy, 0.0],
         camera_id=camera_id,
     )
 
@@ -398,6 +407,7 @@ def _unrefined_result(prediction: Prediction, **provenance) -> RefineResult:
         cam_from_world=prediction.cam_from_world.copy(),
         registered=np.zeros(n, bool),
         cameras=tuple(prediction.cameras),
+        distortion=None,
         points_xyz=np.zeros((0, 3)),
         points_rgb=np.zeros((0, 3), np.uint8),
         mean_reprojection_error_px=float("nan"),
@@ -419,6 +429,10 @@ def _refined_result(
     cam_from_world, registered = cam_from_world_by_name(rec, names)
     cam_from_world[~registered] = prediction.cam_from_world[~registered]
     refined_cams = tuple(c if r else p for c, r, p in zip(cameras_by_name(rec, names), registered, prediction.cameras))
+    by_name = {image.name: image for image in rec.images.values() if image.has_pose}
+    coefficients = tuple(
+        opencv_coefficients(rec.cameras[by_name[n].camera_id]) if n in by_name else NO_DISTORTION for n in names
+    )
     points = rec.points3D
     xyz = np.array([p.xyz for p in points.values()], dtype=np.float64).reshape(-1, 3)
     rgb = np.array([p.color for p in points.values()], dtype=np.uint8).reshape(-1, 3)
@@ -431,6 +445,7 @@ def _refined_result(
         cam_from_world=cam_from_world,
         registered=registered,
         cameras=refined_cams,
+        distortion=coefficients if any(c != NO_DISTORTION for c in coefficients) else None,
         points_xyz=xyz,
         points_rgb=rgb,
         mean_reprojection_error_px=float(rec.compute_mean_reprojection_error()),
