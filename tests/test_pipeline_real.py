@@ -7,11 +7,14 @@ The photos are downscaled to keep CI short; PIL keeps their EXIF, so the focal p
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 from PIL import Image
 
+from ffrecon.geometry.rotations import rotation_angle_deg
 from ffrecon.pipeline import RunOptions, run
 from ffrecon.results import Skipped, Verdict
+from ffrecon.sfm.crosscheck import MapperKind
 from ffrecon.splat.optimize import OptimizeOptions
 from ffrecon.splat.stage import SplatOptions
 
@@ -36,10 +39,15 @@ def lund_small(tmp_path_factory) -> Path:
     return out
 
 
-def test_lund_without_a_model(lund_small, tmp_path):
+@pytest.fixture(scope="module")
+def lund_run(lund_small, tmp_path_factory):
     splat = SplatOptions(optimize=OptimizeOptions.brief(iterations=40, max_seconds=1e6, progress=False), video=False)
-    out = tmp_path / "out"
-    result = run(lund_small, out, None, RunOptions(splat=splat))
+    out = tmp_path_factory.mktemp("run") / "out"
+    return run(lund_small, out, None, RunOptions(splat=splat)), out
+
+
+def test_lund_without_a_model(lund_run):
+    result, out = lund_run
     assert result.verdict is Verdict.OK and result.exit_code == 0
     assert isinstance(result.feedforward, Skipped)
     colmap = result.colmap
@@ -55,13 +63,44 @@ def test_lund_without_a_model(lund_small, tmp_path):
     assert report["splat"]["heldout_mean"]["psnr_cleaned"] == pytest.approx(result.splat.mean("psnr_cleaned"))
 
 
-def test_two_photos_walking_forward_name_small_parallax(lund_small, tmp_path):
+def _relative(cam_from_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation and unit translation of camera 1 from camera 0."""
+    R = cam_from_world[1, :, :3] @ cam_from_world[0, :, :3].T
+    t = cam_from_world[1, :, 3] - R @ cam_from_world[0, :, 3]
+    return R, t / np.linalg.norm(t)
+
+
+def test_two_photos_walking_forward_give_a_two_view_reconstruction(lund_small, lund_run, tmp_path):
     """Two consecutive photos of a forward walk: hundreds of verified matches, too little parallax for
-    COLMAP's initial pair. The diagnosis says so, never "too little overlap"."""
+    COLMAP's initial pair. ffrecon builds the pair itself (essential matrix with the EXIF focal length)
+    and says so; its relative pose agrees with the 29-photo reconstruction's (measured: rotation 1.0 deg,
+    baseline direction 0.5 deg at full size)."""
     pair = tmp_path / "pair"
     pair.mkdir()
     for name in ("01.jpg", "02.jpg"):
         (pair / name).write_bytes((lund_small / name).read_bytes())
+    result = run(pair, tmp_path / "out", None, RunOptions(splat=SplatOptions(enabled=False)))
+    colmap = result.colmap
+    assert colmap.mapper is MapperKind.TWO_VIEW and colmap.num_registered == 2
+    assert [r.mapper for r in colmap.mapper_runs][-1] is MapperKind.TWO_VIEW
+    assert colmap.mapper_runs[0].num_registered < 2  # COLMAP's own mappers refused the pair
+    assert int(colmap.features.num_inlier_matches.min()) > 100
+    reference = lund_run[0].colmap
+    ref_poses = reference.cam_from_world[[reference.names.index(n) for n in ("01.jpg", "02.jpg")]]
+    (R, t), (R_ref, t_ref) = _relative(colmap.cam_from_world), _relative(ref_poses)
+    assert rotation_angle_deg(R.T @ R_ref) < 2.0
+    assert np.degrees(np.arccos(np.clip(t @ t_ref, -1, 1))) < 5.0  # the right baseline direction
+    assert "two-view reconstruction built by ffrecon" in (tmp_path / "out" / "report.html").read_text()
+
+
+def test_two_photos_without_a_focal_prior_name_small_parallax(lund_small, tmp_path):
+    """Without EXIF there is no focal prior for the pair: the diagnosis names small parallax, never
+    "too little overlap"."""
+    pair = tmp_path / "pair"
+    pair.mkdir()
+    for name in ("01.jpg", "02.jpg"):
+        with Image.open(lund_small / name) as im:
+            im.save(pair / name, quality=95)  # no EXIF
     result = run(pair, tmp_path / "out", None, RunOptions(splat=SplatOptions(enabled=False)))
     assert result.exit_code == 5
     gate = result.gates.verdicts[0]

@@ -342,6 +342,10 @@ def summary_rows(report: dict) -> list[tuple[str, str]]:
         mapper = (
             f" ({colmap['mapper']} mapper; {runs})" if colmap.get("mapper") and len(colmap["mapper_runs"]) > 1 else ""
         )
+        if colmap.get("mapper") == "two_view":
+            mapper = (
+                " (two-view reconstruction built by ffrecon from COLMAP's verified matches; its mappers built none)"
+            )
         err = colmap.get("mean_reprojection_error_px")
         err_text = f", {err:.2f} px" if err is not None else ""
         rows.append(("COLMAP registered", f"{colmap['num_registered']}/{colmap['num_images']}{mapper}{err_text}"))

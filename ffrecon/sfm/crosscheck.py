@@ -43,6 +43,7 @@ from ffrecon.sfm.features import (
     image_sizes_wh,
     matching_options,
 )
+from ffrecon.sfm.two_view import TwoViewOptions, two_view_reconstruction
 from ffrecon.timing import StageTimer, Timings
 from ffrecon.types import PinholeCamera
 
@@ -70,6 +71,7 @@ class MapperKind(enum.Enum):
     AUTO = "auto"  # incremental; then the global mapper too when incremental leaves images out
     INCREMENTAL = "incremental"
     GLOBAL = "global"  # GLOMAP, merged into COLMAP 4
+    TWO_VIEW = "two_view"  # ffrecon's own, from COLMAP's verified geometry of two photos (sfm/two_view.py)
 
 
 class CameraSharing(enum.Enum):
@@ -99,6 +101,9 @@ class ColmapOptions:
     # registers an image on 30 2D-3D inliers; the global mapper places every connected image, however weak).
     min_points_per_image: int = 30
     num_threads: int = -1  # feature extraction and matching; -1: all cores
+    # Two photos that COLMAP's mappers refuse (forward step, small angles) but that verify many matches:
+    # ffrecon builds their reconstruction itself from the verified geometry and the EXIF focal prior.
+    two_view: TwoViewOptions = TwoViewOptions()
     mapper_num_threads: int = 1  # 1 makes mapping repeatable (COLMAP's multi-threaded solvers are not); -1: all
     seed: int = 0
 
@@ -107,7 +112,7 @@ class ColmapOptions:
 class MapperRun:
     """What one mapper built: its number of models and the best one's size and error."""
 
-    mapper: MapperKind  # INCREMENTAL or GLOBAL
+    mapper: MapperKind  # INCREMENTAL, GLOBAL or TWO_VIEW
     num_models: int
     num_registered: int  # images in its best model (most images, then lowest error); 0 without a model
     num_points: int
@@ -414,6 +419,25 @@ def _map(
     return (None, None, tuple(runs)) if kept is None else (*kept, tuple(runs))
 
 
+def _two_view(
+    db_path: Path, names: tuple[str, ...], options: TwoViewOptions
+) -> tuple[pycolmap.Reconstruction | None, MapperRun]:
+    """:func:`~ffrecon.sfm.two_view.two_view_reconstruction` as a mapper run."""
+    start = time.perf_counter()
+    rec = two_view_reconstruction(db_path, names, options)
+    found = rec is not None
+    run = MapperRun(
+        mapper=MapperKind.TWO_VIEW,
+        num_models=int(found),
+        num_registered=rec.num_reg_images() if found else 0,
+        num_points=rec.num_points3D() if found else 0,
+        mean_reprojection_error_px=float(rec.compute_mean_reprojection_error()) if found else float("nan"),
+        num_weak_dropped=0,
+        seconds=time.perf_counter() - start,
+    )
+    return rec, run
+
+
 def _as_priors(focal_prior_px: float | Sequence[float | None] | None, n: int) -> list[float | None]:
     """``n`` focal priors in pixels, None where unknown (a non-finite or non-positive value counts as unknown)."""
     if focal_prior_px is None or isinstance(focal_prior_px, numbers.Real):
@@ -459,6 +483,9 @@ def run_colmap(
         best, run, runs = (None, None, ())
         if stats.num_pairs_verified:
             best, run, runs = _map(db_path, image_dir, out_dir / "mapper", options, len(names))
+        if best is None and len(names) == 2 and options.two_view.enabled:
+            best, run = _two_view(db_path, names, options.two_view)
+            runs = runs + (run,)
     model_dir = out_dir / "sparse" / "0"
     shutil.rmtree(model_dir, ignore_errors=True)
     provenance = dict(
@@ -478,8 +505,10 @@ def run_colmap(
         return _no_model_result(names, **provenance)
     result = _model_result(best, names, model_dir, **provenance)
     logger.info(
-        "COLMAP (%s mapper) registered %d/%d images, %d points, %.2f px reprojection error (%.1f s)",
-        result.mapper.value,
+        "COLMAP (%s) registered %d/%d images, %d points, %.2f px reprojection error (%.1f s)",
+        "ffrecon's two-view reconstruction of its verified matches"
+        if result.mapper is MapperKind.TWO_VIEW
+        else f"{result.mapper.value} mapper",
         result.num_registered,
         len(names),
         result.num_points,
