@@ -18,14 +18,16 @@ from ffrecon.capture import Capture
 from ffrecon.errors import InputError
 from ffrecon.export.stage import OUTPUTS as EXPORT_OUTPUTS
 from ffrecon.export.stage import ExportsResult, FinalCameras, fuse_with_final_cameras, run_exports
-from ffrecon.geometry.undistort import opencv_coefficients, undistort_image
+from ffrecon.geometry.alignment import umeyama
+from ffrecon.geometry.poses import camera_centers
+from ffrecon.geometry.undistort import NO_DISTORTION, opencv_coefficients, undistort_image
 from ffrecon.models.stage import FeedForwardResult, run_feedforward
 from ffrecon.results import Skipped
 from ffrecon.resume import StageRunner, file_key
 from ffrecon.sfm.compare import compare_poses
 from ffrecon.sfm.comparisons import ComparisonsResult, load_references, run_comparisons
 from ffrecon.sfm.crosscheck import ColmapResult, run_colmap
-from ffrecon.sfm.evidence import EvidenceResult, judge_final_cameras
+from ffrecon.sfm.evidence import CameraStatus, EvidenceResult, judge_final_cameras
 from ffrecon.sfm.gates import GatesResult, run_gates
 from ffrecon.sfm.refine import RefineResult, run_refine
 from ffrecon.splat.seed import seed_from_reconstruction
@@ -198,8 +200,7 @@ def final_cameras(capture: Capture, ff, colmap, refine, evidence) -> FinalCamera
     every = tuple(range(len(capture.frames)))
     unsuited = isinstance(evidence, EvidenceResult) and evidence.model_unsuited
     if not unsuited and isinstance(refine, RefineResult) and refine.registered.sum() >= 2:
-        args = (every, capture.names, refine.cam_from_world, tuple(refine.cameras), "refined", refine.distortion)
-        return FinalCameras(*args)
+        return _refined_final_cameras(capture, colmap, refine, evidence)
     if not unsuited and isinstance(ff, FeedForwardResult):
         pred = ff.prediction
         return FinalCameras(every, capture.names, pred.cam_from_world, tuple(pred.cameras), "feed-forward")
@@ -211,6 +212,32 @@ def final_cameras(capture: Capture, ff, colmap, refine, evidence) -> FinalCamera
         distortion = tuple(opencv_coefficients(colmap.reconstruction.cameras[by_name[n].camera_id]) for n in names)
         return FinalCameras(kept, names, colmap.cam_from_world[list(kept)], cameras, "COLMAP", distortion)
     return None
+
+
+def _refined_final_cameras(capture: Capture, colmap, refine: RefineResult, evidence) -> FinalCameras:
+    """The refined cameras; frames the refinement left out but COLMAP registered (evidence: COLMAP only)
+    take COLMAP's pose, moved into the refined frame by a Sim(3) fit over the frames both hold, and its lens."""
+    poses, cameras = refine.cam_from_world.copy(), list(refine.cameras)
+    distortion = list(refine.distortion or [NO_DISTORTION] * len(poses))
+    colmap_only = [
+        k
+        for k, e in enumerate(evidence.per_image if isinstance(evidence, EvidenceResult) else ())
+        if e.status is CameraStatus.COLMAP_ONLY
+    ]
+    if colmap_only:
+        both = refine.registered & colmap.registered
+        sim = umeyama(camera_centers(colmap.cam_from_world[both]), camera_centers(refine.cam_from_world[both]))
+        by_name = {im.name: im for im in colmap.reconstruction.images.values()}
+        for k in colmap_only:
+            poses[k] = sim.transform_cam_from_world(colmap.cam_from_world[k : k + 1])[0]
+            cameras[k] = colmap.cameras[k]
+            distortion[k] = opencv_coefficients(colmap.reconstruction.cameras[by_name[capture.names[k]].camera_id])
+        log.info(
+            "%d frames not refined take COLMAP's poses: %s", len(colmap_only), [capture.names[k] for k in colmap_only]
+        )
+    lens = tuple(distortion) if any(d != NO_DISTORTION for d in distortion) else None
+    every = tuple(range(len(capture.frames)))
+    return FinalCameras(every, capture.names, poses, tuple(cameras), "refined", lens)
 
 
 def splat_stage(capture, ff, colmap, final, verdicts: tuple, options: RunOptions, work, stages, inputs) -> tuple:

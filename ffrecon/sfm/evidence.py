@@ -31,7 +31,8 @@ class CameraStatus(enum.Enum):
     CONFIRMED = "confirmed by COLMAP"  # refined, and COLMAP registered it at an agreeing pose
     MODEL_ONLY = "model + bundle adjustment only"  # refined; COLMAP did not register it
     DISAGREES = "disagrees with COLMAP"  # refined, but COLMAP placed it elsewhere
-    REJECTED = "rejected"  # not refined (too few features, matches or observations)
+    COLMAP_ONLY = "COLMAP only"  # not refined, but COLMAP registered it: its pose, moved into the refined frame
+    REJECTED = "rejected"  # not refined and not registered by COLMAP: keeps the feed-forward pose, unverified
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -96,7 +97,10 @@ def _per_image(names: Sequence[str], refine: RefineResult, colmap: ColmapResult 
     off = {d.name: d.reason for d in comparison.disagreements} if comparison is not None else {}
     out = []
     for k, name in enumerate(names):
-        if not refine.registered[k]:
+        if not refine.registered[k] and comparison is not None and colmap.registered[k]:
+            why = f"{flagged.get(name, 'not refined')}; COLMAP registered it, its pose is used"
+            out.append(CameraEvidence(name, CameraStatus.COLMAP_ONLY, why))
+        elif not refine.registered[k]:
             out.append(CameraEvidence(name, CameraStatus.REJECTED, flagged.get(name, "not refined")))
         elif colmap is None or not colmap.registered[k]:
             out.append(CameraEvidence(name, CameraStatus.MODEL_ONLY, "COLMAP did not register it"))
