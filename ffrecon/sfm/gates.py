@@ -271,6 +271,16 @@ def sparse_cloud_gate(
             "sparse_cloud", GateStatus.SKIPPED, None, options.min_in_front_ratio, f"no {label} model to check"
         )
     ratio, problems = _cloud_checks(rec, options)
+    if len(problems) == 1 and problems[0].startswith("only "):  # a sound but thin model, e.g. two small photos
+        return GateVerdict(
+            "sparse_cloud",
+            GateStatus.FAIL,
+            ratio,
+            options.min_in_front_ratio,
+            f"the {label} sparse cloud is too thin to trust: {problems[0]}",
+            "too few points triangulate: use the photos at full resolution, add photos taken with more sideways "
+            "movement between them, or run with --force to continue anyway",
+        )
     if problems:
         return GateVerdict(
             "sparse_cloud",

@@ -116,6 +116,10 @@ def test_sparse_cloud_gate_catches_points_behind_cameras_and_explosions(colmap24
     verdict = sparse_cloud_gate(exploded, GateOptions())
     assert verdict.status is GateStatus.FAIL and "explodes" in verdict.reason
     assert sparse_cloud_gate(None, GateOptions()).status is GateStatus.SKIPPED
+    # A sound model with few points (two small photos): too thin to trust, not "wrong".
+    thin = sparse_cloud_gate(rec, GateOptions(min_points=rec.num_points3D() + 1))
+    assert thin.status is GateStatus.FAIL and "too thin" in thin.reason and "full resolution" in thin.fix
+    assert "looks wrong" not in thin.reason and "moving objects" not in thin.fix
 
 
 def test_depth_coverage_gate(orbit24):
