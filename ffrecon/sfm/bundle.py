@@ -47,7 +47,7 @@ class BundleOptions:
     max_refinement_change: float = 0.001  # stop when fewer observations than this fraction change
     max_num_iterations: int = 100  # Ceres iterations per bundle adjustment
     max_solver_seconds: float = 600.0  # wall-clock bound per bundle adjustment (Ceres stops and keeps its best)
-    num_threads: int = -1
+    num_threads: int = 1  # 1 makes refinement repeatable (multi-threaded Ceres sums in varying order); -1: all
 
 
 @dataclass(frozen=True)
