@@ -17,6 +17,8 @@ from plyfile import PlyData
 import ffrecon.stages as stages
 from ffrecon.cli import main
 from ffrecon.errors import Interrupted
+from ffrecon.models.multiview import MultiviewOptions
+from ffrecon.models.stage import FeedForwardOptions
 from ffrecon.pipeline import RunOptions, run
 from ffrecon.results import Skipped
 from ffrecon.sfm.gates import GateOptions
@@ -24,13 +26,15 @@ from ffrecon.splat.optimize import OptimizeOptions
 from ffrecon.splat.stage import SplatOptions
 from ffrecon.workspace import staging_path
 
+FIXED_CHUNKS = FeedForwardOptions(multiview=MultiviewOptions(chunk_size=8))
 BEFORE_SPLAT = ["capture", "feedforward", "colmap", "gates", "refine", "evidence", "comparisons"]
 
 
 def _options(**kw) -> RunOptions:
-    """A splat bounded by iterations, not seconds, so two runs do the same work."""
+    """Two runs that do the same work: a splat bounded by iterations, not seconds, and a fixed chunk size
+    (the default follows the memory free at run time, which differs between the runs of a long test session)."""
     splat = SplatOptions(optimize=OptimizeOptions.brief(iterations=20, max_seconds=1e6, progress=False), video=False)
-    return RunOptions(splat=splat, **kw)
+    return RunOptions(splat=splat, feedforward=FIXED_CHUNKS, **kw)
 
 
 def _ply(path: Path) -> dict[str, np.ndarray]:
@@ -91,7 +95,12 @@ def test_resume_recomputes_what_changed_and_drops_what_was_turned_off(demo12, un
     whole_dir, _ = uninterrupted
     out = tmp_path / "copy"
     shutil.copytree(whole_dir, out)
-    changed = RunOptions(splat=SplatOptions(enabled=False), gates=GateOptions(min_registration_ratio=0.5), resume=True)
+    changed = RunOptions(
+        splat=SplatOptions(enabled=False),
+        gates=GateOptions(min_registration_ratio=0.5),
+        feedforward=FIXED_CHUNKS,
+        resume=True,
+    )
     result = run(demo12.images, out, demo12.model, changed)
     # The gates run again, and what reads them: the evidence, and the exports (the evidence picks the
     # final cameras); the splat is off. Nothing upstream is recomputed.
