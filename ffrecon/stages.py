@@ -208,10 +208,15 @@ def final_cameras(capture: Capture, ff, colmap, refine, evidence) -> FinalCamera
         kept = tuple(int(i) for i in np.flatnonzero(colmap.registered))
         names = tuple(capture.names[i] for i in kept)
         cameras = tuple(colmap.cameras[i] for i in kept)
-        by_name = {im.name: im for im in colmap.reconstruction.images.values()}
-        distortion = tuple(opencv_coefficients(colmap.reconstruction.cameras[by_name[n].camera_id]) for n in names)
+        distortion = tuple(_colmap_lens(colmap, names))
         return FinalCameras(kept, names, colmap.cam_from_world[list(kept)], cameras, "COLMAP", distortion)
     return None
+
+
+def _colmap_lens(colmap: ColmapResult, names) -> list[tuple[float, float, float, float]]:
+    """OpenCV (k1, k2, p1, p2) of COLMAP's camera of each of ``names`` (registered images)."""
+    by_name = {im.name: im for im in colmap.reconstruction.images.values()}
+    return [opencv_coefficients(colmap.reconstruction.cameras[by_name[n].camera_id]) for n in names]
 
 
 def _refined_final_cameras(capture: Capture, colmap, refine: RefineResult, evidence) -> FinalCameras:
@@ -227,11 +232,11 @@ def _refined_final_cameras(capture: Capture, colmap, refine: RefineResult, evide
     if colmap_only:
         both = refine.registered & colmap.registered
         sim = umeyama(camera_centers(colmap.cam_from_world[both]), camera_centers(refine.cam_from_world[both]))
-        by_name = {im.name: im for im in colmap.reconstruction.images.values()}
-        for k in colmap_only:
+        lenses = _colmap_lens(colmap, [capture.names[k] for k in colmap_only])
+        for k, lens in zip(colmap_only, lenses):
             poses[k] = sim.transform_cam_from_world(colmap.cam_from_world[k : k + 1])[0]
             cameras[k] = colmap.cameras[k]
-            distortion[k] = opencv_coefficients(colmap.reconstruction.cameras[by_name[capture.names[k]].camera_id])
+            distortion[k] = lens
         log.info(
             "%d frames not refined take COLMAP's poses: %s", len(colmap_only), [capture.names[k] for k in colmap_only]
         )

@@ -166,9 +166,13 @@ def diagnose_registration(
 def _mixed_cameras(groups: np.ndarray | None, registered: np.ndarray | None) -> bool:
     """Several camera groups; the registered images' main group registers at least twice as well as the others
     together, and at least half of the unregistered images lie outside it."""
-    if groups is None or registered is None or len(set(groups.tolist())) < 2 or registered.all():
-        return False
-    if not registered.any():
+    if (
+        groups is None
+        or registered is None
+        or len(set(groups.tolist())) < 2
+        or registered.all()
+        or not registered.any()
+    ):
         return False
     main = groups == int(np.bincount(groups[registered]).argmax())
     ratio_main, ratio_rest = registered[main].mean(), registered[~main].mean()
@@ -271,7 +275,7 @@ def sparse_cloud_gate(
             "sparse_cloud", GateStatus.SKIPPED, None, options.min_in_front_ratio, f"no {label} model to check"
         )
     ratio, problems = _cloud_checks(rec, options)
-    if len(problems) == 1 and problems[0].startswith("only "):  # a sound but thin model, e.g. two small photos
+    if problems == problems[:1] and rec.num_points3D() < options.min_points:  # sound but thin, e.g. two small photos
         return GateVerdict(
             "sparse_cloud",
             GateStatus.FAIL,

@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 import pycolmap
 
-from ffrecon.geometry.rotations import matrix_to_quat_xyzw
+from ffrecon.sfm.colmap_io import rigid_from_pose
 
 logger = logging.getLogger("ffrecon.sfm")
 
@@ -45,27 +45,10 @@ def _normalised(xy: np.ndarray, camera: pycolmap.Camera) -> np.ndarray:
     return np.asarray(camera.cam_from_img(xy), np.float64)
 
 
-def _triangulate(x1: np.ndarray, x2: np.ndarray, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(xyz [M, 3] in camera 1's frame, triangulation angle [M] deg)`` of normalised matches."""
-    P1 = np.hstack([np.eye(3), np.zeros((3, 1))])
-    P2 = np.hstack([R, t.reshape(3, 1)])
-    h = cv2.triangulatePoints(P1, P2, x1.T, x2.T)
-    xyz = (h[:3] / np.where(np.abs(h[3]) > 1e-12, h[3], 1e-12)).T
-    center2 = -R.T @ t.ravel()
-    ray1, ray2 = xyz, xyz - center2
-    cos = np.sum(ray1 * ray2, 1) / np.maximum(np.linalg.norm(ray1, axis=1) * np.linalg.norm(ray2, axis=1), 1e-12)
-    return xyz, np.degrees(np.arccos(np.clip(cos, -1, 1)))
-
-
-def _reprojection_px(rec: pycolmap.Reconstruction, image_id: int, xyz: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    image = rec.image(image_id)
-    camera = rec.camera(image.camera_id)
-    pose = image.cam_from_world().matrix()
-    cam = xyz @ pose[:, :3].T + pose[:, 3]
-    behind = cam[:, 2] <= 1e-9
-    proj = np.asarray(camera.img_from_cam(np.where(behind[:, None], 1.0, cam)), np.float64)
-    err = np.linalg.norm(proj - xy, axis=1)
-    return np.where(behind, np.inf, err)
+def _triangulate(x1: np.ndarray, x2: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """``[M, 3]`` points in camera 1's frame from normalised matches (camera 2 is ``[R | t]``)."""
+    h = cv2.triangulatePoints(np.eye(3, 4), np.hstack([R, t.reshape(3, 1)]), x1.T, x2.T)
+    return (h[:3] / np.where(np.abs(h[3]) > 1e-12, h[3], 1e-12)).T
 
 
 def two_view_reconstruction(
@@ -104,28 +87,26 @@ def two_view_reconstruction(
         logger.info("two-view reconstruction: no essential matrix fits the verified matches")
         return None
     _, R, t, mask = cv2.recoverPose(E, x1, x2, np.eye(3), mask=mask)
-    inlier = mask.ravel() > 0
-    xyz, angle = _triangulate(x1, x2, R, t)
+    xyz = _triangulate(x1, x2, R, t)
     rec = _reconstruction(images, cameras, keypoints, R, t.ravel())
-    keep = inlier & (angle >= options.min_tri_angle_deg)
-    keep &= _reprojection_px(rec, ids[0], xyz, xy1) <= options.max_reproj_error_px
-    keep &= _reprojection_px(rec, ids[1], xyz, xy2) <= options.max_reproj_error_px
-    for k in np.flatnonzero(keep):
+    for k in np.flatnonzero(mask.ravel() > 0):  # RANSAC and cheirality inliers
         track = pycolmap.Track()
         track.add_element(ids[0], int(matches[k, 0]))
         track.add_element(ids[1], int(matches[k, 1]))
         rec.add_point3D(xyz[k], track, np.zeros(3, np.uint8))
+    observations = pycolmap.ObservationManager(rec)
+    observations.filter_all_points3D(options.max_reproj_error_px, options.min_tri_angle_deg)
     if rec.num_points3D() < options.min_points:
         logger.info("two-view reconstruction: %d points triangulate (< %d)", rec.num_points3D(), options.min_points)
         return None
     _adjust(rec, ids, options)
+    observations.filter_all_points3D(options.max_reproj_error_px, options.min_tri_angle_deg)
     rec.update_point_3d_errors()
     logger.info(
-        "two-view reconstruction by ffrecon: %d of %d verified matches triangulated, %.2f px, median angle %.1f deg",
+        "two-view reconstruction by ffrecon: %d of %d verified matches triangulated, %.2f px",
         rec.num_points3D(),
         len(matches),
         rec.compute_mean_reprojection_error(),
-        float(np.median(angle[keep])),
     )
     return rec
 
@@ -134,7 +115,7 @@ def _reconstruction(images, cameras, keypoints, R: np.ndarray, t: np.ndarray) ->
     rec = pycolmap.Reconstruction()
     for camera in {c.camera_id: c for c in cameras}.values():
         rec.add_camera_with_trivial_rig(camera)
-    poses = [pycolmap.Rigid3d(), pycolmap.Rigid3d(pycolmap.Rotation3d(matrix_to_quat_xyzw(R)), t)]
+    poses = [rigid_from_pose(np.eye(3, 4)), rigid_from_pose(np.hstack([R, t.reshape(3, 1)]))]
     for image, xy, pose in zip(images, keypoints, poses):
         new = pycolmap.Image(name=image.name, camera_id=image.camera_id, image_id=image.image_id)
         new.points2D = pycolmap.Point2DList([pycolmap.Point2D(p) for p in xy])
@@ -142,12 +123,8 @@ def _reconstruction(images, cameras, keypoints, R: np.ndarray, t: np.ndarray) ->
     return rec
 
 
-def _observed(rec: pycolmap.Reconstruction, image_id: int, point2D_idx: int) -> np.ndarray:
-    return np.asarray(rec.image(image_id).points2D[point2D_idx].xy, np.float64)[None]
-
-
 def _adjust(rec: pycolmap.Reconstruction, ids: list[int], options: TwoViewOptions) -> None:
-    """Bundle adjustment with the focal lengths fixed, then drop points over the error threshold."""
+    """Bundle adjustment of the poses and points, focal lengths fixed."""
     ba = pycolmap.BundleAdjustmentOptions()
     ba.refine_focal_length = False
     ba.refine_principal_point = False
@@ -159,11 +136,3 @@ def _adjust(rec: pycolmap.Reconstruction, ids: list[int], options: TwoViewOption
         config.add_image(image_id)
     config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
     pycolmap.create_default_bundle_adjuster(ba, config, rec).solve()
-    for point_id in list(rec.point3D_ids()):
-        point = rec.point3D(point_id)
-        errors = [
-            _reprojection_px(rec, e.image_id, point.xyz[None], _observed(rec, e.image_id, e.point2D_idx))[0]
-            for e in point.track.elements
-        ]
-        if max(errors) > options.max_reproj_error_px:
-            rec.delete_point3D(point_id)
