@@ -35,6 +35,7 @@ import torch
 from ffrecon.geometry.projection import unproject_depth
 from ffrecon.splat.appearance import change_photo_colors, random_color_changes
 from ffrecon.splat.optimize import cpu_threads, optimize, scene_scale, torch_threads
+from ffrecon.splat.raster import kernel_threads, raster_threads
 from ffrecon.splat.render import RasterOptions, render, render_view
 from ffrecon.splat.seed import initial_gaussians, reduce_points
 from ffrecon.splat.stage import SplatOptions, color_corrected, image_metrics, split_views
@@ -54,37 +55,37 @@ def noisy_seed(scene, images, views: list[int], seed: int = 0) -> tuple[np.ndarr
 
 
 def bench_render(xyz: np.ndarray, rgb: np.ndarray, scene, counts: list[int], raster: RasterOptions) -> None:
+    """Forward and forward+backward times of the renderer at the seed's Gaussians (median of 5 views),
+    with the compiled kernels on 1 thread and on every core (torch itself on 1 thread)."""
     K = torch.tensor(scene.camera.K, dtype=torch.float32)
     w, h = scene.camera.width, scene.camera.height
-    threads = torch.get_num_threads()
-    print(
-        f"\nrenderer, {w}x{h}, tile {raster.tile_size}, {threads} thread(s): forward and forward+backward, median of 5"
-    )
-    print(f"{'gaussians':>10} {'pairs':>9} {'evals/px':>9} {'fwd ms':>8} {'fwd+bwd ms':>11} {'it/s':>6}")
+    print(f"\nrenderer, {w}x{h}, tile {raster.tile_size}: forward and forward+backward, median of 5 views")
+    print(f"{'gaussians':>10} {'pairs':>9} {'pairs/px':>9} {'threads':>8} {'fwd ms':>8} {'fwd+bwd ms':>11} {'it/s':>6}")
     for n in counts:
         x, c = reduce_points(xyz, rgb, voxel_size=None, max_points=n)
         g = initial_gaussians(x, c, sh_degree=0)
         params = [g.means, g.quats_wxyz, g.log_scales, g.opacity_logits, g.sh]
         for p in params:
             p.requires_grad_(True)
-        fwd, full = [], []
-        for it in range(6):
-            pose = torch.tensor(scene.cam_from_world[it % len(scene)], dtype=torch.float32)
-            t0 = time.perf_counter()
-            out = render(*params, pose, K, w, h, sh_degree=0, with_depth=False, options=raster)
-            loss = out.rgb.mean()
-            t1 = time.perf_counter()
-            loss.backward()
-            t2 = time.perf_counter()
-            if it:
-                fwd.append(t1 - t0)
-                full.append(t2 - t0)
-        med = float(np.median(full))
-        evals = out.layout.padded_evaluations / (w * h)
-        print(
-            f"{len(x):>10} {out.layout.num_pairs:>9} {evals:>9.0f} {1e3 * np.median(fwd):>8.0f} "
-            f"{1e3 * med:>11.0f} {1 / med:>6.2f}"
-        )
+        for threads in sorted({1, kernel_threads()}):
+            with torch_threads(1), raster_threads(threads):
+                fwd, full = [], []
+                for it in range(6):
+                    pose = torch.tensor(scene.cam_from_world[it % len(scene)], dtype=torch.float32)
+                    t0 = time.perf_counter()
+                    out = render(*params, pose, K, w, h, sh_degree=0, with_depth=False, options=raster)
+                    loss = out.rgb.mean()
+                    t1 = time.perf_counter()
+                    loss.backward()
+                    t2 = time.perf_counter()
+                    if it:  # the first call compiles the kernels (or loads them from numba's cache)
+                        fwd.append(t1 - t0)
+                        full.append(t2 - t0)
+            med = float(np.median(full))
+            print(
+                f"{len(x):>10} {out.layout.num_pairs:>9} {out.layout.num_pairs / (w * h):>9.2f} {threads:>8} "
+                f"{1e3 * np.median(fwd):>8.1f} {1e3 * med:>11.1f} {1 / med:>6.1f}"
+            )
 
 
 def heldout_psnr(g, scene, images, poses: np.ndarray, test: list[int]) -> str:
@@ -147,6 +148,8 @@ def bench_optimize(scene, images, xyz, rgb, train, test, args, appearance: bool)
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--frames", type=int, default=24)
+    parser.add_argument("--width", type=int, default=320)
+    parser.add_argument("--height", type=int, default=240)
     parser.add_argument("--seconds", type=float, default=120.0)
     parser.add_argument("--iterations", type=int, default=0, help="iteration budget (default: the options')")
     parser.add_argument("--appearance", choices=("on", "off", "both"), default="on", help="exposure compensation")
@@ -163,7 +166,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.WARNING)
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     print(f"torch {torch.__version__}, {os.cpu_count()} CPUs, load average {load:.2f} at start")
-    scene = make_scene(SceneOptions(num_frames=args.frames))
+    scene = make_scene(SceneOptions(num_frames=args.frames, width=args.width, height=args.height))
     train, test = split_views(len(scene), SplatOptions().holdout_every)
     images = list(scene.images)
     if args.exposure:

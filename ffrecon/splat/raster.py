@@ -1,4 +1,4 @@
-"""Tile binning and depth-sorted alpha compositing of projected 2D Gaussians, on the CPU.
+"""Tile binning and depth-sorted alpha compositing of projected 2D Gaussians: compiled CPU kernels (numba).
 
 The compositing rule (the one the brute-force reference in the tests implements too): for pixel
 centre ``p`` and Gaussian ``k`` (sorted front to back by the camera-frame z of its centre),
@@ -9,378 +9,452 @@ centre ``p`` and Gaussian ``k`` (sorted front to back by the camera-frame z of i
 
 with no early termination. Pixel centres follow COLMAP (see :mod:`ffrecon.geometry.projection`).
 
-Speed comes from four choices. A (tile, Gaussian) pair exists only where the ellipse
-``alpha > 1/255`` meets the tile (exact test). Each pair stores ``sigma - log(o)`` as a quadratic
-in tile-local pixel coordinates, so all of a tile's alphas are one matrix product with a fixed
-``[6, P]`` basis and an ``exp``. Tiles are sorted by how many Gaussians touch them and grouped into
-chunks padded to the largest count in the chunk (little padding, bounded memory, no Python loop
-over pixels or Gaussians). And the backward pass is written by hand: per chunk it needs only the
-blending weights and ``alpha / (1 - alpha)``, which the forward keeps (or, past a memory cap,
-recomputes as the CUDA rasterisers do), instead of autograd storing every intermediate.
+How the kernels are built, and why by hand: a (tile, Gaussian) pair exists only where the ellipse
+``alpha > 1/255`` meets the tile's pixel centres (exact test). Per tile, pairs are visited front to
+back and each is evaluated over the tile's pixels in one branch-free loop, which LLVM turns into SIMD
+code; ``exp`` is a polynomial (:func:`_exp_nonpositive`, relative error ~1e-7) because numba only
+vectorises ``math.exp`` with Intel's SVML, which is not a dependency here. Tiles run in parallel
+(``prange``). The backward pass needs no stored per-pair state: it walks the pairs front to back
+again and gets the suffix sums ``S_k`` of the gradient from the forward's output, ``S_k = out . g -
+T_N g_alpha - sum_{j<=k} w_j g_j`` (no division by ``1 - alpha``, so no early termination is needed
+to keep it stable). Gradients are written per pair (each pair belongs to one tile: no races) and summed
+per Gaussian with ``index_add``.
 """
 
 from __future__ import annotations
 
+import contextlib
 import math
+import os
 from dataclasses import dataclass
 
+import numba
+import numpy as np
 import torch
+from numba import njit, prange
+
+if "NUMBA_THREADING_LAYER" not in os.environ:
+    # numba's OpenMP layer busy-waits between parallel loops and fights torch's own OpenMP pool for the
+    # cores (torch ops between two kernels measured 10-50x slower on 2 cores); its plain-thread
+    # workqueue layer does not. Must be set before the first parallel call.
+    numba.config.THREADING_LAYER = "workqueue"
 
 ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.999
-PAD_LOG_TERM = 1.0e4  # constant term of padding pairs: exp(-1e4) == 0, so they never contribute
+_LOG_ALPHA_MIN = math.log(ALPHA_MIN)
+PAIR_GRADS = 6  # per pair: d/d means2d (x, y), d/d conic (a, b, c), d/d log opacity
 
 
 @dataclass(frozen=True)
 class TileLayout:
-    """Which Gaussians touch which tiles, sorted by depth, grouped into padded chunks.
-
-    ``pair_gauss[i]`` is the Gaussian of padded pair ``i`` (``num_gaussians`` for padding) and
-    ``pair_origin[i]`` the pixel position of the centre of its tile. Chunk ``c`` covers padded pairs
-    ``starts[c] : starts[c] + len(tile_ids[c]) * ks[c]`` as a ``[b, K]`` block.
-    """
+    """Which Gaussians touch which tiles, front to back: tile ``t`` (row-major) owns the pairs
+    ``tile_start[t] : tile_start[t + 1]`` and pair ``i`` is Gaussian ``pair_gauss[i]``."""
 
     tile_size: int
     tiles_x: int
     tiles_y: int
-    pair_gauss: torch.Tensor  # [L] int64
-    pair_origin: torch.Tensor  # [L, 2] float32, (x, y) of the tile centre
-    tile_ids: tuple[torch.Tensor, ...]  # per chunk, [b] int64 tile indices (row-major)
-    starts: tuple[int, ...]
-    ks: tuple[int, ...]
-    num_pairs: int  # unpadded (tile, Gaussian) pairs
+    tile_start: np.ndarray  # [tiles + 1] int64
+    pair_gauss: np.ndarray  # [L] int64
 
     @property
     def num_tiles(self) -> int:
         return self.tiles_x * self.tiles_y
 
     @property
-    def padded_evaluations(self) -> int:
-        """Number of (pixel, Gaussian) evaluations one forward pass makes, padding included."""
-        return sum(len(t) * k for t, k in zip(self.tile_ids, self.ks)) * self.tile_size**2
+    def num_pairs(self) -> int:
+        return len(self.pair_gauss)
 
 
-def _take(x: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
-    """``x[index]`` along dim 0 (index_select: faster than fancy indexing on the CPU)."""
-    return torch.index_select(x, 0, index)
+@njit(cache=True)
+def _constants(arr):
+    """Constants in ``arr``'s float type, so float32 kernels stay float32 (a Python float literal
+    would promote every expression it touches to float64 and halve the SIMD width)."""
+    t = arr.dtype.type
+    taylor = (t(1.0 / 40320.0), t(1.0 / 5040.0), t(1.0 / 720.0), t(1.0 / 120.0), t(1.0 / 24.0), t(1.0 / 6.0), t(0.5))
+    return t(0.0), t(1.0), t(ALPHA_MIN), t(ALPHA_MAX), t(-6.0), t(0.0625), taylor
 
 
-def _min_quadratic_over_box(m: torch.Tensor, conic: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:
-    """Minimum over the boxes ``[lo, hi]`` (``[M, 2]``) of ``(p - m)^T [[a, b], [b, c]] (p - m)``.
+@njit(cache=True, fastmath=True)
+def _exp_nonpositive(y, k):
+    """``exp(y)`` for ``y`` in ``[-6, 0]`` (clamped below; callers discard results under 1/255 = e^-5.54).
 
-    The form is positive definite, so when ``m`` is outside the box the minimum lies on one of its
-    four edges, where it is a 1D quadratic minimised in closed form and clamped to the edge.
+    ``exp(y) = exp(y / 16)^16``: a degree-8 Taylor polynomial on ``[-0.375, 0]`` (truncation 4e-10)
+    then four squarings, so relative error ~1e-7 in float32 (rounding, amplified 16x) and ~1e-8 in
+    float64. Branch-free, so loops calling it vectorise.
     """
-    a, b, c = conic.unbind(1)
-    d_lo, d_hi = lo - m, hi - m  # box corners relative to the centre
-    best = torch.full_like(a, float("inf"))
-    for dx in (d_lo[:, 0], d_hi[:, 0]):  # vertical edges
-        dy = torch.clamp(-b * dx / c, d_lo[:, 1], d_hi[:, 1])
-        best = torch.minimum(best, a * dx * dx + 2 * b * dx * dy + c * dy * dy)
-    for dy in (d_lo[:, 1], d_hi[:, 1]):  # horizontal edges
-        dx = torch.clamp(-b * dy / a, d_lo[:, 0], d_hi[:, 0])
-        best = torch.minimum(best, a * dx * dx + 2 * b * dx * dy + c * dy * dy)
-    inside = (d_lo <= 0).all(1) & (d_hi >= 0).all(1)
-    return torch.where(inside, torch.zeros_like(best), best)
+    zero, one, _, _, lowest, sixteenth, c = k
+    z = max(y, lowest) * sixteenth
+    p = c[0]
+    for j in range(1, 7):
+        p = p * z + c[j]
+    p = (p * z + one) * z + one
+    p = p * p
+    p = p * p
+    p = p * p
+    return p * p
+
+
+@njit(cache=True)
+def _min_form_over_box(u, v, a, b, c, x0, x1, y0, y1):
+    """Minimum over the box ``[x0, x1] x [y0, y1]`` of ``a dx^2 + 2 b dx dy + c dy^2``, ``(dx, dy)`` the
+    offset from ``(u, v)``. Positive definite, so outside the box the minimum is on an edge, where the
+    form is a 1D quadratic minimised in closed form and clamped."""
+    if x0 <= u <= x1 and y0 <= v <= y1:
+        return 0.0
+    best = np.inf
+    for dx in (x0 - u, x1 - u):
+        dy = min(max(-b * dx / c, y0 - v), y1 - v)
+        best = min(best, a * dx * dx + 2.0 * b * dx * dy + c * dy * dy)
+    for dy in (y0 - v, y1 - v):
+        dx = min(max(-b * dy / a, x0 - u), x1 - u)
+        best = min(best, a * dx * dx + 2.0 * b * dx * dy + c * dy * dy)
+    return best
+
+
+@njit(cache=True)
+def _tile_range(means2d, extent, i, width, height, tile_size, tiles_x, tiles_y):
+    """Tiles ``[tx0, tx1) x [ty0, ty1)`` whose pixel centres the box ``means2d[i] +- extent[i]`` reaches."""
+    lo_x = math.ceil(means2d[i, 0] - extent[i, 0] - 0.5)  # first column whose centre u + 0.5 is inside
+    hi_x = math.floor(means2d[i, 0] + extent[i, 0] - 0.5)
+    lo_y = math.ceil(means2d[i, 1] - extent[i, 1] - 0.5)
+    hi_y = math.floor(means2d[i, 1] + extent[i, 1] - 0.5)
+    if hi_x < 0 or hi_y < 0 or lo_x > width - 1 or lo_y > height - 1 or hi_x < lo_x or hi_y < lo_y:
+        return 0, 0, 0, 0
+    tx0, tx1 = max(lo_x, 0) // tile_size, min(hi_x, width - 1) // tile_size + 1
+    ty0, ty1 = max(lo_y, 0) // tile_size, min(hi_y, height - 1) // tile_size + 1
+    return tx0, tx1, ty0, ty1
+
+
+@njit(cache=True)
+def _meets(i, tx, ty, means2d, conics, log_opacity, width, height, tile_size):
+    """Whether Gaussian ``i``'s ellipse ``alpha >= 1/255`` meets tile ``(tx, ty)``'s pixel centres (exact,
+    up to a relative tolerance of 1e-4 that keeps borderline pairs)."""
+    level = 2.0 * (log_opacity[i] - _LOG_ALPHA_MIN) * (1.0 + 1e-4) + 2e-4  # alpha >= 1/255 <=> form <= level
+    y0, y1 = ty * tile_size + 0.5, min((ty + 1) * tile_size, height) - 0.5
+    x0, x1 = tx * tile_size + 0.5, min((tx + 1) * tile_size, width) - 0.5
+    form = _min_form_over_box(means2d[i, 0], means2d[i, 1], conics[i, 0], conics[i, 1], conics[i, 2], x0, x1, y0, y1)
+    return form <= level
+
+
+@njit(cache=True, parallel=True)
+def _candidates(order, means2d, conics, log_opacity, extent, width, height, tile_size, tiles_x, tiles_y):
+    """Per Gaussian of ``order``, the tiles its box reaches, ``-1`` where the exact test rejects them:
+    ``(offsets [n + 1], tiles [offsets[-1]])``, Gaussian ``order[j]`` owning ``offsets[j]:offsets[j + 1]``."""
+    n = len(order)
+    boxes = np.empty((n, 4), np.int64)
+    offsets = np.zeros(n + 1, np.int64)
+    for j in prange(n):
+        tx0, tx1, ty0, ty1 = _tile_range(means2d, extent, order[j], width, height, tile_size, tiles_x, tiles_y)
+        boxes[j, 0], boxes[j, 1], boxes[j, 2], boxes[j, 3] = tx0, tx1, ty0, ty1
+        offsets[j + 1] = (tx1 - tx0) * (ty1 - ty0)
+    offsets = np.cumsum(offsets)
+    tiles = np.empty(offsets[-1], np.int64)
+    for j in prange(n):
+        m = offsets[j]
+        for ty in range(boxes[j, 2], boxes[j, 3]):
+            for tx in range(boxes[j, 0], boxes[j, 1]):
+                hit = _meets(order[j], tx, ty, means2d, conics, log_opacity, width, height, tile_size)
+                tiles[m] = ty * tiles_x + tx if hit else -1
+                m += 1
+    return offsets, tiles
+
+
+@njit(cache=True)
+def _group_by_tile(order, offsets, tiles, num_tiles):
+    """Counting sort of the accepted candidates by tile; stable, so each tile's pairs stay front to back."""
+    counts = np.zeros(num_tiles + 1, np.int64)
+    for t in tiles:
+        if t >= 0:
+            counts[t + 1] += 1
+    tile_start = np.cumsum(counts)
+    fill = tile_start[:-1].copy()
+    pair_gauss = np.empty(tile_start[-1], np.int64)
+    for j in range(len(order)):
+        for m in range(offsets[j], offsets[j + 1]):
+            t = tiles[m]
+            if t >= 0:
+                pair_gauss[fill[t]] = order[j]
+                fill[t] += 1
+    return tile_start, pair_gauss
 
 
 def bin_gaussians(
     means2d: torch.Tensor,
+    conics: torch.Tensor,
+    log_opacity: torch.Tensor,
     extent: torch.Tensor,
     depth: torch.Tensor,
     visible: torch.Tensor,
     width: int,
     height: int,
     *,
-    conics: torch.Tensor | None = None,
-    log_opacity: torch.Tensor | None = None,
-    tile_size: int = 16,
-    chunk_elements: int = 1 << 18,
+    tile_size: int = 8,
 ) -> TileLayout:
-    """Assign visible Gaussians to the tiles their ``alpha >= 1/255`` region overlaps.
+    """Assign the visible Gaussians to the tiles whose pixel centres their ellipse ``alpha >= 1/255``
+    reaches, front to back (stable sort on ``depth``) within each tile.
 
     Args:
-        means2d: ``[N, 2]`` pixel positions (COLMAP convention), no gradient needed.
-        extent: ``[N, 2]`` half-widths in pixels of the axis-aligned box outside which alpha < 1/255.
-        depth: ``[N]`` sort key (camera-frame z of the centre).
-        visible: ``[N]`` bool.
-        conics, log_opacity: ``[N, 3]`` and ``[N]``; when given, a (tile, Gaussian) pair is dropped
-            unless the ellipse ``alpha >= 1/255`` meets the tile's pixel centres (exact test, not
-            just the bounding box: about a quarter fewer pairs for round Gaussians).
-        chunk_elements: target size of one chunk's ``[b, K, P]`` work arrays (memory vs overhead).
+        means2d: ``[N, 2]`` pixel positions (COLMAP convention); conics: ``[N, 3]`` (a, b, c) of the
+            inverse 2D covariance; log_opacity: ``[N]``; extent: ``[N, 2]`` half-widths in pixels of
+            the box outside which alpha < 1/255; depth: ``[N]`` sort key; visible: ``[N]`` bool.
     """
-    tiles_x, tiles_y = math.ceil(width / tile_size), math.ceil(height / tile_size)
     with torch.no_grad():
-        pair_g, tile = _box_pairs(means2d, extent, depth, visible, width, height, tile_size)
-        if conics is not None and log_opacity is not None and len(tile):
-            meets = _ellipse_meets_tile(means2d, conics, log_opacity, pair_g, tile, width, height, tiles_x, tile_size)
-            pair_g, tile = _take(pair_g, meets), _take(tile, meets)
-        order = torch.argsort(tile, stable=True)  # by tile, then depth (pairs were depth-ordered)
-        pair_g, tile = _take(pair_g, order), _take(tile, order)
-        return _padded_chunks(pair_g, tile, means2d.shape[0], tiles_x, tiles_y, tile_size, chunk_elements)
+        ids = torch.nonzero(visible).squeeze(1)
+        order = ids[torch.argsort(depth.detach()[ids], stable=True)].numpy()
+        arrays = [t.detach().double().numpy() for t in (means2d, conics, log_opacity, extent)]
+    tiles_x, tiles_y = math.ceil(width / tile_size), math.ceil(height / tile_size)
+    offsets, candidates = _candidates(order, *arrays, width, height, tile_size, tiles_x, tiles_y)
+    tile_start, pair_gauss = _group_by_tile(order, offsets, candidates, tiles_x * tiles_y)
+    return TileLayout(tile_size, tiles_x, tiles_y, tile_start, pair_gauss)
 
 
-def _box_pairs(
-    means2d: torch.Tensor,
-    extent: torch.Tensor,
-    depth: torch.Tensor,
-    visible: torch.Tensor,
-    width: int,
-    height: int,
-    tile_size: int,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """``(gaussian [L], tile [L])`` int64: one pair per tile that a visible Gaussian's box overlaps.
+@njit(cache=True, fastmath=True)
+def _pair_coefficients(means2d, conics, log_opacity, g, cx, cy):
+    """Coefficients of ``log(o) - sigma`` as ``-(c0 x^2 + c1 xy + c2 y^2 + c3 x + c4 y + c5)`` in pixel
+    coordinates ``(x, y)`` relative to the tile centre ``(cx, cy)`` (small numbers: no cancellation)."""
+    t = conics.dtype.type
+    u, v = means2d[g, 0] - cx, means2d[g, 1] - cy
+    a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
+    const = 0.5 * a * u * u + b * u * v + 0.5 * c * v * v - log_opacity[g]
+    return t(0.5 * a), b, t(0.5 * c), t(-(a * u + b * v)), t(-(b * u + c * v)), t(const), u, v
 
-    Pairs come Gaussian by Gaussian, front to back (stable sort on ``depth``); tiles are row-major.
+
+@njit(cache=True, fastmath=True)
+def _tile_pixels(t, tiles_x, tile_size, width, height, dtype):
+    """Pixel coordinates ``(x, y)`` relative to tile ``t``'s centre, the tile centre, and the tile's
+    first column/row and size clipped to the image."""
+    x0, y0 = (t % tiles_x) * tile_size, (t // tiles_x) * tile_size
+    nx, ny = min(tile_size, width - x0), min(tile_size, height - y0)
+    half = 0.5 * tile_size
+    lx = np.empty(nx * ny, dtype)
+    ly = np.empty(nx * ny, dtype)
+    for j in range(ny):
+        for i in range(nx):
+            lx[j * nx + i] = i + 0.5 - half
+            ly[j * nx + i] = j + 0.5 - half
+    return lx, ly, x0 + half, y0 + half, x0, y0, nx, ny
+
+
+@njit(cache=True, fastmath=True)
+def _alphas(c0, c1, c2, c3, c4, c5, lx, ly, alpha, k):
+    """Writes the clamped alpha of one pair at the tile's pixels into ``alpha`` (0 below 1/255)."""
+    zero, _, a_min, a_max, _, _, _ = k
+    for p in range(len(lx)):
+        x, y = lx[p], ly[p]
+        a = _exp_nonpositive(-(c0 * x * x + c1 * x * y + c2 * y * y + c3 * x + c4 * y + c5), k)
+        alpha[p] = min(a, a_max) if a > a_min else zero
+
+
+@njit(cache=True, parallel=True, fastmath=True)
+def _forward(
+    tile_start, pair_gauss, means2d, conics, log_opacity, feat, background, tile_size, tiles_x, tile_order, out, t_final
+):
+    """Composite every tile (in ``tile_order``) into ``out [H, W, F]`` and ``t_final [H, W]`` (final
+    transmittance)."""
+    height, width, num_feat = out.shape
+    dtype = out.dtype
+    for i in prange(len(tile_order)):
+        t = tile_order[i]
+        k_const = _constants(out)  # inside the loop: numba's parallel wrapper cannot take a tuple in
+        one = k_const[1]
+        lx, ly, cx, cy, x0, y0, nx, ny = _tile_pixels(t, tiles_x, tile_size, width, height, dtype)
+        n = nx * ny
+        trans = np.ones(n, dtype)
+        acc = np.zeros((num_feat, n), dtype)
+        alpha = np.empty(n, dtype)
+        for k in range(tile_start[t], tile_start[t + 1]):
+            g = pair_gauss[k]
+            c0, c1, c2, c3, c4, c5, _, _ = _pair_coefficients(means2d, conics, log_opacity, g, cx, cy)
+            _alphas(c0, c1, c2, c3, c4, c5, lx, ly, alpha, k_const)
+            for f in range(num_feat):
+                fg = feat[g, f]
+                for p in range(n):
+                    acc[f, p] += trans[p] * alpha[p] * fg
+            for p in range(n):
+                trans[p] *= one - alpha[p]
+        for p in range(n):
+            row, col = y0 + p // nx, x0 + p % nx
+            for f in range(num_feat):
+                out[row, col, f] = acc[f, p] + trans[p] * background[f]
+            t_final[row, col] = trans[p]
+
+
+@njit(cache=True, parallel=True, fastmath=True)
+def _backward(
+    tile_start,
+    pair_gauss,
+    means2d,
+    conics,
+    log_opacity,
+    feat,
+    background,
+    tile_size,
+    tiles_x,
+    out,
+    t_final,
+    grad_out,
+    grad_alpha,
+    tile_order,
+    grad_gauss,
+    grad_bg,
+):
+    """Gradients (see the module docstring) added into ``grad_gauss [threads, N, 6 + F]`` (means2d x, y;
+    conic a, b, c; log opacity; features) and ``grad_bg [threads, F]``, one slice per thread (no races;
+    the caller sums them). Tiles are visited in ``tile_order``.
+
+    Long because the chain rule through the pair coefficients is spelt out inline: a helper call per
+    pair would keep the loop from being compiled as one piece.
     """
-    # Range of pixel columns whose centre (u + 0.5) lies within [x - e, x + e], clipped to the image.
-    lo = torch.ceil(means2d - extent - 0.5)
-    hi = torch.floor(means2d + extent - 0.5)
-    lo_x, lo_y = lo[:, 0].clamp(0, width - 1), lo[:, 1].clamp(0, height - 1)
-    hi_x, hi_y = hi[:, 0].clamp(0, width - 1), hi[:, 1].clamp(0, height - 1)
-    hits = visible & (hi[:, 0] >= lo_x) & (lo[:, 0] <= hi_x) & (hi[:, 1] >= lo_y) & (lo[:, 1] <= hi_y)
-    hits &= (hi[:, 0] >= 0) & (lo[:, 0] <= width - 1) & (hi[:, 1] >= 0) & (lo[:, 1] <= height - 1)
-    gid = torch.nonzero(hits).squeeze(1)
-    gid = _take(gid, torch.argsort(_take(depth, gid), stable=True))  # front to back
-    tx0 = (_take(lo_x, gid) // tile_size).long()
-    ty0 = (_take(lo_y, gid) // tile_size).long()
-    nx = (_take(hi_x, gid) // tile_size).long() - tx0 + 1
-    ny = (_take(hi_y, gid) // tile_size).long() - ty0 + 1
-    counts = nx * ny
-    total = int(counts.sum())
-    pair_g = torch.repeat_interleave(gid, counts)
-    first = torch.repeat_interleave(torch.cumsum(counts, 0) - counts, counts)
-    local = torch.arange(total) - first
-    nx_rep = torch.repeat_interleave(nx, counts)
-    tiles_x = math.ceil(width / tile_size)
-    tile = (
-        (torch.repeat_interleave(ty0, counts) + local // nx_rep) * tiles_x
-        + torch.repeat_interleave(tx0, counts)
-        + local % nx_rep
-    )
-    return pair_g, tile
+    height, width, num_feat = out.shape
+    dtype = out.dtype
+    for i in prange(len(tile_order)):
+        t = tile_order[i]
+        mine = numba.get_thread_id()
+        k_const = _constants(out)
+        zero, one, a_max = k_const[0], k_const[1], k_const[3]
+        lx, ly, cx, cy, x0, y0, nx, ny = _tile_pixels(t, tiles_x, tile_size, width, height, dtype)
+        n = nx * ny
+        g_out = np.empty((num_feat, n), dtype)
+        rest = np.empty(n, dtype)  # S before any pair: out . g - T_N g_alpha
+        for p in range(n):
+            row, col = y0 + p // nx, x0 + p % nx
+            rest[p] = -t_final[row, col] * grad_alpha[row, col]
+            for f in range(num_feat):
+                g_out[f, p] = grad_out[row, col, f]
+                rest[p] += out[row, col, f] * g_out[f, p]
+                grad_bg[mine, f] += t_final[row, col] * g_out[f, p]
+        trans = np.ones(n, dtype)
+        alpha = np.empty(n, dtype)
+        wg = np.empty(n, dtype)
+        for k in range(tile_start[t], tile_start[t + 1]):
+            g = pair_gauss[k]
+            c0, c1, c2, c3, c4, c5, u, v = _pair_coefficients(means2d, conics, log_opacity, g, cx, cy)
+            _alphas(c0, c1, c2, c3, c4, c5, lx, ly, alpha, k_const)
+            for p in range(n):
+                wg[p] = zero
+            for f in range(num_feat):
+                fg = feat[g, f]
+                s = zero
+                for p in range(n):
+                    w = trans[p] * alpha[p]
+                    wg[p] += w * fg * g_out[f, p]
+                    s += w * g_out[f, p]
+                grad_gauss[mine, g, PAIR_GRADS + f] += s
+            # dL/dy for y = log(alpha) before the clamp: (w g - alpha / (1 - alpha) S) where unclamped.
+            g0 = g1 = g2 = g3 = g4 = g5 = zero
+            for p in range(n):
+                a = alpha[p]
+                rest[p] -= wg[p]  # now S_k
+                dy = (wg[p] - a / (one - a) * rest[p]) if a < a_max else zero
+                trans[p] *= one - a
+                x, y = lx[p], ly[p]
+                g0 -= dy * x * x  # y = -(c . basis): dL/dc_j = -sum_p dL/dy_p basis_j(p)
+                g1 -= dy * x * y
+                g2 -= dy * y * y
+                g3 -= dy * x
+                g4 -= dy * y
+                g5 -= dy
+            a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
+            # chain rule from (c0..c5) to (u, v, a, b, c, log o); u, v are relative to the tile centre.
+            grad_gauss[mine, g, 0] += -a * g3 - b * g4 + (a * u + b * v) * g5
+            grad_gauss[mine, g, 1] += -b * g3 - c * g4 + (b * u + c * v) * g5
+            grad_gauss[mine, g, 2] += 0.5 * g0 - u * g3 + 0.5 * u * u * g5
+            grad_gauss[mine, g, 3] += g1 - v * g3 - u * g4 + u * v * g5
+            grad_gauss[mine, g, 4] += 0.5 * g2 - v * g4 + 0.5 * v * v * g5
+            grad_gauss[mine, g, 5] += -g5
 
 
-def _ellipse_meets_tile(
-    means2d: torch.Tensor,
-    conics: torch.Tensor,
-    log_opacity: torch.Tensor,
-    pair_g: torch.Tensor,
-    tile: torch.Tensor,
-    width: int,
-    height: int,
-    tiles_x: int,
-    tile_size: int,
-) -> torch.Tensor:
-    """Indices of the pairs whose ellipse ``alpha >= 1/255`` contains one of the tile's pixel centres
-    (or nearly: a relative tolerance of 1e-4 keeps borderline pairs)."""
-    corner = torch.stack([tile % tiles_x, tile // tiles_x], 1) * tile_size
-    box_lo = corner + 0.5  # first and last pixel centres of the tile, clipped to the image
-    box_hi = torch.minimum(corner + tile_size, torch.tensor([width, height])) - 0.5
-    q = _min_quadratic_over_box(
-        _take(means2d, pair_g), _take(conics, pair_g), box_lo.to(means2d.dtype), box_hi.to(means2d.dtype)
-    )
-    level = _take(log_opacity, pair_g) - math.log(ALPHA_MIN)  # alpha >= 1/255  <=>  q / 2 <= level
-    meets = 0.5 * q <= level * (1 + 1e-4) + 1e-4
-    return torch.nonzero(meets).squeeze(1)
-
-
-def _padded_chunks(
-    pair_g: torch.Tensor,
-    tile: torch.Tensor,
-    num_gaussians: int,
-    tiles_x: int,
-    tiles_y: int,
-    tile_size: int,
-    chunk_elements: int,
-) -> TileLayout:
-    """Group the tiles into chunks padded to a common pair count (see :class:`TileLayout`).
-
-    ``pair_g`` and ``tile`` are sorted by tile, then front to back. Tiles are taken from the busiest
-    down and cut greedily into chunks of about ``chunk_elements`` evaluations, each padded to its
-    first (largest) count with the index ``num_gaussians``.
-    """
-    total = len(tile)
-    per_tile = torch.bincount(tile, minlength=tiles_x * tiles_y)
-    tile_start = torch.cumsum(per_tile, 0) - per_tile
-    busy = torch.argsort(per_tile, descending=True, stable=True)
-    busy_counts = per_tile[busy].tolist()
-    num_busy = sum(1 for c in busy_counts if c > 0)
-    busy = busy[:num_busy]
-    p = tile_size * tile_size
-    bounds, i = [], 0
-    while i < num_busy:
-        k = busy_counts[i]
-        j = min(num_busy, i + max(1, chunk_elements // (k * p)))
-        bounds.append((i, j, k))
-        i = j
-    sizes = [j - i for i, j, _ in bounds]
-    ks = [k for _, _, k in bounds]
-    starts = [sum(a * b for a, b in zip(sizes[:c], ks[:c])) for c in range(len(bounds))]
-    padded = torch.repeat_interleave(
-        torch.tensor(ks, dtype=torch.long), torch.tensor(sizes, dtype=torch.long)
-    )  # per busy tile
-    row = torch.repeat_interleave(torch.arange(num_busy), padded)
-    slot = torch.arange(int(padded.sum())) - torch.repeat_interleave(torch.cumsum(padded, 0) - padded, padded)
-    pad_index = torch.where(
-        slot < _take(_take(per_tile, busy), row), _take(_take(tile_start, busy), row) + slot, total
-    )  # `total` = padding
-    pair_gauss = _take(torch.cat([pair_g, torch.tensor([num_gaussians])]), pad_index)
-    tile_of_pair = _take(torch.cat([tile, torch.tensor([0])]), pad_index)
-    origin = (
-        torch.stack([(tile_of_pair % tiles_x).float(), (tile_of_pair // tiles_x).float()], 1) * tile_size
-        + tile_size / 2
-    )
-    chunks_tiles = tuple(busy[i:j] for i, j, _ in bounds)
-    return TileLayout(tile_size, tiles_x, tiles_y, pair_gauss, origin, chunks_tiles, tuple(starts), tuple(ks), total)
-
-
-def tile_basis(tile_size: int, dtype: torch.dtype = torch.float32) -> torch.Tensor:
-    """``[6, P]`` monomials ``(x^2, xy, y^2, x, y, 1)`` of the pixel centres relative to the tile centre."""
-    c = torch.arange(tile_size, dtype=torch.float64) + 0.5 - tile_size / 2
-    ly, lx = torch.meshgrid(c, c, indexing="ij")
-    lx, ly = lx.reshape(-1), ly.reshape(-1)
-    return torch.stack([lx * lx, lx * ly, ly * ly, lx, ly, torch.ones_like(lx)]).to(dtype)
-
-
-def pair_coefficients(
-    means2d: torch.Tensor, conics: torch.Tensor, log_opacity: torch.Tensor, layout: TileLayout
-) -> torch.Tensor:
-    """``[L, 6]`` coefficients of ``sigma - log(o)`` as a quadratic in tile-local pixel coordinates.
-
-    Differentiable (autograd) in ``means2d [N, 2]``, ``conics [N, 3]`` (a, b, c of the inverse 2D
-    covariance ``[[a, b], [b, c]]``) and ``log_opacity [N]``. Padding pairs get a huge constant term.
-    """
-    pad = PAD_LOG_TERM
-    # index_select (backward: index_add) rather than fancy indexing (backward: a sorting index_put).
-    idx = layout.pair_gauss
-    m = torch.index_select(torch.cat([means2d, means2d.new_zeros(1, 2)]), 0, idx) - layout.pair_origin.to(means2d.dtype)
-    con = torch.index_select(torch.cat([conics, conics.new_zeros(1, 3)]), 0, idx)
-    log_o = torch.index_select(torch.cat([log_opacity, log_opacity.new_full((1,), -pad)]), 0, idx)
-    a, b, c = con.unbind(1)
-    u, v = m.unbind(1)
-    const = 0.5 * a * u * u + b * u * v + 0.5 * c * v * v - log_o
-    return torch.stack([0.5 * a, b, 0.5 * c, -(a * u + b * v), -(b * u + c * v), const], dim=1)
-
-
-def _chunk_forward(
-    coef: torch.Tensor, basis: torch.Tensor, feat: torch.Tensor, background: torch.Tensor
-) -> tuple[torch.Tensor, tuple]:
-    """Composite one chunk.
-
-    Args:
-        coef: ``[b, K, 6]``; basis: ``[6, P]``; feat: ``[b, K, F]``; background: ``[F]``.
-    Returns:
-        ``out [b, P, F]`` and what the backward needs: the weights ``w_k = T_k alpha_k``, the ratios
-        ``alpha_k / (1 - alpha_k)``, the mask of unclamped alphas and the final transmittance.
-    """
-    alpha = torch.exp_(torch.matmul(-coef, basis))  # o * exp(-sigma), [b, K, P]
-    torch.nn.functional.threshold_(alpha, ALPHA_MIN, 0.0)
-    unclamped = alpha < ALPHA_MAX
-    alpha.clamp_(max=ALPHA_MAX)
-    one_minus = 1.0 - alpha
-    b, k, p = alpha.shape
-    trans = alpha.new_empty(b, k + 1, p)
-    trans[:, 0] = 1.0
-    torch.cumprod(one_minus, dim=1, out=trans[:, 1:])
-    weight = trans[:, :-1] - trans[:, 1:]  # T_k - T_{k+1} = T_k alpha_k
-    t_final = trans[:, -1]
-    out = torch.baddbmm(t_final[:, :, None] * background, weight.transpose(1, 2), feat)
-    ratio = alpha.div_(one_minus)
-    return out, (weight, ratio, unclamped, t_final)
+def _numpy(x: torch.Tensor, dtype: torch.dtype) -> np.ndarray:
+    return x.detach().to(dtype).contiguous().numpy()
 
 
 class _Composite(torch.autograd.Function):
-    """``(coef [L, 6], feat [L, F], background [F]) -> (features [tiles, P, F], alpha [tiles, P])``,
-    with a hand-written backward.
-
-    For output ``o = sum_k w_k f_k + T_N bg`` with ``w_k = T_k alpha_k`` and ``s_k = -log alpha_k``
-    (before clamping), ``dL/ds_k = -(w_k g_k - alpha_k / (1 - alpha_k) S_k)`` where
-    ``g_k = f_k . dL/do`` and ``S_k = sum_{j>k} w_j g_j + T_N bg . dL/do``. The forward keeps each
-    chunk's ``w``, ``alpha / (1 - alpha)`` and masks for the backward while they total at most
-    ``cache_elements`` values; past that the backward recomputes them chunk by chunk.
-    """
+    """``(means2d [N, 2], conics [N, 3], log_opacity [N], feat [N, F], background [F]) ->
+    (features [H, W, F], alpha [H, W])`` through the compiled kernels."""
 
     @staticmethod
-    def forward(ctx, coef, feat, background, layout: TileLayout, cache_elements: int):
-        basis = tile_basis(layout.tile_size, coef.dtype)
-        p = basis.shape[1]
-        out = background.detach().expand(layout.num_tiles, p, feat.shape[1]).clone()
-        out_alpha = coef.new_zeros(layout.num_tiles, p)
-        keep = any(ctx.needs_input_grad[:3]) and 2 * layout.padded_evaluations <= cache_elements
-        cache = []
-        for tiles, start, k in zip(layout.tile_ids, layout.starts, layout.ks):
-            b = len(tiles)
-            out[tiles], saved = _chunk_forward(
-                coef[start : start + b * k].view(b, k, 6), basis, feat[start : start + b * k].view(b, k, -1), background
-            )
-            out_alpha[tiles] = 1.0 - saved[3]
-            if keep:
-                cache.append(saved)
-        ctx.layout = layout
-        ctx.cache = cache if keep else None
-        ctx.save_for_backward(coef, feat, background)
-        return out, out_alpha
+    def forward(ctx, means2d, conics, log_opacity, feat, background, layout: TileLayout, width: int, height: int):
+        dtype = feat.dtype
+        inputs = [_numpy(x, dtype) for x in (means2d, conics, log_opacity, feat, background)]
+        out = np.empty((height, width, feat.shape[1]), inputs[0].dtype)
+        t_final = np.empty((height, width), inputs[0].dtype)
+        order = _balanced_tile_order(layout)
+        _forward(layout.tile_start, layout.pair_gauss, *inputs, layout.tile_size, layout.tiles_x, order, out, t_final)
+        ctx.layout, ctx.inputs, ctx.out, ctx.t_final = layout, inputs, out, t_final
+        return torch.from_numpy(out), torch.from_numpy(1.0 - t_final)
 
     @staticmethod
     def backward(ctx, grad_out, grad_alpha):
-        coef, feat, background = ctx.saved_tensors
         layout: TileLayout = ctx.layout
-        basis = tile_basis(layout.tile_size, coef.dtype)
-        grad_coef = torch.zeros_like(coef)
-        grad_feat = torch.zeros_like(feat)
-        grad_bg = torch.zeros_like(background)
-        covered = torch.zeros(layout.num_tiles, dtype=torch.bool)
-        for c, (tiles, start, k) in enumerate(zip(layout.tile_ids, layout.starts, layout.ks)):
-            b = len(tiles)
-            f = feat[start : start + b * k].view(b, k, -1)
-            if ctx.cache is not None:
-                weight, ratio, unclamped, t_final = ctx.cache[c]
-            else:
-                _, (weight, ratio, unclamped, t_final) = _chunk_forward(
-                    coef[start : start + b * k].view(b, k, 6), basis, f, background
-                )
-            g_out = grad_out[tiles]  # [b, P, F]
-            wg = weight * torch.matmul(f, g_out.transpose(1, 2))  # w_k g_k, [b, K, P]
-            # The background enters through T_N, and so does the alpha output 1 - T_N.
-            total = (
-                wg.sum(dim=1, keepdim=True)
-                + (t_final * (torch.matmul(g_out, background) - grad_alpha[tiles]))[:, None, :]
-            )
-            suffix = torch.sub(total, torch.cumsum(wg, dim=1))  # S_k
-            d_s = torch.addcmul(wg, suffix, ratio, value=-1.0).mul_(unclamped)  # -dL/ds
-            grad_coef[start : start + b * k] = torch.matmul(d_s, basis.T).neg_().reshape(b * k, 6)
-            grad_feat[start : start + b * k] = torch.matmul(weight, g_out).reshape(b * k, -1)
-            grad_bg += torch.einsum("bp,bpf->f", t_final, g_out)
-            covered[tiles] = True
-        grad_bg += grad_out[~covered].sum(dim=(0, 1))
-        ctx.cache = None
-        return grad_coef, grad_feat, grad_bg, None, None
+        torch_dtype = torch.from_numpy(ctx.out[:0]).dtype
+        num, num_feat = ctx.inputs[3].shape
+        threads = numba.get_num_threads()
+        grad_gauss = np.zeros((threads, num, PAIR_GRADS + num_feat), ctx.out.dtype)
+        grad_bg = np.zeros((threads, num_feat), ctx.out.dtype)
+        _backward(
+            layout.tile_start,
+            layout.pair_gauss,
+            *ctx.inputs,
+            layout.tile_size,
+            layout.tiles_x,
+            ctx.out,
+            ctx.t_final,
+            _numpy(grad_out, torch_dtype),
+            _numpy(grad_alpha, torch_dtype),
+            _balanced_tile_order(layout),
+            grad_gauss,
+            grad_bg,
+        )
+        ctx.inputs = ctx.out = ctx.t_final = None
+        per_gauss = torch.from_numpy(grad_gauss.sum(axis=0) if threads > 1 else grad_gauss[0])
+        grads = (per_gauss[:, :2], per_gauss[:, 2:5], per_gauss[:, 5], per_gauss[:, PAIR_GRADS:])
+        return (*grads, torch.from_numpy(grad_bg.sum(axis=0)), None, None, None)
+
+
+def _balanced_tile_order(layout: TileLayout) -> np.ndarray:
+    """Tiles ordered so that numba's static split of a ``prange`` gives each thread every
+    ``threads``-th row of tiles (the busy rows of an image are next to each other). Fixed for a given
+    thread count, so results are deterministic."""
+    threads = numba.get_num_threads()
+    rows = np.arange(layout.num_tiles) // layout.tiles_x
+    return np.argsort(rows % threads, kind="stable")
 
 
 def composite(
-    coef: torch.Tensor,
+    means2d: torch.Tensor,
+    conics: torch.Tensor,
+    log_opacity: torch.Tensor,
     feat: torch.Tensor,
     background: torch.Tensor,
     layout: TileLayout,
     width: int,
     height: int,
-    *,
-    cache_elements: int = 1 << 27,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Composite per-pair features into an image.
+    """Composite the Gaussians' features into an image, differentiably.
 
     Args:
-        coef: ``[L, 6]`` from :func:`pair_coefficients`.
-        feat: ``[L, F]`` per padded pair features (e.g. rgb, depth).
-        background: ``[F]`` value where nothing covers a pixel.
-        cache_elements: float32 values the forward may keep for the backward (default 512 MiB).
+        means2d: ``[N, 2]``, conics: ``[N, 3]``, log_opacity: ``[N]`` as from
+            :func:`ffrecon.splat.render.project_gaussians`; feat: ``[N, F]`` per-Gaussian features (rgb,
+            depth); background: ``[F]``. All of one float dtype (float32 or float64).
+        layout: from :func:`bin_gaussians` with the same means, conics and opacities.
     Returns:
         ``features [height, width, F]`` and ``alpha [height, width]`` (1 - final transmittance).
     """
-    tiles, alpha = _Composite.apply(coef, feat, background, layout, cache_elements)
-    t, f = layout.tile_size, feat.shape[1]
-    img = tiles.view(layout.tiles_y, layout.tiles_x, t, t, f).permute(0, 2, 1, 3, 4)
-    alpha = alpha.view(layout.tiles_y, layout.tiles_x, t, t).permute(0, 2, 1, 3)
-    rows, cols = layout.tiles_y * t, layout.tiles_x * t
-    return img.reshape(rows, cols, f)[:height, :width], alpha.reshape(rows, cols)[:height, :width]
+    return _Composite.apply(means2d, conics, log_opacity, feat, background, layout, width, height)
+
+
+def kernel_threads() -> int:
+    """Cores this process may use (the compiled kernels' default thread count)."""
+    available = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return max(1, min(available, numba.config.NUMBA_NUM_THREADS))
+
+
+@contextlib.contextmanager
+def raster_threads(num: int):
+    """Run the compiled kernels on ``num`` threads inside the block (clipped to numba's pool)."""
+    before = numba.get_num_threads()
+    numba.set_num_threads(max(1, min(num, numba.config.NUMBA_NUM_THREADS)))
+    try:
+        yield
+    finally:
+        numba.set_num_threads(before)

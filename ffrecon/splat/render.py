@@ -23,13 +23,7 @@ import numpy as np
 import torch
 
 from ffrecon.splat.gaussians import Gaussians, sh_to_rgb
-from ffrecon.splat.raster import (
-    ALPHA_MIN,
-    TileLayout,
-    bin_gaussians,
-    composite,
-    pair_coefficients,
-)
+from ffrecon.splat.raster import ALPHA_MIN, TileLayout, bin_gaussians, composite
 from ffrecon.types import PinholeCamera
 
 
@@ -38,7 +32,6 @@ class RasterOptions:
     tile_size: int = 8  # pixels; 8 measured fastest at 320x240 (4: more pairs, 16: more wasted pixels)
     near: float = 0.01  # Gaussians whose centre has camera z below this are culled
     eps2d: float = 0.3  # pixels^2 added to the projected covariance (3DGS / gsplat default)
-    chunk_elements: int = 1 << 17  # size of one chunk's [tiles, K, P] work arrays (measured: 2^16 and 2^18 slower)
 
 
 @dataclass(frozen=True)
@@ -186,26 +179,23 @@ def render(
     else:
         rgb = colors
     layout = bin_gaussians(
-        proj.means2d.detach(),
+        proj.means2d,
+        proj.conics,
+        proj.log_opacity,
         proj.extent,
-        proj.depths.detach(),
+        proj.depths,
         proj.visible,
         width,
         height,
-        conics=proj.conics.detach(),
-        log_opacity=proj.log_opacity.detach(),
         tile_size=options.tile_size,
-        chunk_elements=options.chunk_elements,
     )
-    coef = pair_coefficients(proj.means2d, proj.conics, proj.log_opacity, layout)
     feat = torch.cat([rgb, proj.depths[:, None]], dim=1) if with_depth else rgb
-    feat = torch.index_select(torch.cat([feat, feat.new_zeros(1, feat.shape[1])]), 0, layout.pair_gauss)
     bg = torch.zeros(3, dtype=dtype) if background is None else background.to(dtype)
     if with_depth:
         bg = torch.cat([bg, bg.new_zeros(1)])
-    img, alpha = composite(coef, feat, bg, layout, width, height)
+    img, alpha = composite(proj.means2d, proj.conics, proj.log_opacity, feat.to(dtype), bg, layout, width, height)
     visible = torch.zeros(len(means), dtype=torch.bool)
-    visible[layout.pair_gauss[layout.pair_gauss < len(means)]] = True
+    visible[torch.from_numpy(layout.pair_gauss)] = True
     return RenderOutput(
         rgb=img[..., :3],
         alpha=alpha,
