@@ -25,6 +25,7 @@ from ffrecon.splat.appearance import appearance_penalty, apply_color_transform, 
 from ffrecon.splat.densify import Densifier, DensifyOptions, replace_rows
 from ffrecon.splat.gaussians import Gaussians
 from ffrecon.splat.render import RasterOptions, render
+from ffrecon.splat.ssim import ssim_mean
 
 logger = logging.getLogger("ffrecon.splat")
 
@@ -48,8 +49,16 @@ class OptimizeOptions:
     per-photo channel gains in [0.7, 1.3], colour-corrected held-out PSNR 24.62 dB off, 25.81 dB on.
     ``lr_appearance`` 2e-3 adds 0.14 dB to the latter but costs 0.14 dB at constant exposure."""
 
-    iterations: int = 3000  # upper bound; the time budget usually ends the run first on a CPU
-    max_seconds: float = 120.0
+    iterations: int = 3000  # the plan: learning rates, resolution, SH and densification follow it
+    max_seconds: float = 120.0  # upper bound on the optimisation time (the plan is then compressed to fit)
+    # Coarse to fine: (fraction of the plan, downscale factor) from which that resolution is used.
+    resolution_schedule: tuple[tuple[float, int], ...] = ((0.0, 1),)
+    # Stop on a plateau of the training loss: once the plan is past ``plateau_after`` (full resolution,
+    # densification over), stop when the mean loss of the last ``plateau_window`` iterations fell by
+    # less than ``plateau_tolerance`` (relative) against the window before. 0 windows: never.
+    plateau_window: int = 0
+    plateau_tolerance: float = 0.002
+    plateau_after: float = 0.6
     ssim_weight: float = 0.2  # loss = (1 - w) L1 + w (1 - SSIM), as 3DGS
     lr_means: float = 1.6e-4  # times the scene scale, decaying log-linearly to lr_means_final
     lr_means_final: float = 1.6e-6
@@ -84,6 +93,12 @@ class OptimizeOptions:
         PSNR 22.6 dB with only positions x10, 26.2 dB with this preset (26.7 dB with densification).
         """
         base = OptimizeOptions()
+        schedule = {
+            "iterations": 1500,
+            "resolution_schedule": ((0.0, 4), (0.1, 2), (0.3, 1)),
+            "sh_band_every": 150,
+            "plateau_window": 100,
+        }
         rates = {
             "lr_means": base.lr_means * 10,
             "lr_scales": base.lr_scales * 10,
@@ -92,7 +107,7 @@ class OptimizeOptions:
             "lr_quats": base.lr_quats * 3,
             "lr_opacity": base.lr_opacity * 2,
         }
-        return replace(base, **{**rates, **overrides})
+        return replace(base, **{**schedule, **rates, **overrides})
 
 
 @dataclass(frozen=True)
@@ -103,6 +118,7 @@ class OptimizeResult:
     iterations: int
     seconds: float  # optimisation time, callbacks excluded
     history: tuple[tuple[int, float, float], ...]  # (iteration, seconds, loss) every 10 iterations
+    stop_reason: str = ""  # "plateau", "iterations" or "time budget"
 
 
 def scene_scale(cam_from_world: np.ndarray, points: np.ndarray) -> float:
@@ -117,32 +133,12 @@ def scene_scale(cam_from_world: np.ndarray, points: np.ndarray) -> float:
     return radius if radius > 0.05 * extent else max(extent, 1e-6)
 
 
-def ssim_map(x: torch.Tensor, y: torch.Tensor, *, window: int = 11, sigma: float = 1.5) -> torch.Tensor:
-    """SSIM map of ``[C, H, W]`` images in [0, 1] (Gaussian window, zero padding, standard C1, C2).
-
-    A separable version of the usual definition, all five local moments in one pair of 1D
-    convolutions: about twice as fast as a dense 11x11 window on the CPU.
-    """
-    c = x.shape[0]
-    coords = torch.arange(window, dtype=x.dtype) - window // 2
-    g = torch.exp(-(coords**2) / (2 * sigma**2))
-    g = g / g.sum()
-    stack = torch.cat([x, y, x * x, y * y, x * y])[None]  # [1, 5C, H, W]
-    k = 5 * c
-    blurred = F.conv2d(stack, g.view(1, 1, 1, -1).expand(k, 1, 1, window), padding=(0, window // 2), groups=k)
-    blurred = F.conv2d(blurred, g.view(1, 1, -1, 1).expand(k, 1, window, 1), padding=(window // 2, 0), groups=k)[0]
-    mx, my, exx, eyy, exy = blurred.split(c)
-    c1, c2 = 0.01**2, 0.03**2
-    sxx, syy, sxy = exx - mx * mx, eyy - my * my, exy - mx * my
-    return ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sxx + syy + c2))
-
-
 def photometric_loss(rendered: torch.Tensor, target: torch.Tensor, ssim_weight: float) -> torch.Tensor:
     """``(1 - w) L1 + w (1 - SSIM)`` of ``[H, W, 3]`` images."""
     l1 = (rendered - target).abs().mean()
     if ssim_weight == 0:
         return l1
-    ssim = ssim_map(rendered.permute(2, 0, 1), target.permute(2, 0, 1)).mean()
+    ssim = ssim_mean(rendered.permute(2, 0, 1), target.permute(2, 0, 1))
     return (1 - ssim_weight) * l1 + ssim_weight * (1 - ssim)
 
 
@@ -231,6 +227,8 @@ class _TrainingViews:
     cam_from_world: np.ndarray  # [N, 3, 4] float64, as given
     train: list[int]
     render: Callable  # ffrecon's CPU renderer, or gsplat's on CUDA (same signature)
+    # Per downscale factor of the resolution schedule (1 included): the images and their intrinsics.
+    levels: dict[int, tuple[list[torch.Tensor], torch.Tensor]] = field(default_factory=dict)
 
 
 def _training_views(images, cam_from_world, Ks, train: list[int], options: OptimizeOptions) -> _TrainingViews:
@@ -238,15 +236,49 @@ def _training_views(images, cam_from_world, Ks, train: list[int], options: Optim
     render_fn = render
     if dev.type == "cuda":
         from ffrecon.splat.render_gsplat import render_gsplat as render_fn
+    images = [im.to(dev) for im in images]
+    k_mats = torch.as_tensor(np.asarray(Ks, np.float32), device=dev)
+    factors = {factor for _, factor in options.resolution_schedule} | {1}
     return _TrainingViews(
-        images=[im.to(dev) for im in images],
+        images=images,
         poses=torch.as_tensor(np.asarray(cam_from_world, np.float32), device=dev),
-        k_mats=torch.as_tensor(np.asarray(Ks, np.float32), device=dev),
+        k_mats=k_mats,
         background=torch.tensor(options.background, dtype=torch.float32, device=dev),
         cam_from_world=np.asarray(cam_from_world, np.float64),
         train=train,
         render=render_fn,
+        levels={f: downscaled(images, k_mats, f, train) for f in sorted(factors)},
     )
+
+
+def downscaled(
+    images: list[torch.Tensor], k_mats: torch.Tensor, factor: int, views: Sequence[int]
+) -> tuple[list[torch.Tensor], torch.Tensor]:
+    """``views`` of ``images`` (``[H, W, 3]``) area-averaged by ``factor`` and their intrinsics
+    ``[N, 3, 3]``; the other views are left as they are.
+
+    Under COLMAP's pixel-centre rule image coordinates scale linearly (the top-left corner is at 0), so
+    ``fx, cx`` are multiplied by ``new_width / width`` and ``fy, cy`` by ``new_height / height``.
+    """
+    if factor == 1:
+        return images, k_mats
+    out, ks = list(images), k_mats.clone()
+    for i in views:
+        h, w = images[i].shape[:2]
+        size = (max(1, round(h / factor)), max(1, round(w / factor)))
+        out[i] = F.interpolate(images[i].permute(2, 0, 1)[None], size=size, mode="area")[0].permute(1, 2, 0)
+        ks[i, 0] *= size[1] / w
+        ks[i, 1] *= size[0] / h
+    return out, ks
+
+
+def resolution_factor(options: OptimizeOptions, fraction: float) -> int:
+    """The downscale factor of the resolution schedule at ``fraction`` of the plan."""
+    factor = 1
+    for start, f in options.resolution_schedule:
+        if fraction >= start:
+            factor = f
+    return factor
 
 
 def _trainable(
@@ -349,12 +381,15 @@ def _train_step(
     sh_degree: int,
     options: OptimizeOptions,
     densifier: Densifier | None,
+    factor: int = 1,
 ) -> torch.Tensor:
-    """One iteration on one view: render, colour transform, loss, backward, densification statistics, Adam step.
+    """One iteration on one view at 1/``factor`` resolution: render, colour transform, loss, backward,
+    densification statistics, Adam step.
 
     Returns the loss (detached).
     """
-    target = views.images[view]
+    images, k_mats = views.levels.get(factor, (views.images, views.k_mats))
+    target = images[view]
     height, width = target.shape[:2]
     g = _as_gaussians(params)
     out = views.render(
@@ -364,7 +399,7 @@ def _train_step(
         g.opacity_logits,
         g.sh,
         _view_pose(params, views, view),
-        views.k_mats[view],
+        k_mats[view],
         width,
         height,
         background=views.background,
@@ -406,6 +441,31 @@ def _densify(
     return {**params, **resized}
 
 
+class _Plateau:
+    """Detects a plateau of the training loss: the mean over the last ``plateau_window`` iterations
+    (all at full resolution, past ``plateau_after`` of the plan) improved by less than
+    ``plateau_tolerance`` (relative) on the mean of the window before. A window of about five rounds
+    of the training views averages out how much harder one view is than another."""
+
+    def __init__(self, options: OptimizeOptions) -> None:
+        self.options = options
+        self.losses: list[float] = []
+        self.previous: float | None = None
+
+    def reached(self, loss: float, fraction: float, factor: int) -> bool:
+        o = self.options
+        if o.plateau_window <= 0 or factor != 1 or fraction < o.plateau_after:
+            return False
+        self.losses.append(loss)
+        if len(self.losses) < o.plateau_window:
+            return False
+        mean = float(np.mean(self.losses))
+        self.losses.clear()
+        done = self.previous is not None and (self.previous - mean) < o.plateau_tolerance * self.previous
+        self.previous = mean
+        return done
+
+
 def _optimize(
     gaussians, images, cam_from_world, Ks, train, options: OptimizeOptions, *, scale, callback, callback_every
 ) -> OptimizeResult:
@@ -422,31 +482,46 @@ def _optimize(
     if o.densify is not None:
         densifier = Densifier(len(params["means"]), o.densify, scale, o.max_gaussians, o.seed, o.device)
     history: list[tuple[int, float, float]] = []
+    plateau = _Plateau(o)
     order: list[int] = []
-    elapsed, it = 0.0, 0
+    elapsed, it, reason = 0.0, 0, "iterations"
     disable = None if o.progress else True  # None: off when not a terminal
     bar = tqdm(total=o.iterations, desc="splat", unit="it", disable=disable, leave=False)
-    while it < o.iterations and elapsed < o.max_seconds:
+    while it < o.iterations:
+        if elapsed >= o.max_seconds:
+            reason = "time budget"
+            break
         start = time.perf_counter()
         fraction = max(it / o.iterations, elapsed / o.max_seconds)
         _set_lr(adam, "means", _log_lerp(o.lr_means * scale, o.lr_means_final * scale, fraction))
         if not order:
             order = [train[j] for j in rng.permutation(len(train))]
         degree = min(o.sh_degree, it // max(o.sh_band_every, 1))
-        loss = _train_step(params, adam, views, order.pop(), degree, o, densifier)
+        factor = resolution_factor(o, fraction)
+        loss = _train_step(params, adam, views, order.pop(), degree, o, densifier, factor).item()
         it += 1
         if densifier is not None and densifier.due(it, fraction):
             params = _densify(densifier, params, adam)
         elapsed += time.perf_counter() - start
         if it % 10 == 0:
-            history.append((it, elapsed, loss.item()))
-            bar.set_postfix(loss=f"{loss.item():.4f}", n=len(params["means"]))
+            history.append((it, elapsed, loss))
+            bar.set_postfix(loss=f"{loss:.4f}", n=len(params["means"]), res=f"1/{factor}")
         bar.update(1)
         if callback is not None and callback_every and it % callback_every == 0:
             callback(it, elapsed, _as_gaussians(params).detached().to("cpu"), _current_poses(params, views))
+        if plateau.reached(loss, fraction, factor):
+            reason = "plateau"
+            break
     bar.close()
     rate = it / max(elapsed, 1e-9)
-    logger.info("splat: %d iterations in %.1f s (%.2f it/s), %d Gaussians", it, elapsed, rate, len(params["means"]))
+    logger.info(
+        "splat: %d iterations in %.1f s (%.2f it/s), %d Gaussians, stopped by %s",
+        it,
+        elapsed,
+        rate,
+        len(params["means"]),
+        reason,
+    )
     return OptimizeResult(
         gaussians=_as_gaussians(params).detached().to("cpu"),
         cam_from_world=_current_poses(params, views),
@@ -454,4 +529,5 @@ def _optimize(
         iterations=it,
         seconds=elapsed,
         history=tuple(history),
+        stop_reason=reason,
     )

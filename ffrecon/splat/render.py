@@ -23,6 +23,7 @@ import numpy as np
 import torch
 
 from ffrecon.splat.gaussians import Gaussians, sh_to_rgb
+from ffrecon.splat.project import project
 from ffrecon.splat.raster import ALPHA_MIN, TileLayout, bin_gaussians, composite
 from ffrecon.types import PinholeCamera
 
@@ -87,6 +88,11 @@ def project_gaussians(
         cam_from_world: ``[3, 4]`` (or ``[4, 4]``) OpenCV pose; may require grad.
         K: ``[3, 3]`` intrinsics for ``width x height``.
     """
+    if means.device.type == "cpu":
+        means2d, conics, depths, log_opacity, extent, ok = project(
+            means, quats_wxyz, log_scales, opacity_logits, cam_from_world, K, width, height, near, eps2d
+        )
+        return Projected(means2d, conics, depths, log_opacity, extent, ok)
     rot, trans = cam_from_world[:3, :3], cam_from_world[:3, 3]
     p_cam = means @ rot.T + trans
     x, y, z = p_cam.unbind(1)

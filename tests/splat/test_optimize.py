@@ -10,8 +10,9 @@ from ffrecon.geometry.poses import look_at_cam_from_world
 from ffrecon.geometry.rotations import axis_angle_to_matrix, rotation_angle_deg
 from ffrecon.splat.densify import Densifier, DensifyOptions, replace_rows
 from ffrecon.splat.gaussians import Gaussians, rgb_to_sh_dc
-from ffrecon.splat.optimize import OptimizeOptions, optimize, ssim_map
+from ffrecon.splat.optimize import OptimizeOptions, optimize
 from ffrecon.splat.render import render
+from ffrecon.splat.ssim import ssim_map
 
 W, H = 64, 48
 K = np.array([[60.0, 0, 32], [0, 60.0, 24], [0, 0, 1]])
@@ -175,3 +176,18 @@ def test_ssim_map_matches_kornia_inside_the_border():
     ours = ssim_map(a, b)[:, 5:-5, 5:-5]
     ref = kornia.metrics.ssim(a[None], b[None], 11)[0][:, 5:-5, 5:-5]
     assert torch.allclose(ours, ref, atol=1e-4)
+
+
+def test_fused_ssim_mean_and_gradient_match_autograd_of_the_map():
+    from ffrecon.splat.ssim import ssim_mean
+
+    gen = torch.Generator().manual_seed(1)
+    a = torch.rand(3, 37, 45, generator=gen, requires_grad=True)
+    b = 0.6 * a.detach() + 0.4 * torch.rand(3, 37, 45, generator=gen)
+    ref = ssim_map(a, b).mean()
+    ref.backward()
+    expected, a.grad = a.grad.clone(), None
+    ours = ssim_mean(a, b)
+    ours.backward()
+    assert abs(float(ours) - float(ref)) < 1e-6
+    assert torch.allclose(a.grad, expected, rtol=1e-4, atol=1e-4 * float(expected.abs().max()))
