@@ -109,9 +109,8 @@ def _gaussian_factor(i, quats, log_scales, m, qn, rq, s):
 
 
 @njit(cache=True)
-def _scratch():
+def _scratch(threads):
     """Per-thread work arrays: p, jac, m, qn, rq, s, t_mat, tmp23, sigma, tmp33, d_cov, tmp22, dt23."""
-    threads = numba.get_num_threads()
     return (
         np.empty((threads, 3)),
         np.empty((threads, 2, 3)),
@@ -131,11 +130,11 @@ def _scratch():
 
 @njit(cache=True, parallel=True)
 def _project(
-    means, quats, log_scales, logits, rot, trans, cam, near, eps2d, means2d, conics, depths, log_op, extent, ok
+    means, quats, log_scales, logits, rot, trans, cam, near, eps2d, means2d, conics, depths, log_op, extent, ok, threads
 ):
     """Forward: per Gaussian the pixel centre, conic, depth, log opacity, the box half-size outside
     which alpha < 1/255 and whether it can be drawn (in front, positive-definite, alpha can reach 1/255)."""
-    ps, jacs, ms, qns, rqs, ss, ts, as_, _, _, _, _, _ = _scratch()
+    ps, jacs, ms, qns, rqs, ss, ts, as_, _, _, _, _, _ = _scratch(threads)
     for i in prange(means.shape[0]):
         me = numba.get_thread_id()
         p, jac, m, t_mat, a_mat = ps[me], jacs[me], ms[me], ts[me], as_[me]
@@ -183,7 +182,22 @@ def _quat_backward(qn, dr, dqn):
 
 @njit(cache=True, parallel=True)
 def _project_backward(
-    means, quats, log_scales, logits, rot, trans, cam, near, eps2d, d_means2d, d_conics, d_depths, d_logop, out, pose
+    means,
+    quats,
+    log_scales,
+    logits,
+    rot,
+    trans,
+    cam,
+    near,
+    eps2d,
+    d_means2d,
+    d_conics,
+    d_depths,
+    d_logop,
+    out,
+    pose,
+    threads,
 ):
     """Backward: ``out [N, 11]`` (means 3, quaternion 4, log scales 3, logit 1) and the pose's
     ``pose [threads, 12]`` (d rot row-major, then d trans), summed by the caller.
@@ -191,7 +205,7 @@ def _project_backward(
     Long because it is the chain rule of :func:`_project` written out step by step, each step
     commented with the forward relation it inverts.
     """
-    ps, jacs, ms, qns, rqs, ss, ts, tmp23s, sigmas, tmp33s, d_covs, tmp22s, dt23s = _scratch()
+    ps, jacs, ms, qns, rqs, ss, ts, tmp23s, sigmas, tmp33s, d_covs, tmp22s, dt23s = _scratch(threads)
     for i in prange(means.shape[0]):
         me = numba.get_thread_id()
         p, jac, m, qn, rq, s, t_mat = ps[me], jacs[me], ms[me], qns[me], rqs[me], ss[me], ts[me]
@@ -283,7 +297,7 @@ class _Project(torch.autograd.Function):
         inputs = (_arr(means), _arr(quats), _arr(log_scales), _arr(logits))
         outs = [np.empty(shape, np.float64) for shape in ((n, 2), (n, 3), (n,), (n,), (n, 2))]
         ok = np.empty(n, np.bool_)
-        _project(*inputs, rot, trans, cam, near, eps2d, *outs, ok)
+        _project(*inputs, rot, trans, cam, near, eps2d, *outs, ok, numba.get_num_threads())
         ctx.saved = (inputs, rot, trans, cam, near, eps2d)
         ctx.pose_shape = cam_from_world.shape
         result = [torch.from_numpy(o).to(dtype) for o in outs]
@@ -302,7 +316,7 @@ class _Project(torch.autograd.Function):
         ]
         out = np.empty((n, 11))
         pose = np.zeros((numba.get_num_threads(), 12))
-        _project_backward(*inputs, rot, trans, cam, near, eps2d, *grads, out, pose)
+        _project_backward(*inputs, rot, trans, cam, near, eps2d, *grads, out, pose, pose.shape[0])
         out_t = torch.from_numpy(out).to(dtype)
         pose = pose.sum(0)
         d_pose = torch.zeros(ctx.pose_shape, dtype=dtype)

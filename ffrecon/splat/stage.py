@@ -75,7 +75,7 @@ class SplatOptions:
     video: bool = True  # flythrough.mp4 along a smooth path through the cameras
     video_frames: int = 90
     report_views: int = 3  # held-out views rendered into renders/ for the report
-    curve_every: int = 0  # score the held-out views every this many iterations (0: only at the end)
+    curve_every: int = 100  # score the held-out views every this many iterations (0: only at the end)
     compare_seeds: bool = False  # read by the pipeline: also train from COLMAP's points, same budget
     device: SplatDevice | str = SplatDevice.AUTO
     optimize: OptimizeOptions = field(default_factory=OptimizeOptions.brief)
@@ -133,6 +133,7 @@ class SplatResult:
     # (iteration, optimisation seconds, mean held-out PSNR dB, SSIM) every ``curve_every`` iterations,
     # from the seed (iteration 0) on; plain renders of the uncleaned splat. Empty when not asked for.
     heldout_curve: tuple[tuple[int, float, float, float], ...] = ()
+    stop_reason: str = ""  # what ended the optimisation: "plateau", "iterations" or "time budget"
 
     def mean(self, key: str) -> float:
         """Mean over held-out views of a :class:`ViewMetrics` field (nan without held-out views)."""
@@ -171,6 +172,7 @@ class SplatResult:
             "heldout_per_view": [{"name": v.name, **{k: getattr(v, k) for k in keys}} for v in self.heldout_metrics],
             "iterations": self.iterations,
             "iterations_per_second": self.iterations_per_second,
+            "stop_reason": self.stop_reason,
             "gaussians": {"seed": self.count_seed, "optimized": self.count_optimized, "cleaned": self.count_cleaned},
             "cleaning": self.clean.to_dict(),
             "timings_s": self.timings.to_report(),
@@ -355,6 +357,7 @@ def _splat(
         cam_from_world=poses,
         color_transforms=result.color_transforms,
         heldout_curve=tuple(curve),
+        stop_reason=result.stop_reason,
     )
     _log_summary(res)
     return res
@@ -503,7 +506,7 @@ def _log_summary(res: SplatResult) -> None:
     if res.heldout_metrics:
         logger.info(
             "splat: held-out PSNR %.2f -> %.2f dB (cleaned %.2f, colour-corrected %.2f), SSIM %.3f -> %.3f; "
-            "%d iterations (%.2f it/s)",
+            "%d iterations (%.2f it/s, stopped by %s)",
             res.mean("psnr_seed"),
             res.mean("psnr_optimized"),
             res.mean("psnr_cleaned"),
@@ -512,4 +515,5 @@ def _log_summary(res: SplatResult) -> None:
             res.mean("ssim_optimized"),
             res.iterations,
             res.iterations_per_second,
+            res.stop_reason,
         )

@@ -69,7 +69,8 @@ def test_ply_round_trip(tmp_path, degree):
     b = render(
         back.means, back.quats_wxyz, back.log_scales, back.opacity_logits, back.sh, pose, K, 48, 36, sh_degree=degree
     )
-    assert float((a.rgb - b.rgb).abs().max()) < 1e-6 and float(a.rgb.std()) > 0.01
+    # 1e-5: the file stores unit quaternions in float32, which the projection renormalises in float64
+    assert float((a.rgb - b.rgb).abs().max()) < 1e-5 and float(a.rgb.std()) > 0.01
 
 
 def test_ply_pads_sh_degree(tmp_path):

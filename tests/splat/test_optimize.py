@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -10,7 +12,7 @@ from ffrecon.geometry.poses import look_at_cam_from_world
 from ffrecon.geometry.rotations import axis_angle_to_matrix, rotation_angle_deg
 from ffrecon.splat.densify import Densifier, DensifyOptions, replace_rows
 from ffrecon.splat.gaussians import Gaussians, rgb_to_sh_dc
-from ffrecon.splat.optimize import OptimizeOptions, optimize
+from ffrecon.splat.optimize import OptimizeOptions, downscaled, optimize, resolution_factor
 from ffrecon.splat.render import render
 from ffrecon.splat.ssim import ssim_map
 
@@ -191,3 +193,45 @@ def test_fused_ssim_mean_and_gradient_match_autograd_of_the_map():
     ours.backward()
     assert abs(float(ours) - float(ref)) < 1e-6
     assert torch.allclose(a.grad, expected, rtol=1e-4, atol=1e-4 * float(expected.abs().max()))
+
+
+def test_downscaled_views_keep_the_pixel_centre_rule():
+    """A render at half resolution with the halved intrinsics equals the full render area-averaged."""
+    truth = _truth(np.random.default_rng(3), n=600)
+    poses = _cameras(2)
+    full = _images(truth, poses)
+    k_mats = torch.tensor(np.stack([K] * 2), dtype=torch.float32)
+    small, small_k = downscaled(full, k_mats, 2, [0, 1])
+    assert small[0].shape == (H // 2, W // 2, 3)
+    assert torch.allclose(small_k[0, :2], k_mats[0, :2] / 2)
+
+    def render_small(k: torch.Tensor) -> torch.Tensor:
+        with torch.no_grad():
+            g = truth
+            pose = torch.tensor(poses[0], dtype=torch.float32)
+            args = (g.means, g.quats_wxyz, g.log_scales, g.opacity_logits, g.sh, pose, k, W // 2, H // 2)
+            return render(*args, sh_degree=0).rgb
+
+    shifted = small_k[0].clone()
+    shifted[:2, 2] -= 0.25  # what the other pixel-centre rule (centre of the top-left pixel at 0) would give
+    right, wrong = _psnr(render_small(small_k[0]), small[0]), _psnr(render_small(shifted), small[0])
+    assert right > 25.0 and right > wrong + 1.0, (right, wrong)
+    assert (
+        resolution_factor(OptimizeOptions.brief(), 0.05) == 4 and resolution_factor(OptimizeOptions.brief(), 0.5) == 1
+    )
+
+
+def test_training_stops_on_a_loss_plateau_or_its_plan():
+    rng = np.random.default_rng(4)
+    truth = _truth(rng)
+    poses = _cameras(5)
+    images = _images(truth, poses)
+    seed = truth.detached()  # already the answer: the loss is flat from the start
+    base = OptimizeOptions(sh_degree=0, densify=None, progress=False, max_seconds=1e9)
+    options = replace(
+        base, iterations=2000, resolution_schedule=((0.0, 2), (0.01, 1)), plateau_window=25, plateau_after=0.02
+    )
+    result = optimize(seed, images, poses, np.stack([K] * 5), [0, 1, 2, 3, 4], options, scale=1.0)
+    assert result.stop_reason == "plateau" and result.iterations < 200, (result.stop_reason, result.iterations)
+    result = optimize(seed, images, poses, np.stack([K] * 5), [0, 1, 2, 3, 4], replace(base, iterations=30), scale=1.0)
+    assert result.stop_reason == "iterations" and result.iterations == 30
