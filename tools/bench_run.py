@@ -1,0 +1,398 @@
+"""Benchmark: the whole ``ffrecon run`` against COLMAP alone on the same images, per stage, at several frame counts.
+
+For each frame count, a synthetic scene and its simulated VGGT model are made with
+``ffrecon.demo.prepare_demo`` (cached under ``$FFRECON_CACHE``; ``--seed`` other than the demo's 0 gives
+held-out scenes). Then, each in its own subprocess, timed wall-clock with its peak resident memory taken
+from the kernel when it ends (``os.wait4``; the child's own and its children's high-water mark):
+
+- COLMAP alone: ``run_colmap`` on the same images with the cross-check's default ``ColmapOptions`` (SIFT on
+  the CPU, exhaustive pairing up to 150 images, incremental then global mapping) and the focal priors the
+  pipeline would give it (EXIF only; none for these PNGs): the very code the pipeline's cross-check runs;
+- ``ffrecon run IMAGES -o OUT --model MODEL --reference GT [--quick]``, one per mode. ``GT`` is the scene's
+  ground truth written as a COLMAP model, so that the report scores the final cameras against it.
+
+Per-stage seconds come from each run's ``report.json`` ("timings"); "other" is the wall time no stage
+accounts for (interpreter start, imports, writing the report). Accuracy is AUC@5 and the median rotation
+error against ground truth (the refined cameras; the feed-forward ones when refinement did not run).
+PSNR is the splat's mean held-out PSNR after cleaning. The growth summary fits ``seconds = a * n^b`` over
+the frame counts (least squares in log-log) and prints ``b`` per stage. The splat stops at its time budget
+(``--splat-seconds``; 120 s by default), so its exponent says little about its cost.
+
+Usage (from the repository root)::
+
+    .venv/bin/python tools/bench_run.py                                  # 24 48 96 frames of 640x480 (long)
+    .venv/bin/python tools/bench_run.py --frames 8 --width 320 --height 240 --modes default --splat-seconds 10
+    .venv/bin/python tools/bench_run.py --frames 24 48 --json bench_run.json --keep --out /tmp/bench_run
+
+Timings on a shared machine are pessimistic; the load average is printed at the start and the end.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+# Columns of the table: report.json timing names, and groups of the small ones.
+STAGES = ("capture", "feedforward", "colmap", "refine", "splat", "exports")
+CHECKS = ("gates", "evidence", "comparisons", "seed_comparison")
+# Steps inside a stage, from its own timer in report.json: stage -> steps (the rest of the stage is not listed).
+STEPS = {"colmap": ("feature_extraction", "matching", "mapping"), "splat": ("optimize", "evaluate", "video")}
+GIB = 2.0**30
+RESULT_FILE = "bench_colmap.json"  # what the COLMAP-alone child writes into its output folder
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--frames", type=int, nargs="+", default=[24, 48, 96], help="frame counts (scenes)")
+    parser.add_argument("--width", type=int, default=640)
+    parser.add_argument("--height", type=int, default=480)
+    parser.add_argument("--modes", nargs="+", choices=("default", "quick"), default=["default", "quick"])
+    parser.add_argument("--seed", type=int, default=1, help="scene and model seed (the demo's is 0)")
+    parser.add_argument("--splat-seconds", type=float, default=None, help="passed to ffrecon run")
+    parser.add_argument("--out", type=Path, default=None, help="work folder (default: a temporary one)")
+    parser.add_argument("--keep", action="store_true", help="keep the runs' output folders")
+    parser.add_argument("--json", type=Path, default=None, help="also save the results here")
+    parser.add_argument("--colmap-only", nargs=2, type=Path, metavar=("IMAGES", "OUT"), help=argparse.SUPPRESS)
+    parser.add_argument("--truth", type=Path, default=None, help=argparse.SUPPRESS)  # scene folder, for the child
+    return parser
+
+
+def machine() -> dict:
+    """CPU count, load average, memory and versions, for the top of the output."""
+    mem_gb = float("nan")
+    meminfo = Path("/proc/meminfo")
+    if meminfo.is_file():
+        for line in meminfo.read_text().splitlines():
+            if line.startswith("MemTotal:"):
+                mem_gb = float(line.split()[1]) * 1024 / GIB
+    import pycolmap
+
+    import ffrecon
+
+    return {
+        "cpus": os.cpu_count(),
+        "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
+        "memory_gb": round(mem_gb, 1),
+        "platform": platform.platform(),
+        "python": platform.python_version(),
+        "pycolmap": pycolmap.__version__,
+        "ffrecon": ffrecon.__version__,
+    }
+
+
+def quick_available() -> bool:
+    """Whether ``ffrecon run`` knows ``--quick`` (asked of the command itself)."""
+    cmd = [sys.executable, "-m", "ffrecon", "run", "--help"]
+    return "--quick" in subprocess.run(cmd, capture_output=True, text=True, check=True).stdout
+
+
+def measured(cmd: list[str], log_path: Path) -> tuple[int, float, float]:
+    """Run ``cmd`` (output to ``log_path``): ``(exit code, wall seconds, peak resident memory GB)``.
+
+    The peak is the kernel's high-water mark of the child (and of its own waited-for children), from
+    ``os.wait4``: ``ru_maxrss`` of RUSAGE_CHILDREN would be the largest of all children so far.
+    """
+    with open(log_path, "w") as log:
+        start = time.perf_counter()
+        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT)
+        _, status, usage = os.wait4(proc.pid, 0)
+        wall = time.perf_counter() - start
+    proc.returncode = os.waitstatus_to_exitcode(status)  # reaped here; tell Popen so it does not wait again
+    return proc.returncode, wall, usage.ru_maxrss * 1024 / GIB  # ru_maxrss is in KiB on Linux
+
+
+def _tail(path: Path, lines: int = 8) -> str:
+    return "\n".join(path.read_text(errors="replace").splitlines()[-lines:]) if path.is_file() else ""
+
+
+# --- the COLMAP-alone child ---------------------------------------------------------------------------
+
+
+def _truth_poses(scene_dir: Path, names: list[str]) -> tuple[np.ndarray, np.ndarray]:
+    """Ground-truth ``[N, 3, 4]`` cam_from_world of ``names`` from ``ground_truth.json`` (not the images)."""
+    truth = json.loads((scene_dir / "ground_truth.json").read_text())
+    by_name = {f["name"]: np.asarray(f["cam_from_world"], np.float64) for f in truth["frames"]}
+    have = np.array([n in by_name for n in names])
+    return np.stack([by_name.get(n, np.eye(3, 4)) for n in names]), have
+
+
+def colmap_child(images: Path, out: Path, scene_dir: Path | None) -> None:
+    """COLMAP alone, as the pipeline's cross-check runs it; writes ``out/RESULT_FILE``.
+
+    Imports stay inside so that this process holds only what COLMAP needs (its peak memory is measured).
+    """
+    from ffrecon.capture.images import focal_prior_px, list_images, read_exif
+    from ffrecon.sfm.crosscheck import ColmapOptions, run_colmap
+    from ffrecon.sfm.features import image_sizes_wh
+
+    paths, _ = list_images(images)
+    names = [p.name for p in paths]
+    sizes = image_sizes_wh(images, names)
+    priors = [focal_prior_px(*size, *read_exif(p)[1:]) if size else None for p, size in zip(paths, sizes)]
+    start = time.perf_counter()
+    result = run_colmap(images, names, ColmapOptions(), out, focal_prior_px=priors)
+    row = {
+        "seconds": time.perf_counter() - start,
+        "steps": result.timings.to_report(),
+        "num_images": len(names),
+        "registered": result.num_registered,
+        "mapper": None if result.mapper is None else result.mapper.value,
+    }
+    if scene_dir is not None:
+        from ffrecon.geometry.metrics import pose_errors
+
+        truth, have = _truth_poses(scene_dir, names)
+        errors = pose_errors(result.cam_from_world[have], truth[have], result.registered[have])
+        row.update(auc5=errors.auc[5], med_rot=errors.median_rotation_deg, versus="ground truth")
+    (out / RESULT_FILE).write_text(json.dumps(row))
+
+
+# --- the parent: scenes, runs, rows -------------------------------------------------------------------
+
+
+def prepare(frames: int, width: int, height: int, seed: int):
+    """The scene and simulated model (cached), and the seconds it took."""
+    from ffrecon.demo import DemoOptions, prepare_demo
+    from ffrecon.synthetic import SceneOptions
+
+    start = time.perf_counter()
+    scene = SceneOptions(num_frames=frames, width=width, height=height, seed=seed)
+    inputs = prepare_demo(DemoOptions(scene=scene))
+    return inputs, time.perf_counter() - start
+
+
+def write_reference(scene_dir: Path, out: Path) -> Path:
+    """The ground truth of ``scene_dir`` as a COLMAP model (cameras and poses, no points), for ``--reference``."""
+    from ffrecon.sfm.colmap_io import reconstruction_from_cameras, write_reconstruction
+    from ffrecon.types import PinholeCamera
+
+    truth = json.loads((scene_dir / "ground_truth.json").read_text())
+    c = truth["camera"]
+    camera = PinholeCamera(int(c["width"]), int(c["height"]), c["fx"], c["fy"], c["cx"], c["cy"])
+    names = [f["name"] for f in truth["frames"]]
+    poses = np.array([f["cam_from_world"] for f in truth["frames"]], np.float64)
+    rec = reconstruction_from_cameras(names, poses, [camera] * len(names))
+    return write_reconstruction(rec, out)
+
+
+def run_colmap_alone(images: Path, scene_dir: Path, out: Path) -> dict:
+    shutil.rmtree(out, ignore_errors=True)
+    out.mkdir(parents=True)
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--colmap-only", str(images), str(out)]
+    code, wall, peak = measured([*cmd, "--truth", str(scene_dir)], out.parent / "colmap_alone.log")
+    row = {"method": "COLMAP alone", "exit": code, "wall_s": wall, "peak_gb": peak}
+    if code != 0 or not (out / RESULT_FILE).is_file():
+        row["error"] = _tail(out.parent / "colmap_alone.log")
+        return row
+    child = json.loads((out / RESULT_FILE).read_text())
+    steps = child["steps"]
+    row.update(
+        stages={"colmap": steps["total"]},
+        other_s=wall - steps["total"],
+        steps={f"colmap {k}": steps.get(k, 0.0) for k in STEPS["colmap"]},
+        registered=f"{child['registered']}/{child['num_images']}",
+        auc5=child.get("auc5"),
+        med_rot=child.get("med_rot"),
+    )
+    return row
+
+
+def ffrecon_command(images: Path, model: Path, out: Path, reference: Path, mode: str, args) -> list[str]:
+    cmd = [sys.executable, "-m", "ffrecon", "run", str(images), "-o", str(out), "--model", str(model)]
+    cmd += ["--reference", str(reference), "--overwrite"]
+    if mode == "quick":
+        cmd.append("--quick")
+    if args.splat_seconds is not None:
+        cmd += ["--splat-seconds", str(args.splat_seconds)]
+    return cmd
+
+
+def _accuracy(report: dict) -> dict:
+    """AUC@5 and median rotation against the reference model (ground truth): of every estimate, and the
+    headline one of the final cameras (those the run exported: refined, else feed-forward, else COLMAP's)."""
+    scores = {
+        comp["estimate"]: {
+            "auc5": comp["metrics"]["AUC@5"],
+            "med_rot": comp["metrics"]["median_rotation_deg"],
+            "registered": f"{comp['metrics']['num_registered']}/{comp['metrics']['num_images']}",
+        }
+        for comp in (report.get("pose_errors") or {}).values()
+        if comp["reference"] == "reference model"
+    }
+    final = (report.get("exports") or {}).get("cameras")
+    scored = final if final in scores else next((e for e in ("refined", "feed-forward", "COLMAP") if e in scores), None)
+    return {"accuracy": scores, **({"scored": scored, **scores[scored]} if scored else {})}
+
+
+def report_row(report: dict, wall: float) -> dict:
+    """Stage seconds, COLMAP's steps, accuracy and splat PSNR from a run's ``report.json``."""
+    timings = {name: t["seconds"] for name, t in report.get("timings", {}).items()}
+    stages = {name: timings.get(name, 0.0) for name in STAGES}
+    stages["checks"] = sum(timings.get(name, 0.0) for name in CHECKS)
+    unknown = sorted(set(timings) - set(STAGES) - set(CHECKS))
+    for name in unknown:  # stages this script does not know yet still count, under their own names
+        stages[name] = timings[name]
+    splat = report.get("splat") or {}
+    steps = {
+        f"{stage} {step}": seconds
+        for stage, names in STEPS.items()
+        for step, seconds in ((report.get(stage) or {}).get("timings_s") or {}).items()
+        if step in names
+    }
+    row = {
+        "stages": stages,
+        "other_s": wall - sum(timings.values()),
+        "skipped": [s["stage"] for s in report.get("skipped_stages", [])],
+        "verdict": report.get("verdict", {}).get("status"),
+        "steps": steps,
+        "psnr": (splat.get("heldout_mean") or {}).get("psnr_cleaned"),
+        "splat_iterations": splat.get("iterations"),
+    }
+    row.update(_accuracy(report))
+    return row
+
+
+def run_ffrecon(inputs, mode: str, work: Path, reference: Path, args) -> dict:
+    out = work / f"ffrecon_{mode}"
+    log = work / f"ffrecon_{mode}.log"
+    code, wall, peak = measured(ffrecon_command(inputs.images, inputs.model, out, reference, mode, args), log)
+    row = {"method": f"ffrecon {mode}", "exit": code, "wall_s": wall, "peak_gb": peak}
+    if not (out / "report.json").is_file():
+        row["error"] = _tail(log)
+        return row
+    row.update(report_row(json.loads((out / "report.json").read_text()), wall))
+    return row
+
+
+def bench_frames(frames: int, args, root: Path) -> list[dict]:
+    """Every method on one scene of ``frames`` frames; the rows carry ``frames``."""
+    inputs, prep_s = prepare(frames, args.width, args.height, args.seed)
+    size = f"{args.width}x{args.height}"
+    print(f"\n{frames} frames of {size}: scene and model ready in {prep_s:.1f} s ({inputs.scene_dir})")
+    work = root / f"n{frames}"
+    work.mkdir(parents=True, exist_ok=True)
+    reference = write_reference(inputs.scene_dir, work / "ground_truth_model")
+    rows = [run_colmap_alone(inputs.images, inputs.scene_dir, work / "colmap_alone")]
+    rows += [run_ffrecon(inputs, mode, work, reference, args) for mode in args.modes]
+    colmap_wall = rows[0]["wall_s"] if "error" not in rows[0] else float("nan")
+    for row in rows:
+        row.update(frames=frames, ratio=row["wall_s"] / colmap_wall)
+    if not args.keep:
+        shutil.rmtree(work, ignore_errors=True)
+    return rows
+
+
+# --- printing -----------------------------------------------------------------------------------------
+
+
+def _num(value, fmt: str, width: int) -> str:
+    return f"{'-':>{width}}" if value is None or not np.isfinite(value) else f"{value:>{width}{fmt}}"
+
+
+def print_table(rows: list[dict]) -> None:
+    extra = sorted({k for r in rows for k in r.get("stages", {})} - set(STAGES) - {"checks"})
+    columns = [*STAGES, "checks", *extra]
+    short = {"feedforward": "ff", "exports": "export"}
+    head = "".join(f"{short.get(c, c)[:8]:>9}" for c in columns)
+    print(f"{'method':<16}{'wall s':>8}{'xCOLMAP':>8}{head}{'other':>8}{'peakGB':>7}{'exit':>5}", end="")
+    print(f"{'reg':>7}{'AUC@5':>7}{'medrot':>8}{'PSNR':>6}")
+    for r in rows:
+        if "error" in r:
+            print(f"{r['method']:<16}{r['wall_s']:>8.1f}  failed (exit {r['exit']}):\n{r['error']}")
+            continue
+        cells = "".join(_num(r["stages"].get(c), ".2f", 9) if c in r["stages"] else f"{'':>9}" for c in columns)
+        print(
+            f"{r['method']:<16}{r['wall_s']:>8.2f}{_num(r['ratio'], '.2f', 8)}{cells}{r['other_s']:>8.2f}"
+            f"{r['peak_gb']:>7.2f}{r['exit']:>5}{r.get('registered', '-'):>7}{_num(r.get('auc5'), '.3f', 7)}"
+            f"{_num(r.get('med_rot'), '.3f', 8)}{_num(r.get('psnr'), '.1f', 6)}"
+        )
+    for r in rows:
+        if r.get("steps"):
+            print(f"  {r['method']} steps: " + ", ".join(f"{k} {v:.2f}" for k, v in r["steps"].items()))
+        others = {e: a for e, a in r.get("accuracy", {}).items() if e != r.get("scored")}
+        notes = [f"scored: {r['scored']} cameras"] if r.get("scored") else []
+        notes += [f"{e} {a['registered']} AUC@5 {_num(a['auc5'], '.3f', 0)}" for e, a in others.items()]
+        if r.get("skipped"):
+            notes.append(f"skipped: {', '.join(r['skipped'])}")
+        if notes:
+            print(f"  {r['method']}: {'; '.join(notes)}")
+
+
+def growth(rows: list[dict]) -> dict[str, dict[str, dict]]:
+    """``{series: {method: {"a", "b", "points"}}}``: seconds (or GB) = a * frames^b, log-log least squares."""
+    series: dict[str, dict[str, list[tuple[int, float]]]] = {}
+    for r in rows:
+        if "error" in r:
+            continue
+        values = {"wall": r["wall_s"], "peak GB": r["peak_gb"], **r["stages"], **(r.get("steps") or {})}
+        for name, value in values.items():
+            if value is not None and value > 1e-3:  # a stage that did not run has no growth
+                series.setdefault(name, {}).setdefault(r["method"], []).append((r["frames"], value))
+    fits: dict[str, dict[str, dict]] = {}
+    for name, by_method in series.items():
+        for method, points in by_method.items():
+            if len({n for n, _ in points}) < 2:
+                continue
+            n, t = np.log([p[0] for p in points]), np.log([p[1] for p in points])
+            b, log_a = np.polyfit(n, t, 1)
+            fits.setdefault(name, {})[method] = {"a": float(np.exp(log_a)), "b": float(b), "points": points}
+    return fits
+
+
+def print_growth(fits: dict, methods: list[str]) -> None:
+    if not fits:
+        print("\ngrowth: needs two frame counts or more")
+        return
+    print("\ngrowth: exponent b of seconds (peak GB for 'peak GB') = a * frames^b, least squares in log-log")
+    print(f"{'stage':<26}" + "".join(f"{m:>16}" for m in methods))
+    for name, by_method in fits.items():
+        cells = "".join(f"{by_method[m]['b']:>16.2f}" if m in by_method else f"{'-':>16}" for m in methods)
+        print(f"{name:<26}{cells}")
+    print("splat runs to its time budget, so its exponent reflects the budget, not its cost")
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    if args.colmap_only:
+        colmap_child(*args.colmap_only, args.truth)
+        return 0
+    if "quick" in args.modes and not quick_available():
+        print("ffrecon run has no --quick option here; pass --modes default", file=sys.stderr)
+        return 2
+    info = machine()
+    load = " ".join(f"{x:.2f}" for x in info["load_average"] or [])
+    print(f"{info['cpus']} CPUs, {info['memory_gb']} GB, load average {load}; {info['platform']}")
+    print(f"python {info['python']}, pycolmap {info['pycolmap']}, ffrecon {info['ffrecon']}; seed {args.seed}")
+    print("seconds; xCOLMAP = wall / COLMAP-alone wall; AUC@5 and medrot (deg) vs ground truth; PSNR held-out dB")
+    root = args.out or Path(tempfile.mkdtemp(prefix="ffrecon-bench-run-"))
+    rows: list[dict] = []
+    try:
+        for frames in args.frames:
+            new = bench_frames(frames, args, root)
+            print_table(new)
+            rows += new
+    finally:
+        if args.out is None and not args.keep:
+            shutil.rmtree(root, ignore_errors=True)
+    fits = growth(rows)
+    print_growth(fits, ["COLMAP alone", *(f"ffrecon {m}" for m in args.modes)])
+    end_load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    print(f"load average {end_load:.2f} at the end" + (f"; outputs in {root}" if args.keep else ""))
+    if args.json:
+        saved = {"machine": info, "args": vars(args), "rows": rows, "growth": fits}
+        args.json.write_text(json.dumps(saved, indent=1, default=str))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
