@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
+import os
 import shlex
 import signal
 import sys
@@ -48,6 +50,12 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
         help="preprocessing mode (default: the model family's reference; VGGT: crop or pad, DA3: resize or crop)",
     )
     p.add_argument("--threads", type=int, default=None, help="CPU threads for inference (default: all)")
+    p.add_argument(
+        "--quick",
+        action="store_true",
+        help="needs --model: no COLMAP reconstruction; the model's cameras refined by bundle adjustment on SIFT "
+        "matches of the pairs they say overlap (faster; nothing independent checks the cameras)",
+    )
     p.add_argument("--no-colmap", action="store_true", help="skip the COLMAP cross-check")
     p.add_argument("--no-refine", action="store_true", help="skip the bundle-adjustment refinement")
     p.add_argument("--no-splat", action="store_true", help="skip the Gaussian splat")
@@ -226,9 +234,7 @@ def _run_options(args: argparse.Namespace, ground_truth: Path | None = None):
     from ffrecon.models.multiview import MultiviewOptions
     from ffrecon.models.stage import FeedForwardOptions
     from ffrecon.pipeline import RunOptions
-    from ffrecon.sfm.crosscheck import ColmapOptions
     from ffrecon.sfm.gates import GateOptions
-    from ffrecon.sfm.refine import RefineOptions
     from ffrecon.splat.optimize import OptimizeOptions
     from ffrecon.splat.stage import SplatOptions
 
@@ -244,12 +250,14 @@ def _run_options(args: argparse.Namespace, ground_truth: Path | None = None):
         compare_seeds=args.compare_seeds,
         optimize=OptimizeOptions.brief(**_given(max_seconds=args.splat_seconds)),
     )
-    return RunOptions(
+    preset = RunOptions.quick() if args.quick else RunOptions()  # the flags below override the preset's fields
+    return dataclasses.replace(
+        preset,
         capture=capture,
         feedforward=FeedForwardOptions(multiview=multiview, **_given(threads=args.threads)),
-        colmap=ColmapOptions(enabled=not args.no_colmap),
+        colmap=dataclasses.replace(preset.colmap, enabled=preset.colmap.enabled and not args.no_colmap),
         gates=GateOptions(**_given(min_registration_ratio=args.min_registration)),
-        refine=RefineOptions(enabled=not args.no_refine),
+        refine=dataclasses.replace(preset.refine, enabled=not args.no_refine),
         splat=splat,
         exports=ExportOptions(mesh=args.mesh),
         overwrite=args.overwrite,
@@ -265,7 +273,7 @@ def _run_options(args: argparse.Namespace, ground_truth: Path | None = None):
 def _print_summary(results) -> None:
     """The end-of-run summary, from the same report data as report.html."""
     from ffrecon.export.report import build_report
-    from ffrecon.export.report_html import summary_rows
+    from ffrecon.export.report_html import summary_rows, wall_seconds
 
     report = build_report(results)
     verdict = report["verdict"]
@@ -274,8 +282,7 @@ def _print_summary(results) -> None:
         print(f"  {item:<28} {value}")
     for item in report["skipped_stages"]:
         print(f"  skipped {item['stage']}: {item['reason']}")
-    total = sum(t["seconds"] for t in report["timings"].values())
-    print(f"  {'time':<28} {total:.1f} s")
+    print(f"  {'time':<28} {wall_seconds(report):.1f} s")
     print(f"  report: {results.out_dir / 'report.html'}")
 
 
@@ -303,6 +310,18 @@ def _inspect(path: Path) -> None:
         print(f"preprocessing modes: {', '.join(m.value for m in adapter.modes)}; world frame: {adapter.world_frame}")
     for k, v in model.metadata.items():
         print(f"  metadata {k}: {v[:200]}")
+
+
+def _leave_if_work_beside(exit_code: int) -> None:
+    """After a second Ctrl-C the run stops without waiting for COLMAP's current step in the thread beside
+    (ffrecon.concurrency); a process that finishes normally while pycolmap computes in another thread is
+    aborted by the C++ runtime, so it leaves at once instead (the staging folder is already as it stays)."""
+    from ffrecon.concurrency import work_beside_running
+
+    if work_beside_running():
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(exit_code)
 
 
 def _terminate(signum, frame) -> None:
@@ -341,6 +360,7 @@ def main(argv: list[str] | None = None) -> int:
         results = _run_command(args)
     except Interrupted as err:
         print(f"ffrecon: {err.problem}; {err.fix}", file=sys.stderr)
+        _leave_if_work_beside(err.exit_code)
         return err.exit_code
     except FFReconError as err:
         print(f"ffrecon: error: {err.problem}", file=sys.stderr)
@@ -349,6 +369,7 @@ def main(argv: list[str] | None = None) -> int:
         return err.exit_code
     except KeyboardInterrupt:
         print("ffrecon: interrupted; earlier results are untouched", file=sys.stderr)
+        _leave_if_work_beside(Interrupted.exit_code)
         return Interrupted.exit_code
     finally:
         signal.signal(signal.SIGTERM, previous)

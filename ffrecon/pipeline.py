@@ -1,5 +1,5 @@
-"""run(...) chains the stages: Capture -> Pose (feed-forward, COLMAP) -> gates -> Refine -> comparisons
--> Splat -> Export/Report, each a typed call returning a frozen result (:class:`RunResults`).
+"""run(...) chains the stages: Capture -> Pose (feed-forward and COLMAP, side by side) -> gates -> Refine
+-> comparisons -> Splat -> Export/Report, each a typed call returning a frozen result (:class:`RunResults`).
 
 Every stage writes under the staging folder (see :mod:`ffrecon.workspace`); OUT is replaced only
 when the run ends with a report, so failures never destroy earlier results. Finished stages are
@@ -14,11 +14,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ffrecon.capture import CaptureOptions, run_capture
-from ffrecon.errors import Interrupted
+from ffrecon.errors import InputError, Interrupted
 from ffrecon.export.report import write_report
 from ffrecon.export.stage import ExportOptions
 from ffrecon.models.stage import FeedForwardOptions
-from ffrecon.results import RunResults
+from ffrecon.results import RunMode, RunResults
 from ffrecon.resume import StageRunner, file_key, rebase_paths
 from ffrecon.sfm.crosscheck import ColmapOptions
 from ffrecon.sfm.evidence import EvidenceOptions, EvidenceResult
@@ -27,13 +27,12 @@ from ffrecon.sfm.refine import RefineOptions
 from ffrecon.splat.stage import SplatOptions
 from ffrecon.stages import (
     STAGE_OUTPUTS,
-    colmap_stage,
     comparisons_stage,
     evidence_stage,
     exports_stage,
-    feedforward_stage,
     final_cameras,
     gates_stage,
+    pose_stages,
     refine_stage,
     seed_comparison_stage,
     splat_stage,
@@ -46,8 +45,13 @@ log = logging.getLogger("ffrecon")
 
 @dataclass(frozen=True, kw_only=True)
 class RunOptions:
-    """What to run, one options object per stage; a stage is turned off by its ``enabled`` field."""
+    """What to run, one options object per stage; a stage is turned off by its ``enabled`` field.
 
+    Presets: ``RunOptions()`` (the full run) and :meth:`RunOptions.quick` (``--quick``).
+    """
+
+    mode: RunMode = RunMode.FULL  # QUICK: no COLMAP reconstruction (see RunOptions.quick)
+    concurrent: bool = True  # run the feed-forward stage and the COLMAP cross-check at the same time
     capture: CaptureOptions = field(default_factory=CaptureOptions)
     feedforward: FeedForwardOptions = field(default_factory=FeedForwardOptions)
     colmap: ColmapOptions = field(default_factory=ColmapOptions)
@@ -64,6 +68,21 @@ class RunOptions:
     reference: Path | None = None  # a reference COLMAP model to score against
     command: str = ""  # the command line, recorded in the report
 
+    @classmethod
+    def quick(cls, **overrides) -> RunOptions:
+        """Quick mode (``ffrecon run --quick``): the model's cameras, refined by bundle adjustment, without
+        an independent COLMAP reconstruction. Needs a model.
+
+        No incremental or global mapper runs. The refinement extracts SIFT on the frames itself (lighter
+        settings: :meth:`RefineOptions.quick`), matches only the pairs the feed-forward cameras and depth
+        say overlap, checks those matches against the feed-forward geometry (re-matching guided by it
+        when many disagree), triangulates with the feed-forward cameras and bundle-adjusts; then the
+        splat. The report says that nothing independent checked the cameras; the gates that need COLMAP
+        are skipped. ``overrides`` replace fields of the preset.
+        """
+        preset = {"mode": RunMode.QUICK, "colmap": ColmapOptions(enabled=False), "refine": RefineOptions.quick()}
+        return cls(**{**preset, **overrides})
+
 
 def run(source: Path, out_dir: Path, model: Path | None, options: RunOptions | None = None) -> RunResults:
     """Reconstruct ``source`` (folder of photos or a video) with ``model`` into ``out_dir``.
@@ -74,6 +93,7 @@ def run(source: Path, out_dir: Path, model: Path | None, options: RunOptions | N
     kept for ``--resume``; other :class:`~ffrecon.errors.FFReconError` for unusable input.
     """
     options = options or RunOptions()
+    check_run_options(model, options)
     created = dt.datetime.now().isoformat(timespec="seconds")
     with staged_output(Path(out_dir), overwrite=options.overwrite, resume=options.resume, fresh=options.fresh) as work:
         stages = StageRunner(work, reuse=not options.fresh)
@@ -85,6 +105,21 @@ def run(source: Path, out_dir: Path, model: Path | None, options: RunOptions | N
         results = rebase_paths(results, work, Path(out_dir).resolve())  # where the files are once swapped in
         write_report(results, work)
     return results
+
+
+def check_run_options(model: Path | None, options: RunOptions) -> None:
+    """Raise :class:`~ffrecon.errors.InputError` for options that cannot make a run (before any work)."""
+    if options.mode is RunMode.QUICK and model is None:
+        raise InputError(
+            "quick mode (--quick) refines a model's cameras, and no model was given",
+            "pass --model MODEL.onnx (docs/models.md lists the models ffrecon runs), "
+            "or drop --quick: without a model COLMAP makes the cameras",
+        )
+    if options.mode is RunMode.QUICK and not options.refine.enabled:
+        raise InputError(
+            "quick mode (--quick) is the model's cameras refined by bundle adjustment; --no-refine leaves none of it",
+            "drop --no-refine, or drop --quick and pass --no-colmap --no-refine for the model's cameras alone",
+        )
 
 
 def _resume_command(command: str) -> str:
@@ -102,8 +137,7 @@ def _run_stages(
         inputs=[file_key(source)],
         outputs=STAGE_OUTPUTS["capture"],
     )
-    ff, k_ff = feedforward_stage(capture, model, options, work, stages, [k_capture])
-    colmap, k_colmap = colmap_stage(capture, options, work, stages, [k_capture])  # independent of the model
+    (ff, k_ff), (colmap, k_colmap) = pose_stages(capture, model, options, work, stages, [k_capture])  # side by side
     gates, k_gates = gates_stage(capture, ff, colmap, options, stages, [k_capture, k_ff, k_colmap])
     refine, k_refine = refine_stage(capture, ff, colmap, gates, options, work, stages, [k_capture, k_ff, k_colmap])
     evidence, k_evidence = evidence_stage(
@@ -135,4 +169,6 @@ def _run_stages(
         exports=exports,
         timings=tuple(stages.timings),
         forced=options.force,
+        mode=options.mode,
+        overlaps=tuple(stages.overlaps),
     )

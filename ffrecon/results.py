@@ -15,7 +15,7 @@ from ffrecon.capture import Capture
 from ffrecon.errors import GateFailed
 from ffrecon.export.stage import ExportsResult
 from ffrecon.models.stage import FeedForwardResult
-from ffrecon.resume import StageTiming
+from ffrecon.resume import OverlapTiming, StageTiming
 from ffrecon.sfm.comparisons import ComparisonsResult
 from ffrecon.sfm.crosscheck import ColmapResult
 from ffrecon.sfm.evidence import EvidenceResult
@@ -30,6 +30,27 @@ class Skipped:
 
     stage: str
     reason: str
+
+
+class RunMode(enum.Enum):
+    """How a run makes its cameras (:attr:`ffrecon.pipeline.RunOptions.mode`)."""
+
+    # The model's cameras (or COLMAP's, without a model), checked against an independent COLMAP
+    # reconstruction of the same photos, then refined by bundle adjustment.
+    FULL = "full"
+    # ``--quick``: no COLMAP reconstruction. The model's cameras refined by bundle adjustment on SIFT
+    # matches of the pairs they say overlap; nothing independent checks them. Needs a model.
+    QUICK = "quick"
+
+
+QUICK_STATEMENT = (
+    "Quick mode: no independent COLMAP cross-check was run; the cameras are the feed-forward ones refined by "
+    "bundle adjustment and are not verified against an independent reconstruction."
+)
+QUICK_NO_CROSSCHECK = (
+    "quick mode (--quick): no independent COLMAP reconstruction; the refinement extracts and matches SIFT "
+    "itself, on the pairs the model's cameras say overlap"
+)
 
 
 class Verdict(enum.Enum):
@@ -56,6 +77,8 @@ class RunResults:
     exports: ExportsResult | Skipped
     timings: tuple[StageTiming, ...]
     forced: bool
+    mode: RunMode = RunMode.FULL
+    overlaps: tuple[OverlapTiming, ...] = ()  # stages that ran at the same time (their timings overlap)
 
     @property
     def skipped(self) -> tuple[Skipped, ...]:

@@ -21,7 +21,9 @@ import json
 import logging
 import pickle
 import shutil
-from collections.abc import Callable, Sequence
+import time
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TypeVar
@@ -43,6 +45,19 @@ class StageTiming:
     seconds: float  # this run's seconds (loading the record when reused)
     reused: bool = False
     first_seconds: float | None = None  # what the stage took when it ran, for reused stages
+    beside: str | None = None  # the stage that ran at the same time (see :class:`OverlapTiming`)
+
+
+@dataclass(frozen=True)
+class OverlapTiming:
+    """Stages that ran at the same time: the wall-clock seconds of the whole group and the sum of theirs.
+
+    Their :class:`StageTiming` seconds overlap; the run took ``wall_seconds`` for them, not ``sum_seconds``.
+    """
+
+    stages: tuple[str, ...]
+    wall_seconds: float
+    sum_seconds: float
 
 
 def file_key(path: Path) -> str:
@@ -131,6 +146,7 @@ class StageRunner:
         self.timings: list[StageTiming] = []
         self.finished: list[str] = []  # stages finished or reused in this run, in order
         self.current: str | None = None  # the stage running now (named when interrupted)
+        self.overlaps: list[OverlapTiming] = []  # groups of stages that ran at the same time
 
     def _paths(self, stage: str) -> tuple[Path, Path]:
         folder = self.run_dir / _RECORDS
@@ -198,6 +214,34 @@ class StageRunner:
         self.timings.append(StageTiming(stage, seconds))
         self.finished.append(stage)
         return result, key
+
+    @contextmanager
+    def side_by_side(self) -> Iterator[StageRunner]:
+        """A runner for stages run in another thread beside this runner's own, for the duration of the block.
+
+        It shares this runner's folder and reuse. When the block ends (also by an error) its finished
+        stages and timings join this runner's, after those of this runner's stages of the block, in
+        order (so the order does not depend on which thread finished first); the stage it stopped in
+        joins :attr:`current`; and the group's wall-clock time is recorded in :attr:`overlaps`.
+        """
+        branch = StageRunner(self.run_dir, reuse=self.reuse)
+        first, start = len(self.timings), time.perf_counter()
+        try:
+            yield branch
+        finally:
+            self._join(branch, first, time.perf_counter() - start)
+
+    def _join(self, branch: StageRunner, first: int, wall_seconds: float) -> None:
+        here, beside = self.timings[first:], list(branch.timings)
+        if here and beside:
+            here = [dataclasses.replace(t, beside=beside[0].stage) for t in here]
+            beside = [dataclasses.replace(t, beside=here[0].stage) for t in beside]
+            group = tuple(t.stage for t in here + beside)
+            self.overlaps.append(OverlapTiming(group, wall_seconds, sum(t.seconds for t in here + beside)))
+        self.timings[first:] = here + beside
+        self.finished += branch.finished
+        if branch.current is not None:
+            self.current = branch.current if self.current is None else f"{self.current} and {branch.current}"
 
     def _store(self, stage: str, key: str, result, seconds: float, options: object, inputs: Sequence[str]) -> None:
         pkl, record = self._paths(stage)

@@ -15,14 +15,16 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ffrecon.capture import Capture
+from ffrecon.concurrency import CoreShare, run_beside
 from ffrecon.errors import InputError
 from ffrecon.export.stage import OUTPUTS as EXPORT_OUTPUTS
 from ffrecon.export.stage import ExportsResult, FinalCameras, fuse_with_final_cameras, run_exports
 from ffrecon.geometry.alignment import umeyama
 from ffrecon.geometry.poses import camera_centers
 from ffrecon.geometry.undistort import NO_DISTORTION, opencv_coefficients, undistort_image
+from ffrecon.models.runner import cpu_threads
 from ffrecon.models.stage import FeedForwardResult, run_feedforward
-from ffrecon.results import Skipped
+from ffrecon.results import QUICK_NO_CROSSCHECK, RunMode, Skipped
 from ffrecon.resume import StageRunner, file_key
 from ffrecon.sfm.compare import compare_poses
 from ffrecon.sfm.comparisons import ComparisonsResult, load_references, run_comparisons
@@ -58,7 +60,7 @@ def _skip(stages: StageRunner, stage: str, label: str, reason: str) -> tuple[Ski
     """A typed "skipped, because" result; what the stage wrote in an earlier run is removed."""
     log.info("skipping %s: %s", label, reason)
     stages.forget(stage, STAGE_OUTPUTS[stage])
-    return Skipped(label, reason), f"skipped:{stage}"
+    return Skipped(label, reason), f"skipped:{stage}:{reason}"  # the reason is shown by the stages that read it
 
 
 def _why_not(capture: Capture, gates, *, enabled: bool = True, flag: str = "") -> str | None:
@@ -75,7 +77,31 @@ def _why_not(capture: Capture, gates, *, enabled: bool = True, flag: str = "") -
     return None if enabled else f"turned off ({flag})"
 
 
-def feedforward_stage(capture: Capture, model: Path | None, options: RunOptions, work: Path, stages, inputs) -> tuple:
+def pose_stages(capture: Capture, model: Path | None, options: RunOptions, work: Path, stages, inputs) -> tuple:
+    """``((feed-forward, key), (COLMAP, key))``: both read only the capture, so with ``options.concurrent``
+    COLMAP runs in a thread beside the feed-forward stage (:mod:`ffrecon.concurrency`).
+
+    The inference claims the cores onnxruntime keeps busy (its intra-op threads on the CPU, fixed when the
+    model loads; one on CUDA); COLMAP's extraction and matching take what is left (at least one) at the
+    start of each, and every core once the inference is done. Its mapping stays single-threaded.
+    """
+    if not options.concurrent:
+        ff = feedforward_stage(capture, model, options, work, stages, inputs)
+        return ff, colmap_stage(capture, options, work, stages, inputs)
+    cores = CoreShare()
+    with stages.side_by_side() as beside:
+        return run_beside(
+            lambda: feedforward_stage(capture, model, options, work, stages, inputs, cores=cores),
+            lambda: colmap_stage(capture, options, work, beside, inputs, step=cores.step),
+            cores,
+            label="COLMAP",
+        )
+
+
+def feedforward_stage(
+    capture: Capture, model: Path | None, options: RunOptions, work: Path, stages, inputs, *, cores=None
+) -> tuple:
+    """``cores``: a :class:`CoreShare` the inference claims its CPU threads in while it runs (None: alone)."""
     if model is None:
         if len(capture.frames) < 2:
             raise InputError("one photo and no model: nothing can place a camera", "pass --model, or more photos")
@@ -85,9 +111,16 @@ def feedforward_stage(capture: Capture, model: Path | None, options: RunOptions,
             )
         reason = "no model given (--model): the cameras come from COLMAP and the splat is seeded from its points"
         return _skip(stages, "feedforward", "feed-forward", reason)
+
+    def infer() -> FeedForwardResult:
+        if cores is None:
+            return run_feedforward(capture, model, options.feedforward, work)
+        with cores.claim(cpu_threads(options.feedforward.threads)):
+            return run_feedforward(capture, model, options.feedforward, work)
+
     return stages.run(
         "feedforward",
-        lambda: run_feedforward(capture, model, options.feedforward, work),
+        infer,
         options=options.feedforward,
         inputs=[*inputs, file_key(model)],
         outputs=STAGE_OUTPUTS["feedforward"],
@@ -102,13 +135,21 @@ def _focal_prior(capture: Capture) -> list[float | None]:
     return [f.focal_prior_px for f in capture.frames]
 
 
-def colmap_stage(capture, options: RunOptions, work: Path, stages: StageRunner, inputs) -> tuple:
+def colmap_stage(capture, options: RunOptions, work: Path, stages: StageRunner, inputs, *, step=None) -> tuple:
+    """``step``: see :func:`~ffrecon.sfm.crosscheck.run_colmap` (the cores left beside the feed-forward stage)."""
+    if options.mode is RunMode.QUICK and len(capture.frames) >= 2:
+        return _skip(stages, "colmap", "colmap cross-check", QUICK_NO_CROSSCHECK)
     if reason := _why_not(capture, None, enabled=options.colmap.enabled, flag="--no-colmap"):
         return _skip(stages, "colmap", "colmap cross-check", reason)
     return stages.run(
         "colmap",
         lambda: run_colmap(
-            capture.image_dir, capture.names, options.colmap, work / "colmap", focal_prior_px=_focal_prior(capture)
+            capture.image_dir,
+            capture.names,
+            options.colmap,
+            work / "colmap",
+            focal_prior_px=_focal_prior(capture),
+            step=step,
         ),
         options=options.colmap,
         inputs=inputs,
@@ -131,6 +172,7 @@ def gates_stage(capture: Capture, ff, colmap, options: RunOptions, stages: Stage
             options=options.gates,
             force=options.force,
             witness=prediction is not None,  # with a model, the final cameras are judged on evidence instead
+            colmap_skipped=colmap.reason if isinstance(colmap, Skipped) else "",
         )
 
     return stages.run("gates", check, options=(options.gates, options.force), inputs=inputs)
@@ -189,7 +231,8 @@ def evidence_stage(capture, ff, colmap, gates, refine, options: RunOptions, stag
     def judge() -> EvidenceResult:
         pred = ff.prediction
         args = (capture.names, pred.cam_from_world, refine, colmap_result, witness, options.evidence)
-        return judge_final_cameras(*args, force=options.force)
+        skipped = colmap.reason if isinstance(colmap, Skipped) else ""
+        return judge_final_cameras(*args, force=options.force, colmap_skipped=skipped)
 
     return stages.run("evidence", judge, options=(options.evidence, options.force), inputs=inputs)
 

@@ -111,6 +111,32 @@ def test_resume_recomputes_what_changed_and_drops_what_was_turned_off(demo12, un
     assert main(["run", str(demo12.images), "-o", str(out), "--model", str(demo12.model), "-q"]) == 4
 
 
+def test_interrupted_cross_check_keeps_the_feedforward_stage_that_ran_beside_it(demo12, tmp_path, monkeypatch):
+    """COLMAP runs in a thread beside the feed-forward stage: stopped there, the run names it and keeps the
+    feed-forward stage, which the resumed run reuses; the report records the two as run side by side."""
+    out = tmp_path / "out"
+    no_splat = dict(splat=SplatOptions(enabled=False), feedforward=FIXED_CHUNKS)
+
+    def interrupt(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    with monkeypatch.context() as patch:
+        patch.setattr(stages, "run_colmap", interrupt)
+        with pytest.raises(Interrupted) as caught:
+            run(demo12.images, out, demo12.model, RunOptions(**no_splat, command="ffrecon run x"))
+    assert caught.value.stage == "colmap" and caught.value.kept == ["capture", "feedforward"]
+    assert not out.exists()
+
+    resumed = run(demo12.images, out, demo12.model, RunOptions(**no_splat, resume=True))
+    assert [t.stage for t in resumed.timings if t.reused] == ["capture", "feedforward"]
+    assert resumed.colmap.num_registered == 12 and resumed.refine.registered.all()
+    report = json.loads((out / "report.json").read_text())
+    [pair] = report["concurrent_stages"]
+    assert pair["stages"] == ["feedforward", "colmap"] and pair["wall_seconds"] <= pair["sum_seconds"] + 0.05
+    assert report["timings"]["colmap"]["concurrent_with"] == "feedforward"
+    assert report["timings"]["refine"]["concurrent_with"] is None
+
+
 @pytest.mark.slow
 def test_ctrl_c_prints_one_line_and_keeps_out(demo12, tmp_path):
     """A real SIGINT (and SIGTERM) during the splat: exit 130, one line, no stack trace, OUT untouched."""

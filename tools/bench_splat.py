@@ -142,7 +142,9 @@ def bench_optimize(scene, images, xyz, rgb, train, test, args, appearance: bool)
     psnr = heldout_psnr(result.gaussians, scene, images, result.cam_from_world, test)
     rate = result.iterations / result.seconds
     count = len(result.gaussians)
-    print(f"{result.iterations:>9} {result.seconds:>8.1f} {rate:>6.2f} {count:>10} {psnr}   (final: {result.stop_reason})")
+    print(
+        f"{result.iterations:>9} {result.seconds:>8.1f} {rate:>6.2f} {count:>10} {psnr}   (final: {result.stop_reason})"
+    )
 
 
 def main(argv: list[str] | None = None) -> int:

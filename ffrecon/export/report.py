@@ -18,8 +18,9 @@ import numpy as np
 
 from ffrecon import __version__
 from ffrecon.export.report_html import render_html
-from ffrecon.results import RunResults, Skipped
+from ffrecon.results import QUICK_STATEMENT, RunMode, RunResults, Skipped
 from ffrecon.sfm.evidence import CameraStatus, EvidenceResult
+from ffrecon.sfm.refine import RefineResult, RefineStatus
 
 
 def _jsonable(obj):
@@ -88,6 +89,45 @@ def _pose_section(results: RunResults) -> tuple[dict, dict | None]:
     return errors, plot
 
 
+def _cross_check_note(results: RunResults) -> str | None:
+    """The sentence saying that nothing independent checked the model's cameras (None when COLMAP did, or
+    made the cameras itself)."""
+    if isinstance(results.feedforward, Skipped) or not isinstance(results.colmap, Skipped):
+        return None
+    quick = results.mode is RunMode.QUICK
+    refined = isinstance(results.refine, RefineResult) and results.refine.status is not RefineStatus.FAILED
+    if quick and refined:
+        return QUICK_STATEMENT
+    cameras = "the feed-forward ones refined by bundle adjustment" if refined else "the feed-forward ones, not refined"
+    ran = "Quick mode: no" if quick else "No"
+    why = "" if quick else f" ({results.colmap.reason})"
+    return (
+        f"{ran} independent COLMAP cross-check was run{why}; the cameras are {cameras} and are not verified "
+        "against an independent reconstruction."
+    )
+
+
+def _timings(results: RunResults) -> dict:
+    """Seconds per stage; stages that ran at the same time name each other (``concurrent_with``)."""
+    return {
+        t.stage: {
+            "seconds": t.seconds,
+            "reused": t.reused,
+            "first_seconds": t.first_seconds,
+            "concurrent_with": t.beside,
+        }
+        for t in results.timings
+    }
+
+
+def _concurrent(results: RunResults) -> list[dict]:
+    """Groups of stages that ran at the same time: their wall-clock seconds against the sum of theirs."""
+    return [
+        {"stages": list(o.stages), "wall_seconds": o.wall_seconds, "sum_seconds": o.sum_seconds}
+        for o in results.overlaps
+    ]
+
+
 def _outputs(results: RunResults) -> dict[str, str]:
     """Files for people, relative to the run folder (only those the run wrote)."""
     out = results.out_dir
@@ -132,6 +172,8 @@ def build_report(results: RunResults) -> dict:
         "created": results.created,
         "command": results.command,
         "forced": results.forced,
+        "mode": results.mode.value,
+        "cross_check_note": _cross_check_note(results),
         "verdict": _verdict(results),
         "inputs": results.capture.to_report(),
         "feedforward": _section(results.feedforward),
@@ -145,10 +187,8 @@ def build_report(results: RunResults) -> dict:
         "seed_comparison": None if results.seed_comparison is None else _section(results.seed_comparison),
         "exports": _section(results.exports, exports),
         "skipped_stages": [{"stage": s.stage, "reason": s.reason} for s in results.skipped],
-        "timings": {
-            t.stage: {"seconds": t.seconds, "reused": t.reused, "first_seconds": t.first_seconds}
-            for t in results.timings
-        },
+        "timings": _timings(results),
+        "concurrent_stages": _concurrent(results),
         "outputs": _outputs(results),
     }
     return _jsonable(report)

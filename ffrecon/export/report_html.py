@@ -214,6 +214,15 @@ def _splat(report: dict, run_dir: Path) -> tuple[list[dict], str]:
     rate = f"{data['iterations']} ({data['iterations_per_second']:.2f}/s)"
     rows.append({"measure": "iterations (per second)", "seed": None, "optimised": rate, "after cleaning": None})
     psnr = {v["name"]: v for v in data["heldout_per_view"]}
+    curve = ""
+    if data.get("heldout_curve"):
+        caption = (
+            "Mean held-out PSNR and SSIM (views the splat never trained on; plain renders before cleaning) "
+            "against optimisation seconds, from the seed on."
+        )
+        curve = _figure(
+            "Held-out quality over optimisation time", curves_png({"splat": data["heldout_curve"]}), caption
+        )
     thumbs = []
     for r in data["renders"]:
         m = psnr[r["view"]]
@@ -223,7 +232,7 @@ def _splat(report: dict, run_dir: Path) -> tuple[list[dict], str]:
             (f"{r['view']}: splat, PSNR {m['psnr_cleaned']:.1f} dB", "splat"),
         ):
             thumbs += _thumb(run_dir / r[key], caption, 240)
-    return rows, _gallery(thumbs, wide=True)
+    return rows, curve + _gallery(thumbs, wide=True)
 
 
 _SPLAT_COLUMNS = (("seed", "seed"), ("optimised", "optimized"), ("after cleaning", "cleaned"))
@@ -274,11 +283,28 @@ def _timings(report: dict, run_dir: Path) -> tuple[list[dict], str]:
     rows = []
     for stage, t in timings.items():
         status = "reused" if t["reused"] else "ran"
-        rows.append({"stage": stage, "seconds": t["seconds"], "status": status, "when it ran (s)": t["first_seconds"]})
+        row = {"stage": stage, "seconds": t["seconds"], "status": status, "when it ran (s)": t["first_seconds"]}
+        rows.append(row | {"at the same time as": t.get("concurrent_with")})
+    together = []
+    for group in report.get("concurrent_stages", []):
+        names = " + ".join(group["stages"])
+        rows.append({"stage": f"{names} (wall clock)", "seconds": group["wall_seconds"], "status": "side by side"})
+        together.append(
+            f"{names} ran at the same time: {group['wall_seconds']:.1f} s wall clock for "
+            f"{group['sum_seconds']:.1f} s of stage time"
+        )
+    rows.append({"stage": "total (wall clock)", "seconds": wall_seconds(report)})
     reused = {s for s, t in timings.items() if t["reused"]}
     shown = {s: (t["first_seconds"] or 0.0) if t["reused"] else t["seconds"] for s, t in timings.items()}
     caption = "Wall-clock seconds per stage on this machine; grey bars: reused from an earlier run (its time then)."
+    caption += "".join(f" {text}." for text in together)
     return rows, _figure("Time per stage", timings_png(shown, reused), caption)
+
+
+def wall_seconds(report: dict) -> float:
+    """The stages' wall-clock seconds: their sum, less the overlap of stages that ran at the same time."""
+    total = sum(t["seconds"] for t in report["timings"].values())
+    return total - sum(g["sum_seconds"] - g["wall_seconds"] for g in report.get("concurrent_stages", []))
 
 
 def _seeds(report: dict, run_dir: Path) -> tuple[list[dict], str]:
@@ -323,6 +349,10 @@ def summary_rows(report: dict) -> list[tuple[str, str]]:
     """``(item, value)`` lines of the run's summary, for the page and the terminal."""
     ff = report["feedforward"]
     rows = [("frames", str(report["inputs"]["num_frames"]))]
+    if report.get("mode") == "quick":
+        rows.append(("mode", "quick (--quick): no COLMAP reconstruction"))
+    if report.get("cross_check_note"):
+        rows.append(("cross-check", report["cross_check_note"]))
     if "skipped" in ff:
         rows.append(("model", "none: cameras from COLMAP"))
     else:
@@ -396,6 +426,10 @@ def render_html(report: dict, run_dir: Path) -> str:
     banner = "ok" if verdict["status"] == "ok" else "bad"
     status = html.escape(verdict["status"].upper())
     parts.append(f"<div class='banner {banner}'><b>{status}</b> — {html.escape(verdict['message'])}</div>")
+    if report.get("cross_check_note"):
+        parts.append(
+            f"<div class='banner warn'><b>Not cross-checked.</b> {html.escape(report['cross_check_note'])}</div>"
+        )
     if report["feedforward"].get("model", {}).get("simulated"):
         parts.append(_SIMULATED)
     for item in report["skipped_stages"]:

@@ -50,6 +50,14 @@ class TensorSpec:
         return f"{self.name} [{dims}] {self.dtype}"
 
 
+def cpu_threads(threads: int = 0, *, use_cuda: bool = True) -> int:
+    """CPU threads an :class:`OnnxModel` made with these arguments keeps busy: its intra-op threads on the
+    CPU (``threads``, 0: all cores), one (the Python side of the stage) when the model runs on CUDA."""
+    if use_cuda and "CUDAExecutionProvider" in ort.get_available_providers():
+        return 1
+    return threads or (os.cpu_count() or 1)
+
+
 class OnnxModel:
     """An onnxruntime session with the model's declared I/O and detected family.
 

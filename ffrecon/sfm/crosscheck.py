@@ -17,12 +17,13 @@ mapping. Its choices aim at real captures:
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import logging
 import numbers
 import shutil
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -456,6 +457,7 @@ def run_colmap(
     out_dir: Path,
     *,
     focal_prior_px: float | Sequence[float | None] | None,
+    step: Callable[[], int] | None = None,
 ) -> ColmapResult:
     """COLMAP on ``names`` in ``image_dir``; writes ``out_dir/database.db`` and ``out_dir/sparse/0``.
 
@@ -464,6 +466,9 @@ def run_colmap(
             for all, or one per image, None where unknown), e.g. from EXIF. Written as a prior that
             bundle adjustment refines. Without it COLMAP reads the file's EXIF itself or guesses
             1.2 x the longest side.
+        step: called at the start of each step (extraction, matching, mapping) when COLMAP shares the
+            machine (:meth:`ffrecon.concurrency.CoreShare.step`): returns the threads for extraction and
+            matching (instead of ``options.num_threads``), or raises to stop between steps.
     Returns:
         A :class:`ColmapResult`; ``status`` is NO_MODEL (not an exception) when nothing registered,
         so that the registration gate can explain why.
@@ -478,7 +483,9 @@ def run_colmap(
     priors = _as_priors(focal_prior_px, len(names))
     sizes = image_sizes_wh(image_dir, names)
     shared = resolve_camera_sharing(options.camera_sharing, sizes, priors)
-    stats = _features_and_matches(db_path, image_dir, names, options, pairing, priors, shared, timer)
+    stats = _features_and_matches(db_path, image_dir, names, options, pairing, priors, shared, timer, step)
+    if step is not None:
+        step()  # mapping keeps its own threads (options.mapper_num_threads)
     with timer.stage("mapping"), colmap_log_level():
         best, run, runs = (None, None, ())
         if stats.num_pairs_verified:
@@ -527,8 +534,12 @@ def _features_and_matches(
     focal_prior_px: list[float | None],
     shared_camera: bool,
     timer: StageTimer,
+    step: Callable[[], int] | None = None,
 ) -> FeatureStats:
-    """Create the database (cameras with the focal priors), extract SIFT and match with ``pairing``."""
+    """Create the database (cameras with the focal priors), extract SIFT and match with ``pairing``.
+
+    ``step`` (see :func:`run_colmap`) gives the threads of each of the two steps as it starts.
+    """
     pycolmap.set_random_seed(options.seed)
     create_database(
         db_path,
@@ -547,10 +558,30 @@ def _features_and_matches(
         options.mapper.value,
     )
     with timer.stage("feature_extraction"):
-        extract_sift(db_path, image_dir, names, options.sift)
+        extract_sift(db_path, image_dir, names, _with_threads(options, step).sift)
     with timer.stage("matching"), colmap_log_level():
-        _match(db_path, pairing, options)
+        _match(db_path, pairing, _with_threads(options, step))
     return feature_stats(db_path, names)
+
+
+def _with_threads(options: ColmapOptions, step: Callable[[], int] | None) -> ColmapOptions:
+    """``options`` with at most the threads ``step()`` gives for extraction and matching (unchanged without it).
+
+    >>> _with_threads(ColmapOptions(num_threads=4), lambda: 2).num_threads
+    2
+    >>> _with_threads(ColmapOptions(), lambda: 1).sift.num_threads  # -1 (all cores) capped
+    1
+    """
+    if step is None:
+        return options
+    free = step()
+    sift = dataclasses.replace(options.sift, num_threads=_at_most(options.sift.num_threads, free))
+    return dataclasses.replace(options, num_threads=_at_most(options.num_threads, free), sift=sift)
+
+
+def _at_most(asked: int, free: int) -> int:
+    """COLMAP's thread count ``asked`` (<= 0: all cores), capped at ``free``."""
+    return free if asked <= 0 else min(asked, free)
 
 
 def _no_model_result(names: tuple[str, ...], **provenance) -> ColmapResult:

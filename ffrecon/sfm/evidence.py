@@ -102,7 +102,9 @@ def _per_image(names: Sequence[str], refine: RefineResult, colmap: ColmapResult 
             out.append(CameraEvidence(name, CameraStatus.COLMAP_ONLY, why))
         elif not refine.registered[k]:
             out.append(CameraEvidence(name, CameraStatus.REJECTED, flagged.get(name, "not refined")))
-        elif colmap is None or not colmap.registered[k]:
+        elif colmap is None:
+            out.append(CameraEvidence(name, CameraStatus.MODEL_ONLY, "no COLMAP cross-check ran"))
+        elif not colmap.registered[k]:
             out.append(CameraEvidence(name, CameraStatus.MODEL_ONLY, "COLMAP did not register it"))
         elif name in off:
             out.append(CameraEvidence(name, CameraStatus.DISAGREES, off[name]))
@@ -148,6 +150,7 @@ def judge_final_cameras(
     options: EvidenceOptions = EvidenceOptions(),
     *,
     force: bool = False,
+    colmap_skipped: str = "",
 ) -> EvidenceResult:
     """Judge the refined cameras on their own evidence and against COLMAP (see the module docstring).
 
@@ -156,10 +159,16 @@ def judge_final_cameras(
         ff_cam_from_world: ``[N, 3, 4]`` the model's cameras (to call the model unsuited).
         refine: the feed-forward-seeded refinement; colmap: the cross-check (None when it did not run).
         witness: the gates on COLMAP's model (a healthy COLMAP model is one that passed them).
+        colmap_skipped: why the cross-check did not run (with ``colmap`` None): the agreement verdict
+            is SKIPPED, saying so.
     """
     unsuited = _unsuited(names, ff_cam_from_world, colmap, witness, options)
     per_image, comparison = _per_image(names, refine, colmap, options)
     verdicts = _verdicts(len(names), refine, colmap, per_image, comparison is not None, options)
+    if colmap is None:
+        why = f"COLMAP cross-check not run: {colmap_skipped}" if colmap_skipped else "COLMAP cross-check not run"
+        threshold = options.min_colmap_agreement
+        verdicts.append(GateVerdict("colmap_agreement", GateStatus.SKIPPED, None, threshold, why))
     if unsuited:  # reported, not blocking: the run goes on from COLMAP's cameras
         verdicts = [
             GateVerdict("model_suited", GateStatus.FAIL, None, options.unsuited_share, unsuited, blocking=False)

@@ -335,22 +335,23 @@ def evaluate_gates(
     prediction: Prediction | None,
     quality: CaptureQuality | None = None,
     options: GateOptions = GateOptions(),
+    colmap_skipped: str = "",
 ) -> list[GateVerdict]:
     """Registration, sparse-cloud sanity (COLMAP model) and feed-forward depth coverage, in that order.
 
     ``quality`` (the capture stage's measures and flags) lets a failed registration gate name blur
-    or lack of texture as the cause.
+    or lack of texture as the cause. Without ``colmap`` the first two are SKIPPED, saying why the
+    cross-check did not run when ``colmap_skipped`` gives the reason.
     """
     verdicts = []
     if colmap is None:
-        verdicts.append(
-            GateVerdict(
-                "registration", GateStatus.SKIPPED, None, options.min_registration_ratio, "COLMAP cross-check not run"
-            )
-        )
+        why = f"COLMAP cross-check not run: {colmap_skipped}" if colmap_skipped else "COLMAP cross-check not run"
+        threshold = options.min_registration_ratio
+        verdicts.append(GateVerdict("registration", GateStatus.SKIPPED, None, threshold, why))
+        verdicts.append(GateVerdict("sparse_cloud", GateStatus.SKIPPED, None, options.min_in_front_ratio, why))
     else:
         verdicts.append(registration_gate(colmap, options, quality=quality))
-    verdicts.append(sparse_cloud_gate(None if colmap is None else colmap.reconstruction, options))
+        verdicts.append(sparse_cloud_gate(colmap.reconstruction, options))
     verdicts.append(depth_coverage_gate(prediction, options))
     for v in verdicts:
         (logger.warning if v.failed else logger.info)("gate %s: %s - %s", v.name, v.status.value, v.reason)
@@ -365,13 +366,17 @@ def run_gates(
     options: GateOptions = GateOptions(),
     force: bool = False,
     witness: bool = False,
+    colmap_skipped: str = "",
 ) -> GatesResult:
     """The gates stage: :func:`evaluate_gates`, and whether a failure stops the run (not with ``force``).
 
     ``witness``: COLMAP is a witness (a model's cameras will be judged on their own evidence, see
     :mod:`ffrecon.sfm.evidence`): its registration and sparse-cloud verdicts are reported, not blocking.
+    ``colmap_skipped``: why the cross-check did not run (given when ``colmap`` is None).
     """
-    verdicts = evaluate_gates(colmap=colmap, prediction=prediction, quality=quality, options=options)
+    verdicts = evaluate_gates(
+        colmap=colmap, prediction=prediction, quality=quality, options=options, colmap_skipped=colmap_skipped
+    )
     if witness:
         colmap_gates = ("registration", "sparse_cloud")
         verdicts = [dataclasses.replace(v, blocking=v.name not in colmap_gates) for v in verdicts]

@@ -65,29 +65,27 @@ def _sample_points(prediction: Prediction, i: int, options: OverlapOptions, rng:
 def overlap_matrix(prediction: Prediction, options: OverlapOptions = OverlapOptions()) -> np.ndarray:
     """``[N, N]`` overlap[i, j] in [0, 1]: share of frame i's confident depth points visible in frame j.
 
-    The diagonal is 1 (0 for a frame with no confident depth).
+    The diagonal is 1 (0 for a frame with no confident depth). The sampled points of every frame are
+    projected into frame j at once.
     """
     n = len(prediction)
     rng = np.random.default_rng(options.seed)
-    out = np.zeros((n, n))
     points = [_sample_points(prediction, i, options, rng) for i in range(n)]
+    owner = np.repeat(np.arange(n), [len(p) for p in points])
+    counts = np.bincount(owner, minlength=n)
+    everything = np.concatenate(points) if len(owner) else np.zeros((0, 3))
+    out = np.zeros((n, n))
     for j in range(n):
         cam = prediction.depth_camera(j)
         h, w = prediction.depth[j].shape
-        depth_j = prediction.depth[j]
-        for i in range(n):
-            if len(points[i]) == 0:
-                continue
-            if i == j:
-                out[i, j] = 1.0
-                continue
-            uv, z = project_points(points[i], cam.K, prediction.cam_from_world[j])
-            inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
-            col = np.clip(uv[inside, 0].astype(int), 0, w - 1)
-            row = np.clip(uv[inside, 1].astype(int), 0, h - 1)
-            z_j = depth_j[row, col].astype(np.float64)
-            seen = np.where(z_j > 0, np.abs(z[inside] / np.maximum(z_j, 1e-12) - 1.0) <= options.max_depth_ratio, True)
-            out[i, j] = seen.sum() / len(points[i])
+        uv, z = project_points(everything, cam.K, prediction.cam_from_world[j])
+        inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+        col = np.clip(uv[inside, 0].astype(int), 0, w - 1)
+        row = np.clip(uv[inside, 1].astype(int), 0, h - 1)
+        z_j = prediction.depth[j][row, col].astype(np.float64)
+        seen = np.where(z_j > 0, np.abs(z[inside] / np.maximum(z_j, 1e-12) - 1.0) <= options.max_depth_ratio, True)
+        out[:, j] = np.bincount(owner[inside][seen], minlength=n) / np.maximum(counts, 1)
+    out[np.arange(n), np.arange(n)] = (counts > 0).astype(float)
     return out
 
 

@@ -477,7 +477,9 @@ class _Plateau:
 def _optimize(
     gaussians, images, cam_from_world, Ks, train, options: OptimizeOptions, *, scale, callback, callback_every
 ) -> OptimizeResult:
-    """The loop: visit the training views in shuffled rounds until the iteration or time budget is spent."""
+    """The loop: visit the training views in shuffled rounds until the plan's iterations, the time budget
+    or a plateau of the training loss ends it; learning rate, resolution, SH degree and densification
+    follow the fraction of the plan done (iterations or time, whichever is further on)."""
     o = options
     train = list(train)
     if not train:
@@ -522,14 +524,7 @@ def _optimize(
             break
     bar.close()
     rate = it / max(elapsed, 1e-9)
-    logger.info(
-        "splat: %d iterations in %.1f s (%.2f it/s), %d Gaussians, stopped by %s",
-        it,
-        elapsed,
-        rate,
-        len(params["means"]),
-        reason,
-    )
+    logger.info("splat: %d iterations in %.1f s (%.2f it/s), stopped by %s", it, elapsed, rate, reason)
     return OptimizeResult(
         gaussians=_as_gaussians(params).detached().to("cpu"),
         cam_from_world=_current_poses(params, views),

@@ -126,7 +126,9 @@ def test_defaults_are_the_brief_optimiser_and_nothing_is_repeated():
     options = SplatOptions()
     assert options.optimize == OptimizeOptions.brief()
     assert (options.optimize.iterations, options.optimize.max_seconds, options.optimize.sh_degree) == (1500, 60.0, 3)
-    assert options.optimize.resolution_schedule == ((0.0, 4), (0.1, 2), (0.3, 1)) and options.optimize.plateau_window > 0
+    assert (
+        options.optimize.resolution_schedule == ((0.0, 4), (0.1, 2), (0.3, 1)) and options.optimize.plateau_window > 0
+    )
     assert (options.holdout_every, options.max_seed_points, options.optimize.max_gaussians) == (8, 60_000, 100_000)
     own = {f.name for f in dataclasses.fields(SplatOptions)}
     assert not own & {f.name for f in dataclasses.fields(OptimizeOptions)} - {"device"}

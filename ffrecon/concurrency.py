@@ -1,0 +1,156 @@
+"""Two pieces of work at the same time: one in the calling thread, one in a thread beside it.
+
+The feed-forward inference and the COLMAP cross-check read only the capture, so the pipeline runs
+them side by side (:func:`ffrecon.stages.pose_stages`). Threads are enough: onnxruntime and pycolmap
+release the GIL while they compute. They share the machine's cores through a :class:`CoreShare`:
+the inference *claims* the threads it keeps busy (fixed when onnxruntime loads the model); the work
+beside asks, at the start of each of its steps (SIFT extraction, matching), how many cores are left.
+
+pycolmap cannot be stopped inside a call, and a process must not end while one runs in another
+thread (the C++ runtime aborts), so the work beside is stopped between its steps: when either side
+fails or is interrupted, the share is cancelled, and the next :meth:`CoreShare.step` raises
+:class:`Cancelled`. The calling thread waits for that before raising the first error as it was.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import threading
+import time
+from collections.abc import Callable, Iterator
+from typing import TypeVar
+
+log = logging.getLogger("ffrecon")
+A = TypeVar("A")
+B = TypeVar("B")
+THREAD_NAME = "ffrecon-beside"  # the thread of the work beside
+_RUNNING: set[threading.Event] = set()  # one per run_beside whose work beside has not ended
+
+
+class Cancelled(Exception):
+    """Raised at the next step of the work beside once the other side failed or was interrupted."""
+
+
+class CoreShare:
+    """The machine's cores, shared by work that runs at the same time.
+
+    >>> cores = CoreShare(4)
+    >>> with cores.claim(3):
+    ...     cores.step()
+    1
+    >>> cores.step()
+    4
+    """
+
+    def __init__(self, cores: int | None = None) -> None:
+        self.cores = max(1, cores or os.cpu_count() or 1)
+        self._claimed: list[int] = []
+        self._lock = threading.Lock()
+        self._cancelled = threading.Event()
+
+    @contextlib.contextmanager
+    def claim(self, threads: int) -> Iterator[None]:
+        """Hold ``threads`` cores for the duration of the block."""
+        with self._lock:
+            self._claimed.append(threads)
+        try:
+            yield
+        finally:
+            with self._lock:
+                self._claimed.remove(threads)
+
+    def step(self) -> int:
+        """Threads for the next step of the work beside: the cores nobody claims, at least one.
+
+        Raises :class:`Cancelled` once :meth:`cancel` was called.
+        """
+        if self._cancelled.is_set():
+            raise Cancelled("stopped: the work beside it failed or was interrupted")
+        with self._lock:
+            return max(1, self.cores - sum(self._claimed))
+
+    def cancel(self) -> None:
+        self._cancelled.set()
+
+
+def run_beside(
+    here: Callable[[], A], beside: Callable[[], B], cores: CoreShare, *, label: str = "the work beside"
+) -> tuple[A, B]:
+    """``(here(), beside())``, ``here`` in this thread and ``beside`` in another, at the same time.
+
+    ``beside`` should call ``cores.step()`` between its steps. When either raises (KeyboardInterrupt
+    included), ``cores`` is cancelled and, once ``beside`` has stopped, the first error raised is raised
+    again, as it was (:class:`Cancelled` only when nothing else failed). Ctrl-C while this thread waits
+    for ``beside`` does the same; a second Ctrl-C stops waiting. ``label`` names ``beside`` in the log.
+    """
+    outcome: dict[str, object] = {}
+    ended = threading.Event()  # not Thread.is_alive(): a join interrupted by Ctrl-C marks a running thread ended
+
+    def run() -> None:
+        try:
+            outcome["value"] = beside()
+        except BaseException as err:  # handed to the calling thread, which raises it
+            outcome["error"], outcome["when"] = err, time.monotonic()
+            cores.cancel()
+        finally:
+            ended.set()
+            _RUNNING.discard(ended)
+
+    _RUNNING.add(ended)
+    threading.Thread(target=run, name=THREAD_NAME, daemon=True).start()
+    try:
+        value = here()
+    except BaseException as err:
+        when = time.monotonic()
+        cores.cancel()
+        interrupted = isinstance(err, KeyboardInterrupt)
+        if interrupted and not ended.is_set():
+            _say_stopping(label)
+        _wait(ended, cores, label, interrupted=interrupted)
+        raise _first(err, when, outcome) from None
+    if _wait(ended, cores, label):
+        raise KeyboardInterrupt
+    if "error" in outcome:
+        raise outcome["error"]
+    return value, outcome["value"]
+
+
+def work_beside_running() -> bool:
+    """Whether work started by :func:`run_beside` still runs (after a second Ctrl-C stopped the wait for it).
+
+    A process must not end normally then: the C++ runtime aborts when the interpreter shuts down
+    while pycolmap computes in another thread.
+    """
+    return bool(_RUNNING)
+
+
+def _first(err: BaseException, when: float, outcome: dict) -> BaseException:
+    """The error raised first of ``err`` (raised here at ``when``) and the one beside, if any; Cancelled last."""
+    other = outcome.get("error")
+    if other is None or isinstance(other, Cancelled) or (outcome["when"] > when and not isinstance(err, Cancelled)):
+        return err
+    return other
+
+
+def _wait(ended: threading.Event, cores: CoreShare, label: str, *, interrupted: bool = False) -> bool:
+    """Wait for the work beside to end; whether Ctrl-C came (before, with ``interrupted``, or meanwhile).
+
+    Ctrl-C cancels ``cores`` and waits on for the work to stop; a second one stops waiting (raised).
+    Polls with sleeps: an interrupted sleep leaves no lock behind.
+    """
+    while not ended.is_set():
+        try:
+            time.sleep(0.05)
+        except KeyboardInterrupt:
+            if interrupted:
+                raise
+            interrupted = True
+            cores.cancel()
+            _say_stopping(label)
+    return interrupted
+
+
+def _say_stopping(label: str) -> None:
+    log.warning("stopping: %s ends its current step first (Ctrl-C again to stop at once)", label)
