@@ -44,6 +44,7 @@ class BundleOptions:
     coarse_function_tolerance: float = 1e-5  # relative cost change that ends a coarse adjustment
     coarse_max_iterations: int = 10  # Ceres iterations per coarse adjustment: close enough to re-triangulate
     max_refinements: int = 5  # rounds in the fine pass
+    fine_function_tolerance: float = 0.0  # relative cost change that ends a fine adjustment (0: run to convergence)
     max_refinement_change: float = 0.001  # stop when fewer observations than this fraction change
     max_num_iterations: int = 100  # Ceres iterations per bundle adjustment
     max_solver_seconds: float = 600.0  # wall-clock bound per bundle adjustment (Ceres stops and keeps its best)
@@ -310,7 +311,7 @@ def _fine_pass(
         reproj_px=options.max_reproj_error_px,
         loss=pycolmap.LossFunctionType.TRIVIAL,
         max_refinements=options.max_refinements,
-        function_tolerance=0.0,
+        function_tolerance=options.fine_function_tolerance,
         register=retry,
     )
     if added:

@@ -188,7 +188,7 @@ def bin_gaussians(
     width: int,
     height: int,
     *,
-    tile_size: int = 8,
+    tile_size: int = 16,
 ) -> TileLayout:
     """Assign the visible Gaussians to the tiles whose pixel centres their ellipse ``alpha >= 1/255``
     reaches, front to back (stable sort on ``depth``) within each tile.

@@ -30,7 +30,7 @@ from ffrecon.types import PinholeCamera
 
 @dataclass(frozen=True, kw_only=True)
 class RasterOptions:
-    tile_size: int = 8  # pixels; 8 measured fastest at 320x240 (4: more pairs, 16: more wasted pixels)
+    tile_size: int = 16  # pixels; with the compiled kernels 16 beats 8 (73 vs 84 ms fwd+bwd, 60k Gaussians, 640x480)
     near: float = 0.01  # Gaussians whose centre has camera z below this are culled
     eps2d: float = 0.3  # pixels^2 added to the projected covariance (3DGS / gsplat default)
 
