@@ -16,7 +16,8 @@ accounts for (interpreter start, imports, writing the report). Accuracy is AUC@5
 error against ground truth (the refined cameras; the feed-forward ones when refinement did not run).
 PSNR is the splat's mean held-out PSNR after cleaning. The growth summary fits ``seconds = a * n^b`` over
 the frame counts (least squares in log-log) and prints ``b`` per stage. The splat stops at its time budget
-(``--splat-seconds``; 120 s by default), so its exponent says little about its cost.
+(``--splat-seconds``; 60 s by default) unless its training loss plateaus first, so its exponent says little
+about its cost.
 
 Usage (from the repository root)::
 
