@@ -137,9 +137,10 @@ def _run_stages(
         inputs=[file_key(source)],
         outputs=STAGE_OUTPUTS["capture"],
     )
-    (ff, k_ff), (colmap, k_colmap) = pose_stages(capture, model, options, work, stages, [k_capture])  # side by side
+    (ff, k_ff), (colmap, k_colmap), sift = pose_stages(capture, model, options, work, stages, [k_capture])
     gates, k_gates = gates_stage(capture, ff, colmap, options, stages, [k_capture, k_ff, k_colmap])
-    refine, k_refine = refine_stage(capture, ff, colmap, gates, options, work, stages, [k_capture, k_ff, k_colmap])
+    k_pose = [k_capture, k_ff, k_colmap]
+    refine, k_refine = refine_stage(capture, ff, colmap, gates, options, work, stages, k_pose, sift)
     evidence, k_evidence = evidence_stage(
         capture, ff, colmap, gates, refine, options, stages, [k_ff, k_colmap, k_gates, k_refine]
     )

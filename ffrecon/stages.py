@@ -31,7 +31,7 @@ from ffrecon.sfm.comparisons import ComparisonsResult, load_references, run_comp
 from ffrecon.sfm.crosscheck import ColmapResult, run_colmap
 from ffrecon.sfm.evidence import CameraStatus, EvidenceResult, judge_final_cameras
 from ffrecon.sfm.gates import GatesResult, run_gates
-from ffrecon.sfm.refine import RefineResult, run_refine
+from ffrecon.sfm.refine import RefineResult, extract_refine_features, run_refine
 from ffrecon.splat.seed import seed_from_reconstruction
 from ffrecon.splat.stage import SplatResult, run_splat, run_splat_from_prediction
 
@@ -46,6 +46,7 @@ STAGE_OUTPUTS = {
     "feedforward": ("feedforward",),
     "colmap": ("colmap",),
     "gates": (),
+    "sift": ("sift",),
     "refine": ("sparse", "refine"),
     "evidence": (),
     "comparisons": (),
@@ -78,24 +79,59 @@ def _why_not(capture: Capture, gates, *, enabled: bool = True, flag: str = "") -
 
 
 def pose_stages(capture: Capture, model: Path | None, options: RunOptions, work: Path, stages, inputs) -> tuple:
-    """``((feed-forward, key), (COLMAP, key))``: both read only the capture, so with ``options.concurrent``
-    COLMAP runs in a thread beside the feed-forward stage (:mod:`ffrecon.concurrency`).
+    """``((feed-forward, key), (COLMAP, key), quick mode's SIFT database or None)``: both read only the capture,
+    so with ``options.concurrent`` COLMAP (in quick mode: the refinement's SIFT extraction) runs in a thread
+    beside the feed-forward stage (:mod:`ffrecon.concurrency`).
 
     The inference claims the cores onnxruntime keeps busy (its intra-op threads on the CPU, fixed when the
     model loads; one on CUDA); COLMAP's extraction and matching take what is left (at least one) at the
     start of each, and every core once the inference is done. Its mapping stays single-threaded.
     """
+    if options.mode is RunMode.QUICK:
+        return _quick_pose_stages(capture, model, options, work, stages, inputs)
     if not options.concurrent:
         ff = feedforward_stage(capture, model, options, work, stages, inputs)
-        return ff, colmap_stage(capture, options, work, stages, inputs)
+        return ff, colmap_stage(capture, options, work, stages, inputs), None
     cores = CoreShare()
     with stages.side_by_side() as beside:
-        return run_beside(
+        ff, colmap = run_beside(
             lambda: feedforward_stage(capture, model, options, work, stages, inputs, cores=cores),
             lambda: colmap_stage(capture, options, work, beside, inputs, step=cores.step),
             cores,
             label="COLMAP",
         )
+    return ff, colmap, None
+
+
+def _quick_pose_stages(capture: Capture, model: Path | None, options: RunOptions, work: Path, stages, inputs):
+    """Quick mode: no COLMAP; the refinement's SIFT is extracted beside the inference (when concurrent) in the
+    cores it leaves, as COLMAP's is in the full run. Returns ``(ff, colmap (skipped), sift database or None)``."""
+    wanted = options.refine.enabled and len(capture.frames) >= 2 and options.refine.reuse_features_from is None
+    if not (options.concurrent and wanted and model is not None):
+        ff = feedforward_stage(capture, model, options, work, stages, inputs)
+        return ff, colmap_stage(capture, options, work, stages, inputs), None
+    cores = CoreShare()
+    with stages.side_by_side() as beside:
+        ff, (database, _) = run_beside(
+            lambda: feedforward_stage(capture, model, options, work, stages, inputs, cores=cores),
+            lambda: sift_stage(capture, options, work, beside, inputs, step=cores.step),
+            cores,
+            label="SIFT extraction",
+        )
+    return ff, colmap_stage(capture, options, work, stages, inputs), database
+
+
+def sift_stage(capture: Capture, options: RunOptions, work: Path, stages: StageRunner, inputs, *, step=None):
+    """Quick mode's SIFT for the refinement (:func:`~ffrecon.sfm.refine.extract_refine_features`), in
+    ``work/sift``; ``step()`` gives the threads to use (the cores the inference leaves)."""
+
+    def extract() -> Path:
+        sift = options.refine.sift
+        if step is not None:
+            sift = dataclasses.replace(sift, num_threads=step())
+        return extract_refine_features(capture.image_dir, capture.names, sift, work / "sift" / "database.db")
+
+    return stages.run("sift", extract, options=options.refine.sift, inputs=inputs, outputs=STAGE_OUTPUTS["sift"])
 
 
 def feedforward_stage(
@@ -178,7 +214,8 @@ def gates_stage(capture: Capture, ff, colmap, options: RunOptions, stages: Stage
     return stages.run("gates", check, options=(options.gates, options.force), inputs=inputs)
 
 
-def refine_stage(capture, ff, colmap, gates, options: RunOptions, work, stages, inputs) -> tuple:
+def refine_stage(capture, ff, colmap, gates, options: RunOptions, work, stages, inputs, sift=None) -> tuple:
+    """``sift``: quick mode's SIFT database extracted beside the inference (None: COLMAP's, or extract here)."""
     if reason := _why_not(capture, gates, enabled=options.refine.enabled, flag="--no-refine"):
         return _skip(stages, "refine", "refinement", reason)
     if isinstance(ff, Skipped):
@@ -186,6 +223,8 @@ def refine_stage(capture, ff, colmap, gates, options: RunOptions, work, stages, 
     refine_options = options.refine
     if isinstance(colmap, ColmapResult) and refine_options.reuse_features_from is None:  # SIFT once, used twice
         refine_options = dataclasses.replace(refine_options, reuse_features_from=colmap.database_path)
+    elif sift is not None and refine_options.reuse_features_from is None:
+        refine_options = dataclasses.replace(refine_options, reuse_features_from=Path(sift))
     return stages.run(
         "refine",
         lambda: run_refine(capture.image_dir, ff.prediction, refine_options, work),

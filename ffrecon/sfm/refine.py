@@ -13,6 +13,7 @@ from __future__ import annotations
 import enum
 import logging
 import shutil
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -339,6 +340,20 @@ def _match(
     stats = guided_matches(db_path, prediction, pairs, options.guidance)
     verify_pairs(db_path, write_pairs(pairs_path, pairs), options.sift)
     return stats
+
+
+def extract_refine_features(image_dir: Path, names: Sequence[str], sift: SiftOptions, db_path: Path) -> Path:
+    """SIFT of ``names`` (``image_dir``) into a fresh COLMAP database at ``db_path``, for the refinement to reuse
+    (:attr:`RefineOptions.reuse_features_from`); returns ``db_path``.
+
+    Quick mode runs it beside the feed-forward inference, the part COLMAP's extraction plays in the full
+    run: the features depend only on the photos, so they need not wait for the cameras.
+    """
+    db_path = Path(db_path)
+    db_path.parent.mkdir(parents=True, exist_ok=True)
+    create_database(db_path, Path(image_dir), list(names), camera_model=CameraModel.PINHOLE, single_camera=False)
+    extract_sift(db_path, Path(image_dir), list(names), sift)
+    return db_path
 
 
 def run_refine(image_dir: Path, prediction: Prediction, options: RefineOptions, out_dir: Path) -> RefineResult:

@@ -24,7 +24,7 @@ from ffrecon.geometry.poses import camera_centers
 from ffrecon.splat.appearance import appearance_penalty, apply_color_transform, identity_transforms
 from ffrecon.splat.densify import Densifier, DensifyOptions, replace_rows
 from ffrecon.splat.gaussians import Gaussians
-from ffrecon.splat.render import RasterOptions, render
+from ffrecon.splat.render import RasterOptions, render, warm_up
 from ffrecon.splat.ssim import ssim_mean
 
 logger = logging.getLogger("ffrecon.splat")
@@ -487,6 +487,8 @@ def _optimize(
     torch.manual_seed(o.seed)
     rng = np.random.default_rng(o.seed)
     views = _training_views(images, cam_from_world, Ks, train, o)
+    if o.device == "cpu" and (seconds := warm_up()) > 1.0:  # not counted in the budget
+        logger.info("readied the CPU renderer in %.1f s (compiled on first use, then cached)", seconds)
     params, adam = _trainable(gaussians, o, scale, len(views.poses))
     densifier = None
     if o.densify is not None:

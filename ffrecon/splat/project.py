@@ -285,6 +285,24 @@ def _arr(x: torch.Tensor) -> np.ndarray:
     return x.detach().contiguous().numpy()
 
 
+_BACKWARD_READY: set[np.dtype] = set()
+
+
+def _compile_backward(dtype: np.dtype) -> None:
+    """Compile (or load from numba's cache) the backward kernel for ``dtype`` in the forward, not inside
+    torch's autograd engine, where a Ctrl-C during code generation hangs the process (see
+    :func:`ffrecon.splat.raster._compile_backward`)."""
+    if dtype in _BACKWARD_READY:
+        return
+    z = np.zeros
+    threads = numba.get_num_threads()
+    grads = (z((1, 2)), z((1, 3)), z(1), z(1))
+    inputs = (np.ones((1, 3), dtype), np.ones((1, 4), dtype), z((1, 3), dtype), z(1, dtype))
+    pose = (np.eye(3), z(3), np.ones(6), 0.01, 0.3)
+    _project_backward(*inputs, *pose, *grads, z((1, 11)), z((threads, 12)), threads)
+    _BACKWARD_READY.add(dtype)
+
+
 class _Project(torch.autograd.Function):
     """``(means, quats_wxyz, log_scales, opacity_logits, cam_from_world [3, 4]) -> (means2d, conics,
     depths, log_opacity, extent, visible)``; the last two carry no gradient."""
@@ -298,6 +316,8 @@ class _Project(torch.autograd.Function):
         outs = [np.empty(shape, np.float64) for shape in ((n, 2), (n, 3), (n,), (n,), (n, 2))]
         ok = np.empty(n, np.bool_)
         _project(*inputs, rot, trans, cam, near, eps2d, *outs, ok, numba.get_num_threads())
+        if any(ctx.needs_input_grad[:5]):
+            _compile_backward(inputs[0].dtype)
         ctx.saved = (inputs, rot, trans, cam, near, eps2d)
         ctx.pose_shape = cam_from_world.shape
         result = [torch.from_numpy(o).to(dtype) for o in outs]

@@ -380,6 +380,8 @@ class _Composite(torch.autograd.Function):
         t_final = np.empty((height, width), inputs[0].dtype)
         order = _balanced_tile_order(layout)
         _forward(layout.tile_start, layout.pair_gauss, *inputs, layout.tile_size, layout.tiles_x, order, out, t_final)
+        if any(ctx.needs_input_grad[:5]):
+            _compile_backward(out.dtype, feat.shape[1])
         ctx.layout, ctx.inputs, ctx.out, ctx.t_final = layout, inputs, out, t_final
         return torch.from_numpy(out), torch.from_numpy(1.0 - t_final)
 
@@ -409,6 +411,41 @@ class _Composite(torch.autograd.Function):
         per_gauss = torch.from_numpy(grad_gauss.sum(axis=0) if threads > 1 else grad_gauss[0])
         grads = (per_gauss[:, :2], per_gauss[:, 2:5], per_gauss[:, 5], per_gauss[:, PAIR_GRADS:])
         return (*grads, torch.from_numpy(grad_bg.sum(axis=0)), None, None, None)
+
+
+_BACKWARD_READY: set[np.dtype] = set()
+
+
+def _compile_backward(dtype: np.dtype, num_feat: int) -> None:
+    """Compile (or load from numba's cache) the backward kernel for ``dtype`` now, on an empty image.
+
+    Here in the forward, not lazily in the backward: torch runs the backward inside its autograd engine,
+    where a Ctrl-C that lands during LLVM code generation is swallowed by llvmlite's callback and the
+    process hangs (reproduced). A Ctrl-C here is an ordinary KeyboardInterrupt.
+    """
+    if dtype in _BACKWARD_READY:
+        return
+    one = np.zeros(1, dtype)
+    threads = numba.get_num_threads()
+    _backward(
+        np.zeros(2, np.int64),
+        np.zeros(0, np.int64),
+        np.zeros((1, 2), dtype),
+        np.zeros((1, 3), dtype),
+        one,
+        np.zeros((1, num_feat), dtype),
+        np.zeros(num_feat, dtype),
+        1,
+        1,
+        np.zeros((1, 1, num_feat), dtype),
+        np.ones((1, 1), dtype),
+        np.zeros((1, 1, num_feat), dtype),
+        np.zeros((1, 1), dtype),
+        np.argsort(np.zeros(1, np.int64)),
+        np.zeros((threads, 1, PAIR_GRADS + num_feat), dtype),
+        np.zeros((threads, num_feat), dtype),
+    )
+    _BACKWARD_READY.add(dtype)
 
 
 def _balanced_tile_order(layout: TileLayout) -> np.ndarray:

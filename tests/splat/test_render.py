@@ -208,3 +208,19 @@ def test_sh_basis_is_orthonormal_and_has_3dgs_signs():
     assert np.allclose(
         sh_to_rgb(sh, y_axis.new_tensor([[0.0, 0.0, 1.0]]), 0).numpy(), [[0.5 + SH_C0, 0.0, 0.5]]
     )  # band 1 off
+
+
+def test_ctrl_c_during_kernel_compilation_is_held_until_it_is_done():
+    """A SIGINT while numba compiles must not be swallowed by LLVM's callback (a half-built kernel hung the
+    process): it is held, and raised as KeyboardInterrupt once the block ends."""
+    import os
+    import signal
+
+    from ffrecon.splat.render import _interrupts_deferred
+
+    finished = False
+    with pytest.raises(KeyboardInterrupt):
+        with _interrupts_deferred():
+            os.kill(os.getpid(), signal.SIGINT)
+            finished = True
+    assert finished and signal.getsignal(signal.SIGINT) is signal.default_int_handler
