@@ -353,9 +353,10 @@ CURVE_EVERY = 20  # iterations between held-out scores when the two seeds are co
 
 
 def with_curves(options: RunOptions) -> RunOptions:
-    """With --compare-seeds both splats score their held-out views as they train (for the plot)."""
+    """With --compare-seeds both splats score their held-out views at least every ``CURVE_EVERY`` iterations
+    as they train (for the plot that compares them; the default curve is sparser)."""
     splat = options.splat
-    if not splat.compare_seeds or splat.curve_every:
+    if not splat.compare_seeds or 0 < splat.curve_every <= CURVE_EVERY:
         return options
     return dataclasses.replace(options, splat=dataclasses.replace(splat, curve_every=CURVE_EVERY))
 

@@ -257,7 +257,8 @@ def _interrupts_deferred():
         yield
         return
     came: list[int] = []
-    previous = {sig: signal.signal(sig, lambda signum, frame: came.append(signum)) for sig in _DEFERRED}
+    held = [sig for sig in _DEFERRED if signal.getsignal(sig) is not signal.SIG_IGN]  # ignored ones stay ignored
+    previous = {sig: signal.signal(sig, lambda signum, frame: came.append(signum)) for sig in held}
     try:
         yield
     finally:
