@@ -27,37 +27,14 @@ _LOG_ALPHA_MIN = math.log(ALPHA_MIN)
 
 @njit(cache=True)
 def _mm(a, b, out):
-    """``out = a b`` for small matrices. Written out because numba's ``@`` calls BLAS through SciPy
-    (not a dependency), and into ``out`` because a heap allocation per Gaussian costs more than the maths."""
+    """``out = a b`` for small matrices (pass ``x.T`` for a transpose: a view, no copy). Written out because
+    numba's ``@`` calls BLAS through SciPy (not a dependency), and into ``out`` because a heap allocation per
+    Gaussian costs more than the maths."""
     for i in range(a.shape[0]):
         for j in range(b.shape[1]):
             total = 0.0
             for k in range(a.shape[1]):
                 total += a[i, k] * b[k, j]
-            out[i, j] = total
-    return out
-
-
-@njit(cache=True)
-def _mm_t(a, b, out):
-    """``out = a b^T``."""
-    for i in range(a.shape[0]):
-        for j in range(b.shape[0]):
-            total = 0.0
-            for k in range(a.shape[1]):
-                total += a[i, k] * b[j, k]
-            out[i, j] = total
-    return out
-
-
-@njit(cache=True)
-def _t_mm(a, b, out):
-    """``out = a^T b``."""
-    for i in range(a.shape[1]):
-        for j in range(b.shape[1]):
-            total = 0.0
-            for k in range(a.shape[0]):
-                total += a[k, i] * b[k, j]
             out[i, j] = total
     return out
 
@@ -213,9 +190,9 @@ def _project_backward(
         in_front, zs, clamped_x, clamped_y, tx, ty = _camera_terms(i, means, rot, trans, cam, near, p, jac)
         qnorm = _gaussian_factor(i, quats, log_scales, m, qn, rq, s)
         _mm(jac, rot, t_mat)
-        _mm_t(m, m, sigma)
+        _mm(m, m.T, sigma)
         _mm(t_mat, sigma, tmp23)
-        _mm_t(tmp23, t_mat, tmp22)  # cov2d without eps2d
+        _mm(tmp23, t_mat.T, tmp22)  # cov2d without eps2d
         a, b, c = tmp22[0, 0] + eps2d, tmp22[0, 1], tmp22[1, 1] + eps2d
         det = a * c - b * b
         if not (in_front and det > 0 and math.isfinite(det)):
@@ -233,7 +210,7 @@ def _project_backward(
         for r in range(2):
             for col in range(3):
                 d_t[r, col] *= 2.0
-        d_sigma = _t_mm(t_mat, d_c_t, tmp33)
+        d_sigma = _mm(t_mat.T, d_c_t, tmp33)
         # Sigma = M M^T, M = Rq diag(s): dM = 2 dSigma M (into sigma's buffer, no longer needed)
         d_m = _mm(d_sigma, m, sigma)
         for j in range(3):
@@ -247,8 +224,8 @@ def _project_backward(
         for j in range(4):
             d_qn[j] = (d_qn[j] - qn[j] * proj) / qnorm  # q_unit = q / |q|
         # T = J R_cam: dJ = dT R^T, dR += J^T dT
-        d_jac = _mm_t(d_t, rot, tmp23)
-        d_rot = _t_mm(jac, d_t, tmp33)
+        d_jac = _mm(d_t, rot.T, tmp23)
+        d_rot = _mm(jac.T, d_t, tmp33)
         fx, fy = cam[0], cam[1]
         d_zs = (
             -d_jac[0, 0] * fx / zs**2 + 2 * d_jac[0, 2] * fx * tx / zs**3

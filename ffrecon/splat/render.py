@@ -1,34 +1,32 @@
-"""Differentiable rendering of 3D Gaussians on the CPU, in PyTorch.
+"""Differentiable rendering of 3D Gaussians on the CPU: torch tensors in and out, compiled kernels inside.
 
-``render`` is a pure function: EWA projection of each Gaussian to a 2D Gaussian (autograd),
-binning to tiles and depth-sorted alpha compositing (:mod:`ffrecon.splat.raster`, hand-written
-backward). Gradients reach means, rotations, scales, opacities, colours / SH and, when the pose
-tensor requires grad, the camera pose.
+``render`` is a pure function: EWA projection of each Gaussian to a 2D Gaussian
+(:mod:`ffrecon.splat.project`), binning to tiles and depth-sorted alpha compositing
+(:mod:`ffrecon.splat.raster`), each with a hand-written backward. Gradients reach means, rotations,
+scales, opacities, colours / SH and, when the pose tensor requires grad, the camera pose.
 
 Conventions: OpenCV camera, ``cam_from_world`` ``[3, 4]``, pinhole ``K`` for a ``width x height``
-image with COLMAP's pixel-centre rule (the centre of pixel (row v, column u) is at (u + 0.5, v + 0.5)),
-so a Gaussian centred on camera point ``(x, y, z)`` lands at ``(fx x / z + cx, fy y / z + cy)`` with no
-half-pixel terms. As in 3DGS and gsplat, the 2D covariance gets ``eps2d`` pixels^2 added on its
-diagonal (a low-pass filter), and the Jacobian is evaluated with x/z, y/z clamped to 1.3 times
-the field of view so Gaussians far outside it do not blow up.
+image with COLMAP's pixel-centre rule (the centre of pixel (row v, column u) is at (u + 0.5, v +
+0.5)), so a Gaussian centred on camera point ``(x, y, z)`` lands at ``(fx x / z + cx, fy y / z +
+cy)`` with no half-pixel terms. As in 3DGS and gsplat, the 2D covariance gets ``eps2d`` pixels^2
+added on its diagonal (a low-pass filter), and the Jacobian is evaluated with x/z, y/z clamped to
+1.3 times the field of view so Gaussians far outside it do not blow up.
 """
 
 from __future__ import annotations
 
 import contextlib
-import math
 import signal
 import threading
 import time
 from dataclasses import dataclass
 
-import kornia
 import numpy as np
 import torch
 
 from ffrecon.splat.gaussians import Gaussians, sh_to_rgb
 from ffrecon.splat.project import project
-from ffrecon.splat.raster import ALPHA_MIN, TileLayout, bin_gaussians, composite
+from ffrecon.splat.raster import TileLayout, bin_gaussians, composite
 from ffrecon.types import PinholeCamera
 
 
@@ -62,13 +60,6 @@ class RenderOutput:
     layout: TileLayout | None  # None from the gsplat adapter
 
 
-def quat_scale_to_covariance(quats_wxyz: torch.Tensor, log_scales: torch.Tensor) -> torch.Tensor:
-    """``[N, 3, 3]`` world covariances ``R diag(exp(2 log_scales)) R^T`` (quaternions normalised here)."""
-    rot = kornia.geometry.conversions.quaternion_to_rotation_matrix(torch.nn.functional.normalize(quats_wxyz, dim=-1))
-    m = rot * torch.exp(log_scales)[:, None, :]
-    return m @ m.transpose(1, 2)
-
-
 def project_gaussians(
     means: torch.Tensor,
     quats_wxyz: torch.Tensor,
@@ -82,7 +73,8 @@ def project_gaussians(
     near: float = 0.01,
     eps2d: float = 0.3,
 ) -> Projected:
-    """EWA projection of 3D Gaussians (world frame) into a pinhole camera.
+    """EWA projection of 3D Gaussians (world frame) into a pinhole camera, on the CPU (compiled kernels,
+    :mod:`ffrecon.splat.project`; on CUDA the splat renders with gsplat instead).
 
     Args:
         means: ``[N, 3]`` world positions.
@@ -92,49 +84,10 @@ def project_gaussians(
         cam_from_world: ``[3, 4]`` (or ``[4, 4]``) OpenCV pose; may require grad.
         K: ``[3, 3]`` intrinsics for ``width x height``.
     """
-    if means.device.type == "cpu":
-        means2d, conics, depths, log_opacity, extent, ok = project(
-            means, quats_wxyz, log_scales, opacity_logits, cam_from_world, K, width, height, near, eps2d
-        )
-        return Projected(means2d, conics, depths, log_opacity, extent, ok)
-    rot, trans = cam_from_world[:3, :3], cam_from_world[:3, 3]
-    p_cam = means @ rot.T + trans
-    x, y, z = p_cam.unbind(1)
-    in_front = z > near
-    z_safe = torch.where(in_front, z, torch.ones_like(z))  # keeps the backward free of 0 * inf
-    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    means2d = torch.stack([fx * x / z_safe + cx, fy * y / z_safe + cy], dim=1)
-    # Jacobian of the perspective map, with x/z and y/z clamped to 1.3x the field of view.
-    margin_x, margin_y = 0.3 * 0.5 * width / fx, 0.3 * 0.5 * height / fy
-    tx = z_safe * torch.clamp(x / z_safe, -(cx / fx + margin_x), (width - cx) / fx + margin_x)
-    ty = z_safe * torch.clamp(y / z_safe, -(cy / fy + margin_y), (height - cy) / fy + margin_y)
-    zeros = torch.zeros_like(z)
-    jac = torch.stack(
-        [
-            torch.stack([fx / z_safe, zeros, -fx * tx / z_safe**2], dim=1),
-            torch.stack([zeros, fy / z_safe, -fy * ty / z_safe**2], dim=1),
-        ],
-        dim=1,
-    )  # [N, 2, 3]
-    jw = jac @ rot
-    cov2d = jw @ quat_scale_to_covariance(quats_wxyz, log_scales) @ jw.transpose(1, 2)
-    a = cov2d[:, 0, 0] + eps2d
-    b = cov2d[:, 0, 1]
-    c = cov2d[:, 1, 1] + eps2d
-    det = a * c - b * b
-    ok = in_front & (det > 0) & torch.isfinite(det)
-    det_safe = torch.where(ok, det, torch.ones_like(det))
-    conics = torch.stack([c / det_safe, -b / det_safe, a / det_safe], dim=1)
-    log_opacity = torch.nn.functional.logsigmoid(opacity_logits)
-    with torch.no_grad():
-        # alpha >= 1/255 needs sigma <= log(255 o); the level set's bounding box has half-sizes
-        # sqrt(2 log(255 o) cov_xx) and sqrt(2 log(255 o) cov_yy). A small margin covers rounding.
-        level = log_opacity - math.log(ALPHA_MIN)
-        ok = ok & (level > 0)
-        level = level.clamp_min(0.0)
-        extent = torch.stack([torch.sqrt(2 * level * a.clamp_min(0)), torch.sqrt(2 * level * c.clamp_min(0))], dim=1)
-        extent = extent * 1.001 + 1e-3
-    return Projected(means2d, conics, z, log_opacity, extent, ok)
+    means2d, conics, depths, log_opacity, extent, ok = project(
+        means, quats_wxyz, log_scales, opacity_logits, cam_from_world, K, width, height, near, eps2d
+    )
+    return Projected(means2d, conics, depths, log_opacity, extent, ok)
 
 
 def render(
@@ -168,6 +121,7 @@ def render(
     Long because its 14 parameters and the projection call take a line each; the body is one straight
     pass (project, bin, composite) that reads best in one place.
     """
+    warm_up()
     dtype = means.dtype
     proj = project_gaussians(
         means,
@@ -271,13 +225,24 @@ def _interrupts_deferred():
 _DEFERRED = (signal.SIGINT, signal.SIGTERM)
 
 
+_READY = False  # set once warm_up has run in this process
+
+
 def warm_up() -> float:
     """Compile (first use) or load from numba's cache every CPU kernel a training step calls, on a tiny
-    float32 scene, with Ctrl-C held until it is done (see :func:`_interrupts_deferred`), so that neither
-    compilation nor its cost lands inside a timed optimisation. Returns the seconds it took (~10 s on
-    first use, then well under one from the cache)."""
-    with _interrupts_deferred():
-        return _warm_up()
+    float32 scene, with Ctrl-C held until it is done (see :func:`_interrupts_deferred`). Runs once per
+    process: :func:`render` calls it, and an optimiser calls it before starting its clock so the cost is
+    not counted. Returns the seconds it took (~10 s on first use, well under one from the cache, 0 after)."""
+    global _READY
+    if _READY:
+        return 0.0
+    _READY = True  # first: the warm-up renders through render() itself
+    try:
+        with _interrupts_deferred(), torch.enable_grad():  # render() may be called under no_grad
+            return _warm_up()
+    except BaseException:
+        _READY = False
+        raise
 
 
 def _warm_up() -> float:

@@ -43,7 +43,7 @@ from ffrecon.splat.optimize import (
     torch_threads,
 )
 from ffrecon.splat.ply import write_splat_ply
-from ffrecon.splat.render import render_view, warm_up
+from ffrecon.splat.render import render_view
 from ffrecon.splat.render_gsplat import gsplat_available
 from ffrecon.splat.seed import initial_gaussians, reduce_points, seed_from_prediction
 from ffrecon.splat.video import write_flythrough
@@ -377,8 +377,6 @@ def _fit_and_clean(
 
     targets = [torch.from_numpy(np.ascontiguousarray(im)).float() / 255.0 for im in images]
     Ks = np.stack([c.K for c in cameras])
-    if device == "cpu":
-        warm_up()  # compile the renderer before anything renders (see its docstring)
     score = None
     if options.curve_every > 0 and heldout:
 
