@@ -9,7 +9,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.ffrecon-installed
 DEMO_OUT ?= demo_out
 
-.PHONY: demo test test-fast lint setup clean bench
+.PHONY: demo test test-fast lint setup clients clean bench
 
 setup: $(STAMP)
 
@@ -33,8 +33,29 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
 
-test: lint
+test: lint clients
 	$(PY) -m pytest
+
+# The web clients ffrecon's outputs are tested in (tests/clients): Debian's chromium (headless) and the npm
+# packages pinned in clients/package-lock.json (splat-transform, Spark, three, puppeteer-core; no browser
+# download). Optional: when either cannot be installed, the tests that need it are skipped with the reason.
+CLIENTS_STAMP := clients/node_modules/.ffrecon-installed
+
+clients: $(CLIENTS_STAMP)
+
+$(CLIENTS_STAMP): clients/package.json clients/package-lock.json
+	@if ! command -v chromium >/dev/null 2>&1; then \
+		echo "installing Debian's chromium (headless, for the web-client tests)"; \
+		SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
+		{ $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq chromium >/dev/null; } \
+			|| echo "WARNING: could not install chromium; the headless-browser tests will be skipped"; \
+	fi
+	@if command -v npm >/dev/null 2>&1; then \
+		npm ci --prefix clients --no-audit --no-fund --ignore-scripts --loglevel=error && touch $@ \
+			|| echo "WARNING: npm ci failed in clients/; the web-client tests will be skipped"; \
+	else \
+		echo "WARNING: npm not found (apt-get install npm); the web-client tests will be skipped"; \
+	fi
 
 test-fast: $(STAMP)
 	$(PY) -m pytest -m "not slow"
@@ -44,4 +65,4 @@ bench: $(STAMP)
 	$(PY) tools/bench_splat.py
 
 clean:
-	rm -rf $(VENV) $(DEMO_OUT) .pytest_cache
+	rm -rf $(VENV) $(DEMO_OUT) .pytest_cache clients/node_modules

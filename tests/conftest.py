@@ -1,5 +1,6 @@
 """Shared fixtures: synthetic scenes with ground truth, the simulated model, tiny models."""
 
+import shutil
 from pathlib import Path
 
 import pytest
@@ -7,6 +8,7 @@ import torch
 
 REPO = Path(__file__).resolve().parents[1]
 MODELS = REPO / "models"
+CLIENTS = REPO / "clients"  # the npm package of web clients the outputs are tested in (make clients)
 
 
 @pytest.fixture(scope="session")
@@ -47,3 +49,37 @@ def one_torch_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(before)
+
+
+@pytest.fixture(scope="session")
+def chromium() -> Path:
+    """Debian's Chromium, run headless by the web-client tests; skipped with the reason when absent."""
+    path = shutil.which("chromium") or shutil.which("chromium-browser")
+    if path is None:
+        pytest.skip("headless Chromium is not installed: `make clients` installs Debian's chromium")
+    return Path(path)
+
+
+@pytest.fixture(scope="session")
+def node_clients() -> Path:
+    """``clients/node_modules`` (splat-transform, Spark, three, puppeteer-core); skipped when not installed."""
+    if shutil.which("node") is None:
+        pytest.skip("node is not installed (apt-get install nodejs npm), so the npm clients cannot run")
+    if not (CLIENTS / "node_modules" / ".ffrecon-installed").exists():
+        pytest.skip("the npm clients are not installed: run `make clients` (npm ci in clients/)")
+    return CLIENTS / "node_modules"
+
+
+@pytest.fixture(scope="session")
+def full_run(tmp_path_factory, demo12):
+    """A complete output folder of 12 frames at 320x240 with every stage (feed-forward, COLMAP, refined,
+    points, a briefly trained splat and its exports): what viewers and web clients open."""
+    from ffrecon.pipeline import RunOptions, run
+    from ffrecon.splat.optimize import OptimizeOptions
+    from ffrecon.splat.stage import SplatOptions
+
+    out = tmp_path_factory.mktemp("full-run") / "out"
+    splat = SplatOptions(video_frames=12, optimize=OptimizeOptions.brief(max_seconds=8.0, iterations=300))
+    result = run(demo12.images, out, demo12.model, RunOptions(splat=splat, ground_truth=demo12.scene_dir))
+    assert result.exit_code == 0, f"the run failed with exit code {result.exit_code}"
+    return out
