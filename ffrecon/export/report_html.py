@@ -13,7 +13,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from ffrecon.export.media import animated_webp, video_frames
 from ffrecon.export.plots import PathSeries, camera_paths_png, curves_png, error_bars_png, thumbnail_png, timings_png
+from ffrecon.export.scene3d import scene_html
 
 MAX_THUMBNAILS = 12
 
@@ -29,7 +31,7 @@ th{background:#f5f5f5} .pass{color:#137333;font-weight:600} .fail{color:#c5221f;
 .warn{background:#fef7e0}
 .gallery{display:flex;flex-wrap:wrap;gap:.5em} .gallery figure{margin:0;font-size:.8em;text-align:center}
 img{max-width:100%} .muted{color:#666;font-size:.9em} .scroll{overflow-x:auto} .g3 figure{width:32%}
-.g3 img{width:100%}
+.g3 img{width:100%} .flagged img{outline:4px solid #c5221f;outline-offset:-4px} .flagged figcaption{color:#c5221f}
 """
 _SIMULATED = (
     "<div class='banner warn'><b>Simulated model.</b> The feed-forward cameras and depth come from ffrecon's "
@@ -71,11 +73,14 @@ def _figure(title: str, png: bytes, caption: str) -> str:
     return f"<figure>{_img(png, title)}<figcaption class='muted'>{html.escape(caption)}</figcaption></figure>"
 
 
-def _gallery(items: list[tuple[str, bytes]], wide: bool = False) -> str:
+def _gallery(items: list[tuple[str, bytes]], wide: bool = False, flagged: frozenset[str] = frozenset()) -> str:
+    """Thumbnails with captions; those whose caption is in ``flagged`` are framed in red."""
     if not items:
         return ""
     figures = "".join(
-        f"<figure>{_img(png, cap)}<figcaption>{html.escape(cap)}</figcaption></figure>" for cap, png in items
+        f"<figure{' class=flagged' if cap in flagged else ''}>{_img(png, cap)}"
+        f"<figcaption>{html.escape(cap)}</figcaption></figure>"
+        for cap, png in items
     )
     return f"<div class='gallery{' g3' if wide else ''}'>{figures}</div>"
 
@@ -107,10 +112,21 @@ def _every(items: list, limit: int = MAX_THUMBNAILS) -> list:
 
 
 def _capture(report: dict, run_dir: Path) -> tuple[list[dict], str]:
+    """The quality flags as a table, and thumbnails of an even sample of the frames plus every flagged
+    frame (up to the sample's size again), the flagged ones framed in red with what was found."""
     flags = report["inputs"]["quality"]["flags"]
     rows = [{"frame": f["name"], "issue": f["kind"], "value": f["value"], "what to do": f["message"]} for f in flags]
-    thumbs = [t for name in _every(report["inputs"]["names"]) for t in _thumb(run_dir / "images" / name, name, 160)]
-    return rows, _gallery(thumbs)
+    names = report["inputs"]["names"]
+    issues: dict[str, list[str]] = {}
+    for f in flags:
+        issues.setdefault(f["name"], []).append(str(f["kind"]))
+    shown = set(_every(names)) | set(list(issues)[:MAX_THUMBNAILS])
+    captions = {n: f"{n}: {', '.join(issues[n])}" if n in issues else n for n in names}
+    thumbs = [t for n in names if n in shown for t in _thumb(run_dir / "images" / n, captions[n], 160)]
+    note = ""
+    if issues:
+        note = f"<p class='muted'>Framed in red: the {len(issues)} frame(s) the capture checks flagged.</p>"
+    return rows, note + _gallery(thumbs, flagged=frozenset(captions[n] for n in issues))
 
 
 def _feedforward(report: dict, run_dir: Path) -> tuple[list[dict], str]:
@@ -232,7 +248,20 @@ def _splat(report: dict, run_dir: Path) -> tuple[list[dict], str]:
             (f"{r['view']}: splat, PSNR {m['psnr_cleaned']:.1f} dB", "splat"),
         ):
             thumbs += _thumb(run_dir / r[key], caption, 240)
-    return rows, curve + _gallery(thumbs, wide=True)
+    return rows, _flythrough(run_dir / "flythrough.mp4") + curve + _gallery(thumbs, wide=True)
+
+
+def _flythrough(path: Path) -> str:
+    """flythrough.mp4 as an inline animated WebP ('' when there is no video or it cannot be read)."""
+    frames, fps = video_frames(path) if path.is_file() else ([], 0.0)
+    if not frames:
+        return ""
+    data = base64.b64encode(animated_webp(frames, fps)).decode()
+    caption = "The splat along a smooth path through the cameras (flythrough.mp4, shrunk, every few frames)."
+    return (
+        f"<figure><img alt='fly-through of the splat' src='data:image/webp;base64,{data}'>"
+        f"<figcaption class='muted'>{html.escape(caption)}</figcaption></figure>"
+    )
 
 
 _SPLAT_COLUMNS = (("seed", "seed"), ("optimised", "optimized"), ("after cleaning", "cleaned"))
@@ -436,6 +465,13 @@ def render_html(report: dict, run_dir: Path) -> str:
         stage, reason = html.escape(item["stage"]), html.escape(item["reason"])
         parts.append(f"<div class='banner warn'>Skipped <b>{stage}</b>: {reason}</div>")
     parts.append("<h2>Summary</h2>" + _table([{"item": k, "value": v} for k, v in summary_rows(report)]))
+    scene = scene_html(report, run_dir)
+    if scene:
+        caption = (
+            "Drag to turn, scroll to zoom, hover for names. Final cameras as frustums (red: frames whose estimates "
+            "disagree), the other estimates' camera centres aligned to them by a Sim(3), and a sample of points.ply."
+        )
+        parts.append(f"<h2>The scene in 3D</h2>{scene}<p class='muted'>{html.escape(caption)}</p>")
     for title, section in _SECTIONS:
         rows, body = section(report, run_dir)
         if rows or body:
