@@ -31,6 +31,7 @@ import torch
 
 from ffrecon.checks import check_shape, require_finite
 from ffrecon.errors import InputError
+from ffrecon.export.web import write_sog, write_splat_spz
 from ffrecon.splat.appearance import apply_color_transform, fit_color_transform
 from ffrecon.splat.clean import CleanOptions, CleanReport, clean_gaussians
 from ffrecon.splat.gaussians import Gaussians
@@ -73,6 +74,8 @@ class SplatOptions:
     holdout_every: int = 8  # frames 0, k, 2k, ... are held out for evaluation; 0 = none
     max_seed_points: int = 60_000  # the seed is voxel-downsampled to at most this (and optimize.max_gaussians)
     video: bool = True  # flythrough.mp4 along a smooth path through the cameras
+    spz: bool = True  # splat.spz (Niantic's SPZ, ~10x smaller) beside splat.ply; see ffrecon.export.web
+    sog: bool = False  # splat.sog (PlayCanvas) through splat-transform: opt-in, its CPU k-means is slow
     video_frames: int = 90
     report_views: int = 3  # held-out views rendered into renders/ for the report
     curve_every: int = 100  # score the held-out views every this many iterations (0: only at the end)
@@ -134,6 +137,8 @@ class SplatResult:
     # from the seed (iteration 0) on; plain renders of the uncleaned splat. Empty when not asked for.
     heldout_curve: tuple[tuple[int, float, float, float], ...] = ()
     stop_reason: str = ""  # what ended the optimisation: "plateau", "iterations" or "time budget"
+    spz_path: Path | None = None  # splat.spz, the same splat in Niantic's SPZ (options.spz)
+    sog_path: Path | None = None  # splat.sog, PlayCanvas's SOG (options.sog)
 
     def mean(self, key: str) -> float:
         """Mean over held-out views of a :class:`ViewMetrics` field (nan without held-out views)."""
@@ -163,6 +168,8 @@ class SplatResult:
         return {
             "backend": self.backend,
             "splat_ply": rel(self.ply_path),
+            "splat_spz": rel(self.spz_path),
+            "splat_sog": rel(self.sog_path),
             "renders": [
                 {"view": v, "truth": rel(t), "seed": rel(s), "splat": rel(o)} for v, t, s, o in self.render_paths
             ],
@@ -336,7 +343,7 @@ def _splat(
     splats = {"seed": seed, "optimized": result.gaussians, "cleaned": cleaned}
     with timer.stage("evaluate"):
         metrics, render_paths = _evaluate_heldout(heldout, names, images, poses, cameras, splats, options, out_dir)
-    ply_path, video_path = _write_outputs(out_dir, cleaned, poses, cameras[0], options, timer)
+    ply_path, video_path, web_paths = _write_outputs(out_dir, cleaned, poses, cameras[0], options, timer)
     res = SplatResult(
         out_dir=out_dir,
         ply_path=ply_path,
@@ -358,6 +365,7 @@ def _splat(
         color_transforms=result.color_transforms,
         heldout_curve=tuple(curve),
         stop_reason=result.stop_reason,
+        **web_paths,
     )
     _log_summary(res)
     return res
@@ -391,6 +399,8 @@ def _fit_and_clean(
     every = options.curve_every if score is not None else 0
     result = optimize(seed, targets, cam_from_world, Ks, train, opt, scale=scale, callback=score, callback_every=every)
     timer.add("optimize", result.seconds)  # the optimiser's own clock (callbacks left out)
+    if score is not None and curve[-1][0] < result.iterations:  # the curve ends where the optimisation did
+        score(result.iterations, result.seconds, result.gaussians, result.cam_from_world)
 
     poses = result.cam_from_world
     with timer.stage("clean"):
@@ -482,13 +492,21 @@ def _write_outputs(
     camera: PinholeCamera,
     options: SplatOptions,
     timer: StageTimer,
-) -> tuple[Path, Path | None]:
-    """``splat.ply`` and (when ``options.video``) ``flythrough.mp4``; adds their times to ``timer``."""
+) -> tuple[Path, Path | None, dict[str, Path | None]]:
+    """``splat.ply``, (when ``options.video``) ``flythrough.mp4`` and the web formats asked for
+    (``{"spz_path": ..., "sog_path": ...}``, see :mod:`ffrecon.export.web`); adds their times to ``timer``."""
     o = options.optimize
     with timer.stage("write_ply"):
         ply_path = write_splat_ply(out_dir / "splat.ply", cleaned, sh_degree=o.sh_degree)
+    web_paths: dict[str, Path | None] = {"spz_path": None, "sog_path": None}
+    if options.spz:
+        with timer.stage("write_spz"):
+            web_paths["spz_path"] = write_splat_spz(out_dir / "splat.spz", cleaned, sh_degree=o.sh_degree)
+    if options.sog:
+        with timer.stage("write_sog"):
+            web_paths["sog_path"] = write_sog(ply_path, out_dir / "splat.sog")
     if not options.video:
-        return ply_path, None
+        return ply_path, None, web_paths
     with timer.stage("video"):
         video_path = write_flythrough(
             out_dir / "flythrough.mp4",
@@ -499,7 +517,7 @@ def _write_outputs(
             background=o.background,
             raster=o.raster,
         )
-    return ply_path, video_path
+    return ply_path, video_path, web_paths
 
 
 def _log_summary(res: SplatResult) -> None:
