@@ -1,0 +1,63 @@
+// Opens a URL (a local viewer such as `ffrecon view`) in headless Chromium and takes a screenshot once
+// the page has settled.
+//
+//   node screenshot_url.mjs URL OUT.png [WIDTHxHEIGHT] [MAX_WAIT_MS] [MIN_WAIT_MS]
+//
+// Waits for a <canvas>, then screenshots every 750 ms until two in a row are identical (WebGL done
+// drawing, data streamed in) after at least MIN_WAIT_MS (default 3000), or MAX_WAIT_MS (default 30000)
+// has passed; writes the last one. Only http://127.0.0.1 / localhost URLs and data:/blob: are loaded.
+// Prints one JSON line: {"stable": bool, "elapsed_ms": n, "canvas": bool, "console_errors": [...], "blocked": [...]}.
+import puppeteer from 'puppeteer-core';
+import { writeFileSync } from 'node:fs';
+
+const [url, out_png, size = '1200x800', max_ms = '30000', min_ms = '3000'] = process.argv.slice(2);
+if (!url || !out_png) {
+  console.error('usage: node screenshot_url.mjs URL OUT.png [WIDTHxHEIGHT] [MAX_WAIT_MS] [MIN_WAIT_MS]');
+  process.exit(2);
+}
+const [width, height] = size.split('x').map(Number);
+const browser = await puppeteer.launch({
+  executablePath: process.env.CHROMIUM || '/usr/bin/chromium',
+  headless: true,
+  args: ['--no-sandbox', '--use-angle=swiftshader', '--enable-unsafe-swiftshader'],
+});
+const errors = [];
+const blocked = [];
+const started = Date.now();
+try {
+  const page = await browser.newPage();
+  await page.setViewport({ width, height });
+  await page.setRequestInterception(true);
+  page.on('request', (req) => {
+    const u = req.url();
+    if (/^(data|blob):/.test(u) || /^(http|ws)s?:\/\/(127\.0\.0\.1|localhost)(:\d+)?\//.test(u)) return req.continue();
+    blocked.push(u);
+    return req.abort();
+  });
+  page.on('console', (msg) => { if (msg.type() === 'error') errors.push(msg.text()); });
+  page.on('pageerror', (err) => errors.push(String(err)));
+  await page.goto(url, { waitUntil: 'load', timeout: Number(max_ms) });
+  let canvas = true;
+  try {
+    await page.waitForSelector('canvas', { timeout: Number(max_ms) });
+  } catch {
+    canvas = false;
+  }
+  let previous = null;
+  let shot = null;
+  let stable = false;
+  while (Date.now() - started < Number(max_ms)) {
+    await new Promise((r) => setTimeout(r, 750));
+    shot = Buffer.from(await page.screenshot({ type: 'png' }));
+    if (previous && shot.equals(previous) && Date.now() - started >= Number(min_ms)) {
+      stable = true;
+      break;
+    }
+    previous = shot;
+  }
+  shot = shot || Buffer.from(await page.screenshot({ type: 'png' }));
+  writeFileSync(out_png, shot);
+  console.log(JSON.stringify({ stable, elapsed_ms: Date.now() - started, canvas, console_errors: errors, blocked }));
+} finally {
+  await browser.close();
+}
