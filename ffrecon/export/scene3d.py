@@ -42,13 +42,17 @@ class CameraSet:
 def load_camera_sets(run_dir: Path, names: list[str]) -> list[CameraSet]:
     """The estimates found in ``run_dir`` (final first), each aligned to the final cameras' frame.
 
+    Without ``sparse/0`` (a run without a model), COLMAP's cameras are the final ones.
+
     A set is left out when its model is missing, or when it shares fewer than 3 registered cameras with
     the final set (a Sim(3) needs three). Returns [] without final cameras.
     """
+    models = {label: Path(run_dir) / rel for label, rel in ESTIMATE_MODELS.items()}
+    if not _is_model(models["final"]):  # a run without a model: COLMAP's cameras are the final ones
+        models["final"] = models.pop("COLMAP")
     loaded = {}
-    for label, rel in ESTIMATE_MODELS.items():
-        path = Path(run_dir) / rel
-        if (path / "images.bin").is_file() or (path / "images.txt").is_file():
+    for label, path in models.items():
+        if _is_model(path):
             rec = pycolmap.Reconstruction(str(path))
             poses, registered = cam_from_world_by_name(rec, names)
             cams = cameras_by_name(rec, names)
@@ -76,6 +80,10 @@ def load_camera_sets(run_dir: Path, names: list[str]) -> list[CameraSet]:
             )
         )
     return sets
+
+
+def _is_model(path: Path) -> bool:
+    return (path / "images.bin").is_file() or (path / "images.txt").is_file()
 
 
 def _homogeneous(poses: np.ndarray) -> np.ndarray:
@@ -106,11 +114,17 @@ def frustum_lines(camera: CameraSet, depth: float) -> np.ndarray:
 
 
 def read_points(path: Path, limit: int = MAX_POINTS, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """``(xyz [M, 3], rgb [M, 3] in [0, 1])`` of a point cloud file, randomly thinned to ``limit``."""
+    """``(xyz [M, 3], rgb [M, 3] in [0, 1])`` of a point cloud file without its far outliers (outside the
+    2-98 % box of each axis grown by a quarter), randomly thinned to ``limit``."""
     cloud = o3d.io.read_point_cloud(str(path))
     xyz, rgb = np.asarray(cloud.points), np.asarray(cloud.colors)
     if len(rgb) != len(xyz):
         rgb = np.full_like(xyz, 0.5)
+    if len(xyz) >= 50:  # a few far-off points would otherwise set the view's bounds and shrink the scene
+        lo, hi = np.quantile(xyz, [0.02, 0.98], axis=0)
+        margin = 0.25 * (hi - lo)
+        inside = np.all((xyz >= lo - margin) & (xyz <= hi + margin), axis=1)
+        xyz, rgb = xyz[inside], rgb[inside]
     if len(xyz) > limit:
         pick = np.sort(np.random.default_rng(seed).choice(len(xyz), limit, replace=False))
         xyz, rgb = xyz[pick], rgb[pick]
@@ -140,7 +154,7 @@ def scene_figure(
             for mask, name, c in ((~bad, "final cameras", colour), (bad, "disagreeing frames", DISAGREEING_COLOUR)):
                 if mask.any():
                     sub = CameraSet(s.label, [], s.world_from_cam[mask], s.K[mask], s.size_wh[mask])
-                    lines = frustum_lines(sub, 0.08 * extent)
+                    lines = frustum_lines(sub, _frustum_depth(centers, extent))
                     fig.add_trace(_scatter(lines, name, mode="lines", line={"color": c, "width": 4}))
         hover = [f"{s.label}: {n}" + (" (disagrees)" if b else "") for n, b in zip(s.names, bad)]
         marker = {"size": 4, "color": [DISAGREEING_COLOUR if b else colour for b in bad]}
@@ -157,15 +171,32 @@ def scene_figure(
 _AXES = ("xaxis", "yaxis", "zaxis")
 
 
+def _frustum_depth(centers: np.ndarray, extent: float) -> float:
+    """Frustums about as deep as neighbouring cameras are apart (so a dense path does not turn into a
+    tangle), within 2-8 % of the scene's extent."""
+    if len(centers) < 2:
+        return 0.08 * extent
+    gaps = np.linalg.norm(centers[:, None] - centers[None], axis=-1) + np.diag(np.full(len(centers), np.inf))
+    return float(np.clip(0.8 * np.median(gaps.min(1)), 0.02 * extent, 0.08 * extent))
+
+
 def _viewpoint(final: CameraSet) -> dict:
-    """plotly's scene camera: up is the cameras' mean image-up (people hold cameras upright; OpenCV's
-    image-up is -y), and the eye stands behind and above the cameras, looking the way they look on average."""
+    """plotly's scene camera. Up is the cameras' mean image-up (people hold cameras upright; OpenCV's
+    image-up is -y). The eye looks across the cameras' smallest horizontal spread, from the side they
+    look away from, and from above: behind a row of cameras that sweeps along a facade, beside a path
+    that walks towards something, obliquely over a ring."""
     up = -final.world_from_cam[:, :3, 1].sum(0)
     up = up / (np.linalg.norm(up) or 1.0)
-    forward = final.world_from_cam[:, :3, 2].sum(0)
-    forward = forward - up * (forward @ up)
-    forward = forward / (np.linalg.norm(forward) or 1.0)
-    eye = 1.3 * (-forward + 0.6 * up)
+    centers = final.world_from_cam[:, :3, 3] - final.world_from_cam[:, :3, 3].mean(0)
+    flat = centers - np.outer(centers @ up, up)
+    across = np.linalg.svd(flat, full_matrices=False)[2][1] if len(centers) >= 3 else np.zeros(3)  # [2] is up
+    across = across - up * (across @ up)
+    if np.linalg.norm(across) < 1e-6:  # fewer than three cameras, or all in one vertical line
+        across = np.cross(up, [1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.cross(up, [0.0, 1.0, 0.0])
+    across = across / np.linalg.norm(across)
+    if across @ final.world_from_cam[:, :3, 2].mean(0) > 0:
+        across = -across
+    eye = 1.4 * (across + 0.6 * up)
     return {"up": dict(zip("xyz", up.tolist())), "eye": dict(zip("xyz", eye.tolist()))}
 
 
