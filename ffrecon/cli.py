@@ -102,6 +102,17 @@ def build_parser() -> argparse.ArgumentParser:
     inspect = sub.add_parser("inspect-model", help="show a model's family, inputs, outputs and preprocessing")
     inspect.add_argument("model", type=Path)
     _add_export_parser(sub)
+    view = sub.add_parser("view", help="open an output folder's cameras, points and splat in the browser")
+    view.add_argument("out", type=Path, help="an output folder of `ffrecon run -o OUT`")
+    view.add_argument("--host", default="127.0.0.1", help="address to listen on (default %(default)s: this machine)")
+    view.add_argument("--port", type=int, default=8080, help="port to listen on (default %(default)s)")
+    view.add_argument(
+        "--max-points", type=int, default=None, help="points drawn at most (default 200000; the rest subsampled)"
+    )
+    view.add_argument(
+        "--max-gaussians", type=int, default=None, help="Gaussians drawn at most, most opaque first (default 100000)"
+    )
+    view.add_argument("-v", "--verbose", action="count", default=0)
     return parser
 
 
@@ -312,6 +323,29 @@ def _inspect(path: Path) -> None:
         print(f"  metadata {k}: {v[:200]}")
 
 
+def _view(args: argparse.Namespace) -> int:
+    """Serve the viewer until Ctrl-C (or SIGTERM), then stop it and say so in one line (exit 0)."""
+    import time
+
+    from ffrecon.view import ViewOptions, load_scene, start_viewer
+
+    started = time.perf_counter()
+    options = ViewOptions(**_given(max_points=args.max_points, max_gaussians=args.max_gaussians))
+    scene = load_scene(args.out, options)
+    signal.signal(signal.SIGTERM, _terminate)  # pycolmap, imported by load_scene, installs its own handler
+    viewer = start_viewer(scene, host=args.host, port=args.port)
+    for what, why in scene.missing:
+        log.info("not shown: %s (%s)", what, why)
+    print(f"viewer: {viewer.url}  (ready in {time.perf_counter() - started:.1f} s; Ctrl-C stops it)", flush=True)
+    try:
+        while True:
+            time.sleep(3600)
+    except KeyboardInterrupt:
+        viewer.stop()
+        print("ffrecon: viewer stopped", file=sys.stderr)
+    return 0
+
+
 def _leave_if_work_beside(exit_code: int) -> None:
     """After a second Ctrl-C the run stops without waiting for COLMAP's current step in the thread beside
     (ffrecon.concurrency); a process that finishes normally while pycolmap computes in another thread is
@@ -357,6 +391,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.command == "export-model":
             _export(args)
             return 0
+        if args.command == "view":
+            return _view(args)
         results = _run_command(args)
     except Interrupted as err:
         print(f"ffrecon: {err.problem}; {err.fix}", file=sys.stderr)

@@ -40,6 +40,11 @@ class ViewOptions:
     max_gaussians: int = 100_000  # splat.ply is subsampled (most opaque first) to at most this many
     seed: int = 0  # for the point subsample
 
+    def __post_init__(self) -> None:
+        for name in ("max_points", "max_gaussians"):
+            if getattr(self, name) < 1:
+                raise InputError(f"{name} is {getattr(self, name)}, expected at least 1", "pass a positive cap")
+
 
 @dataclass(frozen=True)
 class CameraSpec:

@@ -87,7 +87,7 @@ def _frustum_scale(scene: ViewScene) -> float:
     gaps = np.linalg.norm(centers[:, None] - centers[None], axis=-1) + np.eye(len(centers)) * 1e9
     nearest = np.median(gaps.min(axis=1))
     extent = float(np.linalg.norm(np.ptp(centers, axis=0)))
-    return float(np.clip(0.5 * nearest if nearest < 1e8 else 0.05 * extent, 0.02 * extent, 0.1 * extent) or 0.1)
+    return float(np.clip(0.7 * nearest if nearest < 1e8 else 0.05 * extent, 0.02 * extent, 0.1 * extent) or 0.1)
 
 
 def _legend_html(scene: ViewScene) -> str:
@@ -175,7 +175,7 @@ def _frame_view(server, scene: ViewScene) -> None:
     mean_forward = np.mean([c.world_from_cam[:, 2] for layer in scene.layers for c in layer.cameras] or [[1, 0, 0]], 0)
     side = -mean_forward - up * float(np.dot(-mean_forward, up))
     side = side / np.linalg.norm(side) if np.linalg.norm(side) > 1e-6 else np.cross(up, [1.0, 0.0, 0.0])
-    position = look_at + radius * (1.6 * side + 1.6 * up)
+    position = look_at + radius * (1.0 * side + 2.2 * up)
     server.initial_camera.position = tuple(float(v) for v in position)
     server.initial_camera.look_at = tuple(float(v) for v in look_at)
     server.initial_camera.up = tuple(float(v) for v in up)
