@@ -241,3 +241,19 @@ def test_viewer_page_shows_the_scene_and_stops_on_ctrl_c(full_run, chromium, nod
     assert changed > 0.3, f"only {changed:.0%} of the view differs from the empty one: the scene is not drawn"
     colours = len(np.unique((on // 32).reshape(-1, 3), axis=0))
     assert colours > 60, f"{colours} distinct colours: a flat image, not the splat and points"
+
+
+def test_selecting_a_camera_shows_its_photo_and_errors(scene):
+    from ffrecon.view import start_viewer
+
+    viewer = start_viewer(scene, port=_free_port())
+    try:
+        name = scene.flagged[0]
+        viewer.select(Estimate.COLMAP, name)
+        assert name in viewer.details.content and "COLMAP camera" in viewer.details.content
+        assert "**flagged**" in viewer.details.content
+        assert viewer.photo.visible and viewer.photo.image.shape == (240, 320, 3)
+        with pytest.raises(KeyError):
+            viewer.select(Estimate.FINAL, "no-such-frame.png")
+    finally:
+        viewer.stop()

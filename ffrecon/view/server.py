@@ -30,10 +30,29 @@ class PortInUse(FFReconError):
 
 @dataclass
 class Viewer:
-    """A running viewer: ``url`` to open, ``stop()`` to end it."""
+    """A running viewer: ``url`` to open, ``select()`` does what clicking a camera does, ``stop()`` ends it."""
 
     server: object  # viser.ViserServer
     url: str
+    scene: ViewScene
+    details: object = None  # the "Selected camera" markdown handle
+    photo: object = None  # its image handle
+
+    def select(self, estimate: Estimate, name: str) -> None:
+        """Show ``name``'s photo, status and pose errors in the panel, as a click on its frustum does."""
+        layer = self.scene.layer(estimate)
+        cam = next((c for c in layer.cameras if c.name == name), None) if layer is not None else None
+        if cam is None:
+            raise KeyError(f"no {estimate.label} camera named {name}")
+        self._show(layer, cam)
+
+    def _show(self, layer: CameraLayer, cam: CameraSpec) -> None:
+        self.details.content = _camera_markdown(self.scene, layer, cam)
+        info = self.scene.images.get(cam.name)
+        image = _photo(info.path, PANEL_PX) if info is not None else None
+        if image is not None:
+            self.photo.image = image
+        self.photo.visible = image is not None
 
     def stop(self) -> None:
         with contextlib.redirect_stdout(io.StringIO()):  # viser prints "Server stopped" unconditionally
@@ -192,16 +211,17 @@ def start_viewer(scene: ViewScene, *, host: str = "127.0.0.1", port: int = 8080)
 
     with contextlib.redirect_stdout(io.StringIO()):  # its own banner; the CLI prints the address
         server = viser.ViserServer(host=host, port=port, label="ffrecon", verbose=False)
-    viewer = Viewer(server, f"http://{'[' + host + ']' if ':' in host else host}:{server.get_port()}")
+    viewer = Viewer(server, f"http://{'[' + host + ']' if ':' in host else host}:{server.get_port()}", scene)
     if port and server.get_port() != port:  # taken between the check and the bind
         viewer.stop()
         _check_port_free(host, port)
         raise PortInUse(f"port {port} on {host} is in use", f"pass another port (--port {port + 1})")
-    _populate(server, scene)
+    _populate(viewer)
     return viewer
 
 
-def _populate(server, scene: ViewScene) -> None:
+def _populate(viewer: Viewer) -> None:
+    server, scene = viewer.server, viewer.scene
     gui = server.gui
     gui.configure_theme(control_width="large", show_share_button=False)
     gui.add_markdown(f"**ffrecon** · `{scene.out_dir}`")
@@ -210,20 +230,12 @@ def _populate(server, scene: ViewScene) -> None:
         toggles = gui.add_folder("show")
         gui.add_markdown(_status_markdown(scene))
     with gui.add_folder("Selected camera"):
-        details = gui.add_markdown("click a camera to see its photo and pose errors")
-        photo = gui.add_image(np.full((4, 4, 3), 255, np.uint8), label="photo", visible=False)
-
-    def on_select(layer: CameraLayer, cam: CameraSpec) -> None:
-        details.content = _camera_markdown(scene, layer, cam)
-        info = scene.images.get(cam.name)
-        image = _photo(info.path, PANEL_PX) if info is not None else None
-        if image is not None:
-            photo.image = image
-        photo.visible = image is not None
+        viewer.details = gui.add_markdown("click a camera to see its photo and pose errors")
+        viewer.photo = gui.add_image(np.full((4, 4, 3), 255, np.uint8), label="photo", visible=False)
 
     scale = _frustum_scale(scene)
     nodes = {
-        f"{layer.estimate.label} cameras": _add_cameras(server, scene, layer, scale, on_select)
+        f"{layer.estimate.label} cameras": _add_cameras(server, scene, layer, scale, viewer._show)
         for layer in scene.layers
     }
     if scene.points is not None:
