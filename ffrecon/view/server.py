@@ -159,7 +159,7 @@ def _add_cameras(server, scene: ViewScene, layer: CameraLayer, scale: float, on_
     """The layer's frustums under one frame node (returned: hiding it hides them all)."""
     root = f"/{layer.estimate.name.lower()}"
     frame = server.scene.add_frame(root, show_axes=False)
-    thickness = 0.03 * scale
+    thickness = 0.05 * scale
     for cam in layer.cameras:
         info = scene.images.get(cam.name)
         image = _photo(info.path, THUMBNAIL_PX) if (layer.estimate is Estimate.FINAL and info) else None
