@@ -68,6 +68,11 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
         help="with a model, also train the splat from COLMAP's points under the same budget, and compare",
     )
     p.add_argument("--mesh", action="store_true", help="also write a Poisson mesh (mesh.ply, mesh.glb) of the cloud")
+    p.add_argument(
+        "--sog",
+        action="store_true",
+        help="also write splat.sog (PlayCanvas) with splat-transform (`make clients`); minutes for 10k+ Gaussians",
+    )
     p.add_argument("--reference", type=Path, default=None, help="a reference COLMAP model to score the cameras against")
     p.add_argument("-v", "--verbose", action="count", default=0)
     p.add_argument("-q", "--quiet", action="store_true")
@@ -259,6 +264,7 @@ def _run_options(args: argparse.Namespace, ground_truth: Path | None = None):
     splat = SplatOptions(
         enabled=not args.no_splat,
         compare_seeds=args.compare_seeds,
+        sog=args.sog,
         optimize=OptimizeOptions.brief(**_given(max_seconds=args.splat_seconds)),
     )
     preset = RunOptions.quick() if args.quick else RunOptions()  # the flags below override the preset's fields
