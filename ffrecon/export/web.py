@@ -124,8 +124,10 @@ def find_splat_transform() -> Path | None:
 def write_sog(ply_path: Path, sog_path: Path, *, timeout_s: float = 600.0, executable: Path | None = None) -> Path:
     """Convert a 3DGS PLY to PlayCanvas's SOG with ``splat-transform -g cpu`` (a bounded subprocess).
 
-    SOG's SH compression is a k-means on the CPU here: measured on this project's 2-core machine,
-    3.5k Gaussians at SH degree 3 took 4 s, 70k did not finish in 10 minutes; hence opt-in
+    SOG's SH compression is a k-means on the CPU here, and its cost grows faster than the splat.
+    Measured with splat-transform 3.7.0 on this project's 2-core machine, SH degree 3: with non-zero
+    SH rest coefficients 3k Gaussians took 7 s, 12k took 101 s, 70k did not finish in 10 minutes;
+    a brief CPU splat whose SH rest coefficients are still all zero took 4 s for 58k. Hence opt-in
     (``SplatOptions.sog``, ``--sog``) and ``timeout_s``. Raises :class:`WebExportError` naming the
     problem and the fix when the converter is missing, fails or runs out of time.
     """

@@ -31,7 +31,7 @@ import torch
 
 from ffrecon.checks import check_shape, require_finite
 from ffrecon.errors import InputError
-from ffrecon.export.web import write_sog, write_splat_spz
+from ffrecon.export.web import WebExportError, write_sog, write_splat_spz
 from ffrecon.splat.appearance import apply_color_transform, fit_color_transform
 from ffrecon.splat.clean import CleanOptions, CleanReport, clean_gaussians
 from ffrecon.splat.gaussians import Gaussians
@@ -504,7 +504,10 @@ def _write_outputs(
             web_paths["spz_path"] = write_splat_spz(out_dir / "splat.spz", cleaned, sh_degree=o.sh_degree)
     if options.sog:
         with timer.stage("write_sog"):
-            web_paths["sog_path"] = write_sog(ply_path, out_dir / "splat.sog")
+            try:
+                web_paths["sog_path"] = write_sog(ply_path, out_dir / "splat.sog")
+            except WebExportError as err:  # an optional extra: the splat itself is written, say why not this
+                logger.warning("splat.sog not written: %s", err)
     if not options.video:
         return ply_path, None, web_paths
     with timer.stage("video"):
