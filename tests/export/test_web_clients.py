@@ -275,3 +275,28 @@ def test_spark_comparison_fails_for_an_spz_in_another_frame(spark_scores):
 @pytest.mark.slow
 def test_spark_comparison_fails_for_colours_stored_as_rgb(spark_scores):
     assert spark_scores["rgb_not_sh"] < MIN_PSNR - NEGATIVE_MARGIN, spark_scores
+
+
+def test_the_splat_stage_writes_sog_when_asked(splat_transform, tmp_path):
+    from ffrecon.splat.stage import SplatOptions, _write_outputs
+    from ffrecon.timing import StageTimer
+
+    g = _random_gaussians(500, degree=3)
+    camera = PinholeCamera(64, 48, 50.0, 50.0, 32.0, 24.0)
+    options = SplatOptions(video=False, sog=True)
+    ply, video, web = _write_outputs(tmp_path, g, np.zeros((1, 3, 4)), camera, options, StageTimer())
+    assert video is None and web["spz_path"] == tmp_path / "splat.spz"
+    assert web["sog_path"] == tmp_path / "splat.sog"
+    assert _splat_transform_json(splat_transform, web["sog_path"], "--info")["numGaussians"] == 500
+
+
+def test_the_splat_stage_keeps_going_without_the_sog_converter(tmp_path, monkeypatch, caplog):
+    from ffrecon.splat.stage import SplatOptions, _write_outputs
+    from ffrecon.timing import StageTimer
+
+    monkeypatch.setenv(SPLAT_TRANSFORM_ENV, str(tmp_path / "no-such-splat-transform"))
+    options = SplatOptions(video=False, sog=True)
+    camera = PinholeCamera(64, 48, 50.0, 50.0, 32.0, 24.0)
+    ply, _, web = _write_outputs(tmp_path, _random_gaussians(50, 0), np.zeros((1, 3, 4)), camera, options, StageTimer())
+    assert ply.exists() and web["sog_path"] is None
+    assert "splat.sog not written" in caplog.text and "make clients" in caplog.text
