@@ -50,7 +50,7 @@ STAGE_OUTPUTS = {
     "refine": ("sparse", "refine"),
     "evidence": (),
     "comparisons": (),
-    "splat": ("splat.ply", "renders", "flythrough.mp4"),
+    "splat": ("splat.ply", "splat.spz", "splat.sog", "renders", "flythrough.mp4"),
     "seed_comparison": ("seed_comparison",),
     "exports": EXPORT_OUTPUTS,
 }

@@ -39,6 +39,7 @@ class ViewOptions:
     max_points: int = 200_000  # points.ply is subsampled to at most this many points
     max_gaussians: int = 100_000  # splat.ply is subsampled (most opaque first) to at most this many
     seed: int = 0  # for the point subsample
+    splat: bool = True  # False: splat.ply is not read (the report's 3D view draws cameras and points only)
 
     def __post_init__(self) -> None:
         for name in ("max_points", "max_gaussians"):
@@ -55,6 +56,8 @@ class CameraSpec:
     fov_y: float  # vertical field of view, radians
     aspect: float  # width / height
     flagged: bool
+    K: np.ndarray  # [3, 3] pinhole intrinsics for an image of size_wh (COLMAP's pixel-centre rule)
+    size_wh: tuple[int, int]
 
 
 @dataclass(frozen=True)
@@ -127,7 +130,8 @@ class ViewScene:
 
 
 def _read_model(out: Path, estimate: Estimate):
-    """``(names, [N, 3, 4] cam_from_world, [N] fov_y, [N] aspect)`` of the registered images, or None."""
+    """``(names, [N, 3, 4] cam_from_world, [N] fov_y, [N] aspect, [N] (K [3, 3], (w, h)))`` of the registered
+    images, or None."""
     import pycolmap
 
     from ffrecon.sfm.colmap_io import pose_from_rigid
@@ -141,7 +145,7 @@ def _read_model(out: Path, estimate: Estimate):
         raise InputError(
             f"{folder} is not a readable COLMAP model ({err})", f"re-run ffrecon into {out}, or delete {folder}"
         ) from err
-    names, poses, fovs, aspects = [], [], [], []
+    names, poses, fovs, aspects, intrinsics = [], [], [], [], []
     for image in sorted(rec.images.values(), key=lambda im: im.name):
         if not image.has_pose:
             continue
@@ -151,7 +155,8 @@ def _read_model(out: Path, estimate: Estimate):
         poses.append(pose_from_rigid(image.cam_from_world()))
         fovs.append(2.0 * math.atan2(camera.height / 2.0, fy))
         aspects.append(camera.width / camera.height)
-    return names, np.array(poses).reshape(-1, 3, 4), np.array(fovs), np.array(aspects)
+        intrinsics.append((np.asarray(camera.calibration_matrix(), float), (int(camera.width), int(camera.height))))
+    return names, np.array(poses).reshape(-1, 3, 4), np.array(fovs), np.array(aspects), intrinsics
 
 
 def _align(names, world_from_cam, ref: dict[str, np.ndarray]) -> tuple[Sim3, float, str]:
@@ -281,8 +286,10 @@ def _read_splat(path: Path, options: ViewOptions) -> SplatLayer:
     return layer
 
 
-def load_scene(out_dir: Path, options: ViewOptions = ViewOptions()) -> ViewScene:
+def load_scene(out_dir: Path, options: ViewOptions = ViewOptions(), report: dict | None = None) -> ViewScene:
     """Read an ffrecon output folder into the layers the viewer draws (see the module docstring for frames).
+
+    ``report``: the folder's report data when the caller has it (the report writer); else report.json is read.
 
     Raises:
         InputError: ``out_dir`` is missing or holds no ffrecon output, or one of its files is unreadable.
@@ -297,7 +304,7 @@ def load_scene(out_dir: Path, options: ViewOptions = ViewOptions()) -> ViewScene
             "points.ply or splat.ply in it",
             "pass the folder given to `ffrecon run -o OUT` (or `ffrecon demo -o OUT`) after the run finished",
         )
-    report = _load_report(out)
+    report = _load_report(out) if report is None else report
     missing, notes = [], []
     if report is None:
         notes.append("no report.json: no camera is flagged")
@@ -305,7 +312,7 @@ def load_scene(out_dir: Path, options: ViewOptions = ViewOptions()) -> ViewScene
     reference = next((e for e in order if models[e]), None)
     ref_centers = {}
     if reference is not None:
-        names, cam_from_world, _, _ = models[reference]
+        names, cam_from_world = models[reference][:2]
         ref_centers = {n: invert_pose(p)[:, 3] for n, p in zip(names, cam_from_world)}
     if reference is not None and reference is not Estimate.FINAL:
         notes.append(f"no final model: the {reference.label} cameras define the frame")
@@ -316,7 +323,7 @@ def load_scene(out_dir: Path, options: ViewOptions = ViewOptions()) -> ViewScene
         if model is None:
             missing.append((f"{estimate.label} cameras", f"no model in {estimate.folder}"))
             continue
-        names, cam_from_world, fovs, aspects = model
+        names, cam_from_world, fovs, aspects, intrinsics = model
         world_from_cam = np.array([invert_pose(p) for p in cam_from_world]).reshape(-1, 3, 4)
         fit, rms, why = (
             (Sim3.identity(), 0.0, "") if estimate is reference else _align(names, world_from_cam, ref_centers)
@@ -325,16 +332,16 @@ def load_scene(out_dir: Path, options: ViewOptions = ViewOptions()) -> ViewScene
             notes.append(f"{estimate.label} cameras: {why}")
         moved = fit.transform_cam_from_world(cam_from_world)  # cam_from_final, metric part scaled
         cams = tuple(
-            CameraSpec(n, invert_pose(p), float(f), float(a), n in flags)
-            for n, p, f, a in zip(names, moved, fovs, aspects)
+            CameraSpec(n, invert_pose(p), float(f), float(a), n in flags, k, wh)
+            for n, p, f, a, (k, wh) in zip(names, moved, fovs, aspects, intrinsics)
         )
         layers.append(CameraLayer(estimate, cams, fit, rms))
         all_names.update(names)
     points = _read_points(out / "points.ply", options) if (out / "points.ply").exists() else None
     if points is None:
         missing.append(("points", "no points.ply"))
-    splat = _read_splat(out / "splat.ply", options) if (out / "splat.ply").exists() else None
-    if splat is None:
+    splat = _read_splat(out / "splat.ply", options) if options.splat and (out / "splat.ply").exists() else None
+    if splat is None and options.splat:
         missing.append(("splat", "no splat.ply"))
     return ViewScene(
         out, tuple(layers), points, splat, _image_infos(out, report, all_names), tuple(missing), tuple(notes)
