@@ -50,6 +50,12 @@ $(CLIENTS_STAMP): clients/package.json clients/package-lock.json
 		{ $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq chromium >/dev/null; } \
 			|| echo "WARNING: could not install chromium; the headless-browser tests will be skipped"; \
 	fi
+	@if ! command -v npm >/dev/null 2>&1; then \
+		echo "installing Debian's nodejs and npm (for the web-client tests)"; \
+		SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
+		{ $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq nodejs npm >/dev/null; } \
+			|| echo "WARNING: could not install npm"; \
+	fi
 	@if command -v npm >/dev/null 2>&1; then \
 		npm ci --prefix clients --no-audit --no-fund --ignore-scripts --loglevel=error && touch $@ \
 			|| echo "WARNING: npm ci failed in clients/; the web-client tests will be skipped"; \

@@ -301,6 +301,7 @@ def _print_summary(results) -> None:
         print(f"  skipped {item['stage']}: {item['reason']}")
     print(f"  {'time':<28} {wall_seconds(report):.1f} s")
     print(f"  report: {results.out_dir / 'report.html'}")
+    print(f"  look around in 3D: ffrecon view {results.out_dir}")
 
 
 def _inspect(path: Path) -> None:
