@@ -470,7 +470,7 @@ def render_html(report: dict, run_dir: Path) -> str:
         caption = (
             "Drag to turn, scroll to zoom, hover for names. The final cameras as frustums (red: frames the checks "
             "flagged), the other estimates' camera centres moved onto them by a Sim(3), and a sample of points.ply. "
-            "`ffrecon view OUT` shows the same with the splat and the photos."
+            "ffrecon view OUT shows the same with the splat and the photos."
         )
         parts.append(f"<h2>The scene in 3D</h2>{scene}<p class='muted'>{html.escape(caption)}</p>")
     for title, section in _SECTIONS:

@@ -84,7 +84,7 @@ def scene_figure(main: CameraLayer, others: Sequence[CameraLayer], points: Point
     fig.update_layout(
         height=600,
         margin={"l": 0, "r": 0, "t": 0, "b": 0},
-        legend={"itemsizing": "constant"},
+        legend={"itemsizing": "constant", "x": 0.0, "y": 1.0},  # top left: the mode bar is top right
         scene={"aspectmode": "data", "camera": _viewpoint(main), **{a: {"visible": False} for a in _AXES}},
     )
     return fig
