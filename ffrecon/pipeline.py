@@ -37,6 +37,7 @@ from ffrecon.stages import (
     seed_comparison_stage,
     splat_stage,
     with_curves,
+    write_final_model,
 )
 from ffrecon.workspace import staged_output
 
@@ -149,6 +150,7 @@ def _run_stages(
         capture, ff, colmap, refine, options, stages, [k_capture, k_ff, k_colmap, k_refine]
     )
     final = final_cameras(capture, ff, colmap, refine, evidence)
+    write_final_model(final, ff, colmap, work)
     final_keys = [k_capture, k_ff, k_colmap, k_refine, k_evidence]  # the final cameras depend on these
     options = with_curves(options)
     splat, _ = splat_stage(capture, ff, colmap, final, verdicts, options, work, stages, final_keys)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import shutil
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -293,6 +294,32 @@ def final_cameras(capture: Capture, ff, colmap, refine, evidence) -> FinalCamera
         distortion = tuple(_colmap_lens(colmap, names))
         return FinalCameras(kept, names, colmap.cam_from_world[list(kept)], cameras, "COLMAP", distortion)
     return None
+
+
+def write_final_model(final: FinalCameras | None, ff, colmap, work: Path) -> Path | None:
+    """``work/sparse/0``: the final cameras as a COLMAP model, where downstream tools look (docs/contracts.md,
+    "Output folder"). The refinement writes it; when the final cameras are COLMAP's (a run without a model) or
+    the model's (the refinement failed or was turned off), that model is copied there.
+
+    Runs every time (a copy of a small model): the refinement's record owns ``sparse`` and removes it
+    whenever it is skipped or runs again. Not done when the refinement wrote ``sparse/0`` but the final
+    cameras are COLMAP's because the model was set aside as unsuited: a reused refinement reads its model
+    back from there. Returns the folder, or None when there is none.
+    """
+    target = work / "sparse" / "0"
+    if final is None or final.source == "refined" or _is_model(target):
+        return target if _is_model(target) else None
+    source = {"COLMAP": getattr(colmap, "model_path", None), "feed-forward": getattr(ff, "sparse_dir", None)}
+    folder = source.get(final.source)
+    if folder is None or not _is_model(Path(folder)):
+        return None
+    shutil.copytree(folder, target, dirs_exist_ok=True)
+    log.info("sparse/0: the final cameras are %s's; copied its model from %s", final.source, folder)
+    return target
+
+
+def _is_model(folder: Path) -> bool:
+    return (folder / "images.bin").is_file() or (folder / "images.txt").is_file()
 
 
 def _colmap_lens(colmap: ColmapResult, names) -> list[tuple[float, float, float, float]]:

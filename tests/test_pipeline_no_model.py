@@ -39,6 +39,12 @@ def test_no_model_reconstructs_from_colmap_alone(demo12, tmp_path):
     k1 = rec.cameras[1].params[3]
     assert transforms["camera_model"] == "OPENCV" and transforms["k1"] == k1 and transforms["k2"] == 0.0
     assert result.exports.num_points == rec.num_points3D()
+    # sparse/0 holds the final cameras, COLMAP's here: the same model as colmap/sparse/0 (docs/contracts.md).
+    final = pycolmap.Reconstruction(str(out / "sparse" / "0"))
+    assert final.num_reg_images() == 12 and final.num_points3D() == rec.num_points3D()
+    for image in final.images.values():
+        same = rec.images[image.image_id]
+        assert same.name == image.name and np.allclose(same.cam_from_world().matrix(), image.cam_from_world().matrix())
     report = json.loads((out / "report.json").read_text())
     assert report["feedforward"] == {"skipped": result.feedforward.reason}
     assert "none: cameras from COLMAP" in (out / "report.html").read_text()

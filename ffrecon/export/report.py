@@ -128,6 +128,13 @@ def _concurrent(results: RunResults) -> list[dict]:
     ]
 
 
+def _copied_final_model(results: RunResults) -> Path | None:
+    """sparse/0 when it holds a copy of the final cameras' model rather than the refinement's."""
+    folder = results.out_dir / "sparse" / "0"
+    refined = getattr(results.refine, "model_path", None)
+    return folder if refined is None and (folder / "images.bin").is_file() else None
+
+
 def _outputs(results: RunResults) -> dict[str, str]:
     """Files for people, relative to the run folder (only those the run wrote)."""
     out = results.out_dir
@@ -135,6 +142,7 @@ def _outputs(results: RunResults) -> dict[str, str]:
     ff_sparse = getattr(results.feedforward, "sparse_dir", None)
     candidates = {
         "refined COLMAP model (use this)": getattr(results.refine, "model_path", None),
+        f"final cameras, {getattr(ex, 'cameras_from', '')}'s (use this)": _copied_final_model(results),
         "COLMAP cross-check model": getattr(results.colmap, "model_path", None),
         "feed-forward COLMAP model": ff_sparse,
         "feed-forward depth maps": None if ff_sparse is None else ff_sparse.parent / "depth",
