@@ -6,16 +6,12 @@
 // needs the network shows it). Once the page has loaded, waits (at most 20 s) for SELECTOR, lets
 // WebGL draw, scrolls SELECTOR into view and takes a screenshot. Prints one JSON line:
 // {"external_requests": [...], "found": bool, "console_errors": [...], "webgl": "..."}.
-import puppeteer from 'puppeteer-core';
+import { launchHeadless } from './headless.mjs';
 import { pathToFileURL } from 'node:url';
 import path from 'node:path';
 
 const [page_path, out_png, width = '1100', height = '800', selector = 'body'] = process.argv.slice(2);
-const browser = await puppeteer.launch({
-  executablePath: process.env.CHROMIUM || '/usr/bin/chromium',
-  headless: true,
-  args: ['--no-sandbox', '--use-angle=swiftshader', '--enable-unsafe-swiftshader'],
-});
+const browser = await launchHeadless();
 const external = [];
 const errors = [];
 try {

@@ -8,7 +8,7 @@
 // has passed; writes the last one. With UNCHECKED.png, then clicks every checkbox on the page (a viewer's
 // layer toggles), waits the same way and writes a second screenshot there. Only http://127.0.0.1 / localhost URLs and data:/blob: are loaded.
 // Prints one JSON line: {"stable": bool, "elapsed_ms": n, "canvas": bool, "console_errors": [...], "blocked": [...]}.
-import puppeteer from 'puppeteer-core';
+import { launchHeadless } from './headless.mjs';
 import { writeFileSync } from 'node:fs';
 
 const [url, out_png, size = '1200x800', max_ms = '30000', min_ms = '3000', unchecked_png] = process.argv.slice(2);
@@ -17,11 +17,7 @@ if (!url || !out_png) {
   process.exit(2);
 }
 const [width, height] = size.split('x').map(Number);
-const browser = await puppeteer.launch({
-  executablePath: process.env.CHROMIUM || '/usr/bin/chromium',
-  headless: true,
-  args: ['--no-sandbox', '--use-angle=swiftshader', '--enable-unsafe-swiftshader'],
-});
+const browser = await launchHeadless();
 const errors = [];
 const blocked = [];
 const started = Date.now();

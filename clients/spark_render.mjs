@@ -13,7 +13,7 @@ import { createReadStream, readFileSync, statSync, writeFileSync } from "node:fs
 import http from "node:http";
 import path from "node:path";
 import { fileURLToPath } from "node:url";
-import puppeteer from "puppeteer-core";
+import { launchHeadless } from "./headless.mjs";
 
 const here = path.dirname(fileURLToPath(import.meta.url));
 const job = JSON.parse(readFileSync(process.argv[2], "utf8"));
@@ -50,11 +50,7 @@ const server = http.createServer((req, res) => {
 await new Promise((ok) => server.listen(0, "127.0.0.1", ok));
 const origin = `http://127.0.0.1:${server.address().port}`;
 
-const browser = await puppeteer.launch({
-  executablePath: job.chromium ?? "/usr/bin/chromium",
-  headless: true,
-  args: ["--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"],
-});
+const browser = await launchHeadless(job.chromium ?? undefined);
 let failed = false;
 const problems = [];
 try {

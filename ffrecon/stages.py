@@ -27,6 +27,7 @@ from ffrecon.models.runner import cpu_threads
 from ffrecon.models.stage import FeedForwardResult, run_feedforward
 from ffrecon.results import QUICK_NO_CROSSCHECK, RunMode, Skipped
 from ffrecon.resume import StageRunner, file_key
+from ffrecon.sfm.colmap_io import is_model_dir
 from ffrecon.sfm.compare import compare_poses
 from ffrecon.sfm.comparisons import ComparisonsResult, load_references, run_comparisons
 from ffrecon.sfm.crosscheck import ColmapResult, run_colmap
@@ -307,19 +308,15 @@ def write_final_model(final: FinalCameras | None, ff, colmap, work: Path) -> Pat
     back from there. Returns the folder, or None when there is none.
     """
     target = work / "sparse" / "0"
-    if final is None or final.source == "refined" or _is_model(target):
-        return target if _is_model(target) else None
+    if final is None or final.source == "refined" or is_model_dir(target):
+        return target if is_model_dir(target) else None
     source = {"COLMAP": getattr(colmap, "model_path", None), "feed-forward": getattr(ff, "sparse_dir", None)}
     folder = source.get(final.source)
-    if folder is None or not _is_model(Path(folder)):
+    if folder is None or not is_model_dir(Path(folder)):
         return None
     shutil.copytree(folder, target, dirs_exist_ok=True)
     log.info("sparse/0: the final cameras are %s's; copied its model from %s", final.source, folder)
     return target
-
-
-def _is_model(folder: Path) -> bool:
-    return (folder / "images.bin").is_file() or (folder / "images.txt").is_file()
 
 
 def _colmap_lens(colmap: ColmapResult, names) -> list[tuple[float, float, float, float]]:

@@ -15,8 +15,9 @@ import pytest
 import torch
 
 from ffrecon.errors import InputError
+from ffrecon.splat.gaussians import SH_C0
 from ffrecon.view import Estimate, ViewOptions, load_scene
-from ffrecon.view.scene import FLAG_COLOR, SH_C0, image_flags, splat_layer
+from ffrecon.view.scene import FLAG_COLOR, image_flags, splat_layer
 from ffrecon.view.server import _camera_markdown
 
 REPO = Path(__file__).resolve().parents[1]

@@ -19,6 +19,7 @@ import numpy as np
 from ffrecon import __version__
 from ffrecon.export.report_html import render_html
 from ffrecon.results import QUICK_STATEMENT, RunMode, RunResults, Skipped
+from ffrecon.sfm.colmap_io import is_model_dir
 from ffrecon.sfm.evidence import CameraStatus, EvidenceResult
 from ffrecon.sfm.refine import RefineResult, RefineStatus
 
@@ -132,7 +133,7 @@ def _copied_final_model(results: RunResults) -> Path | None:
     """sparse/0 when it holds a copy of the final cameras' model rather than the refinement's."""
     folder = results.out_dir / "sparse" / "0"
     refined = getattr(results.refine, "model_path", None)
-    return folder if refined is None and (folder / "images.bin").is_file() else None
+    return folder if refined is None and is_model_dir(folder) else None
 
 
 def _outputs(results: RunResults) -> dict[str, str]:

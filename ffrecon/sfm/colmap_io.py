@@ -83,6 +83,11 @@ def reconstruction_from_cameras(
     return rec
 
 
+def is_model_dir(folder: Path) -> bool:
+    """Whether ``folder`` holds a COLMAP model (binary or text)."""
+    return (Path(folder) / "images.bin").is_file() or (Path(folder) / "images.txt").is_file()
+
+
 def write_reconstruction(rec: pycolmap.Reconstruction, path: Path, *, text: bool = False) -> Path:
     """Write a model in COLMAP's binary format (or text); creates the folder."""
     path = Path(path)

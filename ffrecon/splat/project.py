@@ -13,6 +13,7 @@ order, step by step; the finite-difference tests of the renderer check it (pose 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numba
 import numpy as np
@@ -280,6 +281,18 @@ def _compile_backward(dtype: np.dtype) -> None:
     _BACKWARD_READY.add(dtype)
 
 
+@dataclass(frozen=True)
+class Projected:
+    """Per-Gaussian screen-space quantities for one camera."""
+
+    means2d: torch.Tensor  # [N, 2] pixels, COLMAP convention
+    conics: torch.Tensor  # [N, 3] (a, b, c) of the inverse 2D covariance [[a, b], [b, c]], 1/pixels^2
+    depths: torch.Tensor  # [N] camera-frame z of the centres
+    log_opacity: torch.Tensor  # [N]
+    extent: torch.Tensor  # [N, 2] half-size in pixels of the box outside which alpha < 1/255 (no grad)
+    visible: torch.Tensor  # [N] bool: in front of the near plane and able to reach alpha 1/255
+
+
 class _Project(torch.autograd.Function):
     """``(means, quats_wxyz, log_scales, opacity_logits, cam_from_world [3, 4]) -> (means2d, conics,
     depths, log_opacity, extent, visible)``; the last two carry no gradient."""
@@ -323,7 +336,7 @@ class _Project(torch.autograd.Function):
         return out_t[:, :3], out_t[:, 3:7], out_t[:, 7:10], out_t[:, 10], d_pose, None, None, None
 
 
-def project(
+def project_gaussians(
     means: torch.Tensor,
     quats_wxyz: torch.Tensor,
     log_scales: torch.Tensor,
@@ -332,11 +345,22 @@ def project(
     K: torch.Tensor,
     width: int,
     height: int,
-    near: float,
-    eps2d: float,
-) -> tuple[torch.Tensor, ...]:
-    """``(means2d [N, 2], conics [N, 3], depths [N], log_opacity [N], extent [N, 2], visible [N])`` on the
-    CPU, differentiable in the Gaussians and ``cam_from_world``; see :func:`ffrecon.splat.render.project_gaussians`."""
+    *,
+    near: float = 0.01,
+    eps2d: float = 0.3,
+) -> Projected:
+    """EWA projection of 3D Gaussians (world frame) into a pinhole camera, on the CPU, differentiable in
+    the Gaussians and ``cam_from_world`` (on CUDA the splat renders with gsplat instead).
+
+    Args:
+        means: ``[N, 3]`` world positions.
+        quats_wxyz: ``[N, 4]`` rotations, scalar first, any norm.
+        log_scales: ``[N, 3]``.
+        opacity_logits: ``[N]``.
+        cam_from_world: ``[3, 4]`` (or ``[4, 4]``) OpenCV pose; may require grad.
+        K: ``[3, 3]`` intrinsics for ``width x height``.
+    """
     k = K.detach().double()
     cam = np.array([float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2]), float(width), float(height)])
-    return _Project.apply(means, quats_wxyz, log_scales, opacity_logits, cam_from_world, cam, float(near), float(eps2d))
+    args = (means, quats_wxyz, log_scales, opacity_logits, cam_from_world, cam, float(near), float(eps2d))
+    return Projected(*_Project.apply(*args))

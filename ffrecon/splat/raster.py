@@ -471,7 +471,7 @@ def composite(
 
     Args:
         means2d: ``[N, 2]``, conics: ``[N, 3]``, log_opacity: ``[N]`` as from
-            :func:`ffrecon.splat.render.project_gaussians`; feat: ``[N, F]`` per-Gaussian features (rgb,
+            :func:`ffrecon.splat.project.project_gaussians`; feat: ``[N, F]`` per-Gaussian features (rgb,
             depth); background: ``[F]``. All of one float dtype (float32 or float64).
         layout: from :func:`bin_gaussians` with the same means, conics and opacities.
     Returns:

@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from ffrecon.splat.gaussians import Gaussians, sh_to_rgb
-from ffrecon.splat.project import project
+from ffrecon.splat.project import project_gaussians
 from ffrecon.splat.raster import TileLayout, bin_gaussians, composite
 from ffrecon.types import PinholeCamera
 
@@ -38,18 +38,6 @@ class RasterOptions:
 
 
 @dataclass(frozen=True)
-class Projected:
-    """Per-Gaussian screen-space quantities for one camera."""
-
-    means2d: torch.Tensor  # [N, 2] pixels, COLMAP convention
-    conics: torch.Tensor  # [N, 3] (a, b, c) of the inverse 2D covariance [[a, b], [b, c]], 1/pixels^2
-    depths: torch.Tensor  # [N] camera-frame z of the centres
-    log_opacity: torch.Tensor  # [N]
-    extent: torch.Tensor  # [N, 2] half-size in pixels of the box outside which alpha < 1/255 (no grad)
-    visible: torch.Tensor  # [N] bool: in front of the near plane and able to reach alpha 1/255
-
-
-@dataclass(frozen=True)
 class RenderOutput:
     rgb: torch.Tensor  # [H, W, 3] float32, composited over the background
     alpha: torch.Tensor  # [H, W] accumulated opacity, 1 - final transmittance
@@ -58,36 +46,6 @@ class RenderOutput:
     visible: torch.Tensor  # [N] bool, Gaussians that touched at least one tile
     extent: torch.Tensor  # [N, 2] pixels
     layout: TileLayout | None  # None from the gsplat adapter
-
-
-def project_gaussians(
-    means: torch.Tensor,
-    quats_wxyz: torch.Tensor,
-    log_scales: torch.Tensor,
-    opacity_logits: torch.Tensor,
-    cam_from_world: torch.Tensor,
-    K: torch.Tensor,
-    width: int,
-    height: int,
-    *,
-    near: float = 0.01,
-    eps2d: float = 0.3,
-) -> Projected:
-    """EWA projection of 3D Gaussians (world frame) into a pinhole camera, on the CPU (compiled kernels,
-    :mod:`ffrecon.splat.project`; on CUDA the splat renders with gsplat instead).
-
-    Args:
-        means: ``[N, 3]`` world positions.
-        quats_wxyz: ``[N, 4]`` rotations, scalar first, any norm.
-        log_scales: ``[N, 3]``.
-        opacity_logits: ``[N]``.
-        cam_from_world: ``[3, 4]`` (or ``[4, 4]``) OpenCV pose; may require grad.
-        K: ``[3, 3]`` intrinsics for ``width x height``.
-    """
-    means2d, conics, depths, log_opacity, extent, ok = project(
-        means, quats_wxyz, log_scales, opacity_logits, cam_from_world, K, width, height, near, eps2d
-    )
-    return Projected(means2d, conics, depths, log_opacity, extent, ok)
 
 
 def render(

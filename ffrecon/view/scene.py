@@ -18,8 +18,8 @@ import numpy as np
 from ffrecon.errors import InputError
 from ffrecon.geometry.alignment import Sim3, umeyama
 from ffrecon.geometry.poses import invert_pose
+from ffrecon.geometry.rotations import quat_xyzw_to_matrix
 
-SH_C0 = 0.28209479177387814  # the degree-0 spherical harmonic: colour = SH_C0 * f_dc + 0.5
 FLAG_COLOR = (220, 20, 20)  # cameras the cross-check flags, in every layer
 
 
@@ -53,11 +53,19 @@ class CameraSpec:
 
     name: str
     world_from_cam: np.ndarray
-    fov_y: float  # vertical field of view, radians
-    aspect: float  # width / height
     flagged: bool
     K: np.ndarray  # [3, 3] pinhole intrinsics for an image of size_wh (COLMAP's pixel-centre rule)
     size_wh: tuple[int, int]
+
+    @property
+    def fov_y(self) -> float:
+        """Vertical field of view, radians."""
+        return 2.0 * math.atan2(self.size_wh[1] / 2.0, float(self.K[1, 1]))
+
+    @property
+    def aspect(self) -> float:
+        """Width / height."""
+        return self.size_wh[0] / self.size_wh[1]
 
 
 @dataclass(frozen=True)
@@ -130,14 +138,13 @@ class ViewScene:
 
 
 def _read_model(out: Path, estimate: Estimate):
-    """``(names, [N, 3, 4] cam_from_world, [N] fov_y, [N] aspect, [N] (K [3, 3], (w, h)))`` of the registered
-    images, or None."""
+    """``(names, [N, 3, 4] cam_from_world, [N] (K [3, 3], (w, h)))`` of the registered images, or None."""
     import pycolmap
 
-    from ffrecon.sfm.colmap_io import pose_from_rigid
+    from ffrecon.sfm.colmap_io import is_model_dir, pose_from_rigid
 
     folder = out / estimate.folder
-    if not (folder / "images.bin").exists() and not (folder / "images.txt").exists():
+    if not is_model_dir(folder):
         return None
     try:
         rec = pycolmap.Reconstruction(str(folder))
@@ -145,18 +152,15 @@ def _read_model(out: Path, estimate: Estimate):
         raise InputError(
             f"{folder} is not a readable COLMAP model ({err})", f"re-run ffrecon into {out}, or delete {folder}"
         ) from err
-    names, poses, fovs, aspects, intrinsics = [], [], [], [], []
+    names, poses, intrinsics = [], [], []
     for image in sorted(rec.images.values(), key=lambda im: im.name):
         if not image.has_pose:
             continue
         camera = rec.cameras[image.camera_id]
-        fy = float(np.asarray(camera.calibration_matrix())[1, 1])
         names.append(image.name)
         poses.append(pose_from_rigid(image.cam_from_world()))
-        fovs.append(2.0 * math.atan2(camera.height / 2.0, fy))
-        aspects.append(camera.width / camera.height)
         intrinsics.append((np.asarray(camera.calibration_matrix(), float), (int(camera.width), int(camera.height))))
-    return names, np.array(poses).reshape(-1, 3, 4), np.array(fovs), np.array(aspects), intrinsics
+    return names, np.array(poses).reshape(-1, 3, 4), intrinsics
 
 
 def _align(names, world_from_cam, ref: dict[str, np.ndarray]) -> tuple[Sim3, float, str]:
@@ -243,28 +247,18 @@ def _read_points(path: Path, options: ViewOptions) -> PointLayer:
 def splat_layer(gaussians, max_gaussians: int) -> SplatLayer:
     """Centres, covariances ``R diag(exp(2 log_scale)) R^T``, DC colours and opacities of the most opaque
     ``max_gaussians`` Gaussians (all of them when there are fewer)."""
-    means = gaussians.means.detach().cpu().numpy().astype(np.float64)
-    quats = gaussians.quats_wxyz.detach().cpu().numpy().astype(np.float64)
-    log_scales = gaussians.log_scales.detach().cpu().numpy().astype(np.float64)
-    logits = gaussians.opacity_logits.detach().cpu().numpy().astype(np.float64).reshape(-1)
-    dc = gaussians.sh.detach().cpu().numpy()[:, 0, :].astype(np.float64)
+    g = gaussians.detached().to("cpu")
+    logits = g.opacity_logits.double().numpy().reshape(-1)
     keep = np.argsort(-logits, kind="stable")[:max_gaussians]
-    w, x, y, z = (quats[keep] / np.linalg.norm(quats[keep], axis=1, keepdims=True)).T
-    rot = np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        axis=1,
-    )
-    cov = (rot * np.exp(2.0 * log_scales[keep])[:, None, :]) @ rot.transpose(0, 2, 1)
+    quats_wxyz = g.quats_wxyz.double().numpy()[keep]
+    rot = quat_xyzw_to_matrix(quats_wxyz[:, [1, 2, 3, 0]])  # normalised there
+    cov = (rot * np.exp(2.0 * g.log_scales.double().numpy()[keep])[:, None, :]) @ rot.transpose(0, 2, 1)
     return SplatLayer(
-        means[keep].astype(np.float32),
+        g.means.numpy()[keep].astype(np.float32),
         cov.astype(np.float32),
-        np.clip(SH_C0 * dc[keep] + 0.5, 0.0, 1.0).astype(np.float32),
+        g.colors_dc().numpy()[keep].astype(np.float32),
         (1.0 / (1.0 + np.exp(-logits[keep])))[:, None].astype(np.float32),
-        len(means),
+        len(g),
     )
 
 
@@ -323,7 +317,7 @@ def load_scene(out_dir: Path, options: ViewOptions = ViewOptions(), report: dict
         if model is None:
             missing.append((f"{estimate.label} cameras", f"no model in {estimate.folder}"))
             continue
-        names, cam_from_world, fovs, aspects, intrinsics = model
+        names, cam_from_world, intrinsics = model
         world_from_cam = np.array([invert_pose(p) for p in cam_from_world]).reshape(-1, 3, 4)
         fit, rms, why = (
             (Sim3.identity(), 0.0, "") if estimate is reference else _align(names, world_from_cam, ref_centers)
@@ -332,8 +326,7 @@ def load_scene(out_dir: Path, options: ViewOptions = ViewOptions(), report: dict
             notes.append(f"{estimate.label} cameras: {why}")
         moved = fit.transform_cam_from_world(cam_from_world)  # cam_from_final, metric part scaled
         cams = tuple(
-            CameraSpec(n, invert_pose(p), float(f), float(a), n in flags, k, wh)
-            for n, p, f, a, (k, wh) in zip(names, moved, fovs, aspects, intrinsics)
+            CameraSpec(n, invert_pose(p), n in flags, k, wh) for n, p, (k, wh) in zip(names, moved, intrinsics)
         )
         layers.append(CameraLayer(estimate, cams, fit, rms))
         all_names.update(names)
