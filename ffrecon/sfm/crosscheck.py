@@ -22,7 +22,6 @@ import enum
 import logging
 import numbers
 import shutil
-import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -44,7 +43,8 @@ from ffrecon.sfm.features import (
     image_sizes_wh,
     matching_options,
 )
-from ffrecon.sfm.two_view import TwoViewOptions, two_view_reconstruction
+from ffrecon.sfm.mapping import MapperKind, MapperRun, map_images, two_view_run
+from ffrecon.sfm.two_view import TwoViewOptions
 from ffrecon.timing import StageTimer, Timings
 from ffrecon.types import PinholeCamera
 
@@ -52,10 +52,6 @@ logger = logging.getLogger("ffrecon.sfm")
 
 # Focal priors closer than this (relative) are one lens setting: EXIF values of one camera are equal.
 _SAME_FOCAL_RTOL = 1e-3
-# Iteration limits written out (COLMAP's own defaults) so that every solver in mapping is bounded.
-_INCREMENTAL_LOCAL_BA_ITERATIONS = 25
-_INCREMENTAL_GLOBAL_BA_ITERATIONS = 50
-_GLOBAL_BA_ITERATIONS = 200  # per bundle adjustment; the global mapper runs ``ba_num_iterations`` (3) of them
 
 
 class PairingMode(enum.Enum):
@@ -66,13 +62,6 @@ class PairingMode(enum.Enum):
     SEQUENTIAL = "sequential"
     SPATIAL = "spatial"  # nearest GPS positions (needs position priors in the database, e.g. from EXIF)
     VOCAB_TREE = "vocab_tree"  # image retrieval; needs ``vocab_tree_path``
-
-
-class MapperKind(enum.Enum):
-    AUTO = "auto"  # incremental; then the global mapper too when incremental leaves images out
-    INCREMENTAL = "incremental"
-    GLOBAL = "global"  # GLOMAP, merged into COLMAP 4
-    TWO_VIEW = "two_view"  # ffrecon's own, from COLMAP's verified geometry of two photos (sfm/two_view.py)
 
 
 class CameraSharing(enum.Enum):
@@ -107,31 +96,6 @@ class ColmapOptions:
     two_view: TwoViewOptions = TwoViewOptions()
     mapper_num_threads: int = 1  # 1 makes mapping repeatable (COLMAP's multi-threaded solvers are not); -1: all
     seed: int = 0
-
-
-@dataclass(frozen=True)
-class MapperRun:
-    """What one mapper built: its number of models and the best one's size and error."""
-
-    mapper: MapperKind  # INCREMENTAL, GLOBAL or TWO_VIEW
-    num_models: int
-    num_registered: int  # images in its best model (most images, then lowest error); 0 without a model
-    num_points: int
-    mean_reprojection_error_px: float  # of its best model; nan without a model
-    num_weak_dropped: int  # images it placed on fewer than ``min_points_per_image`` points, left out (all models)
-    seconds: float
-
-    def to_report(self) -> dict:
-        error = self.mean_reprojection_error_px
-        return {
-            "mapper": self.mapper.value,
-            "num_models": self.num_models,
-            "num_registered": self.num_registered,
-            "num_points": self.num_points,
-            "mean_reprojection_error_px": float(error) if np.isfinite(error) else None,
-            "num_weak_dropped": self.num_weak_dropped,
-            "seconds": round(self.seconds, 4),
-        }
 
 
 @dataclass(frozen=True)
@@ -297,148 +261,6 @@ def _match(db_path: Path, mode: PairingMode, options: ColmapOptions) -> None:
         raise ValueError(f"unresolved pairing mode {mode}")
 
 
-def _incremental_options(options: ColmapOptions, num_images: int) -> pycolmap.IncrementalPipelineOptions:
-    mapping = pycolmap.IncrementalPipelineOptions()
-    mapping.num_threads = options.mapper_num_threads
-    mapping.random_seed = options.seed
-    mapping.min_model_size = min(3, num_images)
-    # Every track of a two-image capture is a two-view track, which COLMAP skips by default.
-    mapping.triangulation.ignore_two_view_tracks = num_images > 2
-    mapping.max_runtime_seconds = int(options.max_mapping_seconds)
-    mapping.ba_local_max_num_iterations = _INCREMENTAL_LOCAL_BA_ITERATIONS
-    mapping.ba_global_max_num_iterations = _INCREMENTAL_GLOBAL_BA_ITERATIONS
-    return mapping
-
-
-def _global_options(options: ColmapOptions, num_images: int) -> pycolmap.GlobalPipelineOptions:
-    """The global mapper on the CPU, every stage bounded.
-
-    Rotation averaging (5 L1 and 100 IRLS iterations) and global positioning (100 iterations) keep
-    COLMAP's limits; each bundle adjustment gets ``_GLOBAL_BA_ITERATIONS`` and a quarter of
-    ``max_mapping_seconds``.
-    """
-    mapping = pycolmap.GlobalPipelineOptions()
-    mapping.num_threads = options.mapper_num_threads
-    mapping.random_seed = options.seed
-    mapping.min_model_size = min(3, num_images)
-    mapper = mapping.mapper
-    mapper.global_positioning.use_gpu = False
-    mapper.bundle_adjustment.ceres.use_gpu = False
-    solver = mapper.bundle_adjustment.ceres.solver_options
-    solver.max_num_iterations = _GLOBAL_BA_ITERATIONS
-    solver.max_solver_time_in_seconds = options.max_mapping_seconds / 4
-    return mapping
-
-
-def _run_mapper(
-    kind: MapperKind, db_path: Path, image_dir: Path, work_dir: Path, options: ColmapOptions, num_images: int
-) -> tuple[list[pycolmap.Reconstruction], MapperRun]:
-    """One mapper on the database: its non-empty models and a summary (errors of each model updated)."""
-    work_dir = work_dir / kind.value
-    shutil.rmtree(work_dir, ignore_errors=True)
-    work_dir.mkdir(parents=True)
-    start = time.perf_counter()
-    if kind is MapperKind.INCREMENTAL:
-        mapping = _incremental_options(options, num_images)
-        built = pycolmap.incremental_mapping(str(db_path), str(image_dir), str(work_dir), mapping)
-    else:
-        mapping = _global_options(options, num_images)
-        built = pycolmap.global_mapping(str(db_path), str(image_dir), str(work_dir), mapping)
-    seconds = time.perf_counter() - start
-    shutil.rmtree(work_dir, ignore_errors=True)
-    dropped = sum(drop_weak_images(rec, options.min_points_per_image) for rec in built.values())
-    models = [rec for rec in built.values() if rec.num_reg_images() > 0]
-    for rec in models:
-        rec.update_point_3d_errors()
-    best = max(models, key=_model_rank, default=None)
-    run = MapperRun(
-        mapper=kind,
-        num_models=len(models),
-        num_registered=0 if best is None else best.num_reg_images(),
-        num_points=0 if best is None else best.num_points3D(),
-        mean_reprojection_error_px=float("nan") if best is None else float(best.compute_mean_reprojection_error()),
-        num_weak_dropped=dropped,
-        seconds=seconds,
-    )
-    return models, run
-
-
-def drop_weak_images(rec: pycolmap.Reconstruction, min_points: int) -> int:
-    """De-register (in place) every image that sees fewer than ``min_points`` 3D points of ``rec``.
-
-    Dropping an image removes its observations, which can leave others short in turn, so this
-    repeats until every registered image passes (at most once per image). Returns how many were dropped.
-    """
-    dropped = 0
-    while True:
-        weak = {image.frame_id for image in rec.images.values() if image.has_pose and image.num_points3D < min_points}
-        if not weak:
-            return dropped
-        for frame_id in weak:
-            rec.deregister_frame(frame_id)
-        dropped += len(weak)
-
-
-def _model_rank(rec: pycolmap.Reconstruction) -> tuple[int, float]:
-    """Most registered images first, then the lower mean reprojection error (errors must be updated)."""
-    error = float(rec.compute_mean_reprojection_error())
-    return rec.num_reg_images(), -error if np.isfinite(error) else -np.inf
-
-
-def _map(
-    db_path: Path, image_dir: Path, work_dir: Path, options: ColmapOptions, num_images: int
-) -> tuple[pycolmap.Reconstruction | None, MapperRun | None, tuple[MapperRun, ...]]:
-    """Run the mapper(s) ``options.mapper`` asks for: ``(kept model, the run that built it, all runs)``.
-
-    AUTO runs the incremental mapper and, unless it registered every image in one model, the global
-    mapper too; the model with most registered images (then the lower error) is kept.
-    """
-    if options.mapper is MapperKind.AUTO:
-        kinds = (MapperKind.INCREMENTAL, MapperKind.GLOBAL)
-    else:
-        kinds = (options.mapper,)
-    runs: list[MapperRun] = []
-    kept: tuple[pycolmap.Reconstruction, MapperRun] | None = None
-    for kind in kinds:
-        models, run = _run_mapper(kind, db_path, image_dir, work_dir, options, num_images)
-        runs.append(run)
-        best = max(models, key=_model_rank, default=None)
-        if best is not None and (kept is None or _model_rank(best) > _model_rank(kept[0])):
-            kept = (best, run)
-        if run.num_models == 1 and run.num_registered == num_images:
-            break
-        if kind is not kinds[-1]:
-            logger.info(
-                "%s mapping registered %d/%d images in %d model(s); trying the %s mapper",
-                kind.value,
-                run.num_registered,
-                num_images,
-                run.num_models,
-                kinds[-1].value,
-            )
-    shutil.rmtree(work_dir, ignore_errors=True)
-    return (None, None, tuple(runs)) if kept is None else (*kept, tuple(runs))
-
-
-def _two_view(
-    db_path: Path, names: tuple[str, ...], options: TwoViewOptions
-) -> tuple[pycolmap.Reconstruction | None, MapperRun]:
-    """:func:`~ffrecon.sfm.two_view.two_view_reconstruction` as a mapper run."""
-    start = time.perf_counter()
-    rec = two_view_reconstruction(db_path, names, options)
-    found = rec is not None
-    run = MapperRun(
-        mapper=MapperKind.TWO_VIEW,
-        num_models=int(found),
-        num_registered=rec.num_reg_images() if found else 0,
-        num_points=rec.num_points3D() if found else 0,
-        mean_reprojection_error_px=float(rec.compute_mean_reprojection_error()) if found else float("nan"),
-        num_weak_dropped=0,
-        seconds=time.perf_counter() - start,
-    )
-    return rec, run
-
-
 def _as_priors(focal_prior_px: float | Sequence[float | None] | None, n: int) -> list[float | None]:
     """``n`` focal priors in pixels, None where unknown (a non-finite or non-positive value counts as unknown)."""
     if focal_prior_px is None or isinstance(focal_prior_px, numbers.Real):
@@ -489,9 +311,9 @@ def run_colmap(
     with timer.stage("mapping"), colmap_log_level():
         best, run, runs = (None, None, ())
         if stats.num_pairs_verified:
-            best, run, runs = _map(db_path, image_dir, out_dir / "mapper", options, len(names))
+            best, run, runs = map_images(db_path, image_dir, out_dir / "mapper", options, len(names))
         if best is None and len(names) == 2 and options.two_view.enabled:
-            best, run = _two_view(db_path, names, options.two_view)
+            best, run = two_view_run(db_path, names, options.two_view)
             runs = runs + (run,)
     model_dir = out_dir / "sparse" / "0"
     shutil.rmtree(model_dir, ignore_errors=True)

@@ -16,11 +16,11 @@ from ffrecon.sfm.crosscheck import (
     ColmapStatus,
     MapperKind,
     PairingMode,
-    drop_weak_images,
     resolve_camera_sharing,
     resolve_pairing,
     run_colmap,
 )
+from ffrecon.sfm.mapping import drop_weak_images
 
 
 def test_colmap_registers_the_orbit_accurately(orbit24, colmap24):
