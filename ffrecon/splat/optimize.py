@@ -24,7 +24,7 @@ from ffrecon.geometry.poses import camera_centers
 from ffrecon.splat.appearance import appearance_penalty, apply_color_transform, identity_transforms
 from ffrecon.splat.densify import Densifier, DensifyOptions, replace_rows
 from ffrecon.splat.gaussians import Gaussians
-from ffrecon.splat.render import RasterOptions, render, warm_up
+from ffrecon.splat.render import RasterOptions, interrupts_deferred, render, warm_up
 from ffrecon.splat.ssim import ssim_mean
 
 logger = logging.getLogger("ffrecon.splat")
@@ -510,7 +510,8 @@ def _optimize(
             order = [train[j] for j in rng.permutation(len(train))]
         degree = min(o.sh_degree, it // max(o.sh_band_every, 1))
         factor = resolution_factor(o, fraction)
-        loss = _train_step(params, adam, views, order.pop(), degree, o, densifier, factor).item()
+        with interrupts_deferred():  # a Ctrl-C is taken between steps, never inside a numba kernel
+            loss = _train_step(params, adam, views, order.pop(), degree, o, densifier, factor).item()
         it += 1
         if densifier is not None and densifier.due(it, fraction):
             params = _densify(densifier, params, adam)

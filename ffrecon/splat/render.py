@@ -138,7 +138,7 @@ def render_view(
     raster: RasterOptions | None = None,
 ) -> torch.Tensor:
     """``[H, W, 3]`` render of ``g`` seen by ``camera`` at ``cam_from_world [3, 4]``, on the CPU (no gradient)."""
-    with torch.no_grad():
+    with torch.no_grad(), interrupts_deferred():
         out = render(
             g.means,
             g.quats_wxyz,
@@ -158,13 +158,16 @@ def render_view(
 
 
 @contextlib.contextmanager
-def _interrupts_deferred():
+def interrupts_deferred():
     """Hold SIGINT and SIGTERM until the block ends, then raise KeyboardInterrupt if one came.
 
-    LLVM calls back into Python while numba compiles; a KeyboardInterrupt raised in that callback is
-    swallowed ("Exception ignored on calling ctypes callback") and leaves the kernel half-built: the
-    process then crashed or hung (reproduced by a Ctrl-C a few seconds into a first splat). Only the main
-    thread can handle signals; elsewhere the block runs as it is."""
+    Wraps every stretch of numba kernels (the warm-up, each training step, each render_view): numba
+    calls back into Python (LLVM while it compiles, ``_numba_unpickle`` while a kernel runs), and a
+    KeyboardInterrupt raised in such a callback is swallowed ("Exception ignored on calling ctypes
+    callback"), leaving a kernel half-built (the process crashed or hung), or turns into a SystemError
+    that escapes the CLI's interrupt handling (both reproduced by a Ctrl-C or SIGTERM during a splat).
+    The signal is then taken at the end of the block, a fraction of a second later. Only the main thread
+    can handle signals; elsewhere the block runs as it is."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -188,7 +191,7 @@ _READY = False  # set once warm_up has run in this process
 
 def warm_up() -> float:
     """Compile (first use) or load from numba's cache every CPU kernel a training step calls, on a tiny
-    float32 scene, with Ctrl-C held until it is done (see :func:`_interrupts_deferred`). Runs once per
+    float32 scene, with Ctrl-C held until it is done (see :func:`interrupts_deferred`). Runs once per
     process: :func:`render` calls it, and an optimiser calls it before starting its clock so the cost is
     not counted. Returns the seconds it took (~10 s on first use, well under one from the cache, 0 after)."""
     global _READY
@@ -196,7 +199,7 @@ def warm_up() -> float:
         return 0.0
     _READY = True  # first: the warm-up renders through render() itself
     try:
-        with _interrupts_deferred(), torch.enable_grad():  # render() may be called under no_grad
+        with interrupts_deferred(), torch.enable_grad():  # render() may be called under no_grad
             return _warm_up()
     except BaseException:
         _READY = False

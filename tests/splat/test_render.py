@@ -216,18 +216,18 @@ def test_ctrl_c_during_kernel_compilation_is_held_until_it_is_done():
     import os
     import signal
 
-    from ffrecon.splat.render import _interrupts_deferred
+    from ffrecon.splat.render import interrupts_deferred
 
     before = signal.signal(signal.SIGINT, signal.default_int_handler)  # as in a terminal (CI may ignore SIGINT)
     try:
         finished = False
         with pytest.raises(KeyboardInterrupt):
-            with _interrupts_deferred():
+            with interrupts_deferred():
                 os.kill(os.getpid(), signal.SIGINT)
                 finished = True
         assert finished and signal.getsignal(signal.SIGINT) is signal.default_int_handler
         signal.signal(signal.SIGINT, signal.SIG_IGN)  # an ignored SIGINT stays ignored
-        with _interrupts_deferred():
+        with interrupts_deferred():
             os.kill(os.getpid(), signal.SIGINT)
         assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
     finally:
