@@ -75,10 +75,13 @@ def write_point_cloud(path: Path, xyz: np.ndarray, rgb: np.ndarray) -> Path:
 
 
 def write_depth_maps(folder: Path, prediction: Prediction) -> Path:
-    """Per frame: ``<name>.npz`` with ``depth``, ``depth_conf``, ``K`` (for the depth grid) and ``cam_from_world``."""
+    """Per frame: ``<name>.npz`` with ``depth``, ``depth_conf``, ``K`` (for the depth grid) and ``cam_from_world``.
+
+    Stored uncompressed: at 48 frames of 640x480 (the bench scene) zlib saved 16% (99 instead of 118 MB)
+    for 3.8 s of CPU alone, 6-7 s while the feed-forward stage shares the cores with COLMAP."""
     folder.mkdir(parents=True, exist_ok=True)
     for k, name in enumerate(prediction.names):
-        np.savez_compressed(
+        np.savez(
             folder / f"{Path(name).stem}.npz",
             depth=prediction.depth[k],
             depth_conf=prediction.depth_conf[k],

