@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 import open3d as o3d
 
+from ffrecon.geometry.projection import unproject_pixels
 from ffrecon.types import Prediction
 
 log = logging.getLogger("ffrecon.export")
@@ -45,7 +46,10 @@ def fuse_prediction(
         )
         idx = np.flatnonzero(valid)
         idx = idx[:: max(1, len(idx) // options.max_points_per_frame)]
-        xyz_all.append(prediction.world_points(k).reshape(-1, 3)[idx])
+        rows, cols = np.divmod(idx, w)
+        uv = np.stack([cols + 0.5, rows + 0.5], axis=-1)  # pixel centres, COLMAP convention
+        cam = prediction.depth_camera(k)
+        xyz_all.append(unproject_pixels(uv, prediction.depth[k].reshape(-1)[idx], cam.K, prediction.cam_from_world[k]))
         rgb_all.append(colour.reshape(-1, 3)[idx].astype(np.float32) / 255.0)
     if not xyz_all:
         return np.zeros((0, 3)), np.zeros((0, 3), np.float32)
@@ -56,7 +60,7 @@ def downsample(xyz: np.ndarray, rgb: np.ndarray, options: FuseOptions = FuseOpti
     """Voxel-downsample (voxel from the 2-98% extent) and drop statistical outliers, with open3d."""
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz.astype(np.float64)))
     cloud.colors = o3d.utility.Vector3dVector(np.clip(rgb, 0, 1).astype(np.float64))
-    lo, hi = np.quantile(xyz, [0.02, 0.98], axis=0)
+    lo, hi = np.quantile(xyz[:: max(1, len(xyz) // 1_000_000)], [0.02, 0.98], axis=0)  # on <= 2 M points
     voxel = float(np.linalg.norm(hi - lo)) * options.voxel_fraction
     if voxel > 0:
         cloud = cloud.voxel_down_sample(voxel)

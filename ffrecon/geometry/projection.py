@@ -28,7 +28,19 @@ def unproject_depth(depth: np.ndarray, K: np.ndarray, cam_from_world: np.ndarray
         ``[H, W, 3]`` float64 points.
     """
     h, w = depth.shape
-    uv = pixel_centers(h, w)
+    return unproject_pixels(pixel_centers(h, w), depth, K, cam_from_world)
+
+
+def unproject_pixels(
+    uv: np.ndarray, depth: np.ndarray, K: np.ndarray, cam_from_world: np.ndarray | None = None
+) -> np.ndarray:
+    """Back-project pixels ``uv [..., 2]`` (COLMAP convention) at z-depths ``depth [...]`` to ``[..., 3]`` float64
+    points, in the world frame when ``cam_from_world [3, 4]`` is given, else the camera's.
+
+    >>> K = np.array([[100.0, 0, 50], [0, 100, 40], [0, 0, 1]])
+    >>> unproject_pixels(np.array([[150.0, 40.0]]), np.array([2.0]), K)
+    array([[2., 0., 2.]])
+    """
     x = (uv[..., 0] - K[0, 2]) / K[0, 0]
     y = (uv[..., 1] - K[1, 2]) / K[1, 1]
     pts = np.stack([x * depth, y * depth, depth.astype(np.float64)], axis=-1)
