@@ -3,8 +3,9 @@
 The feed-forward inference and the COLMAP cross-check read only the capture, so the pipeline runs
 them side by side (:func:`ffrecon.stages.pose_stages`). Threads are enough: onnxruntime and pycolmap
 release the GIL while they compute. They share the machine's cores through a :class:`CoreShare`:
-the inference *claims* the threads it keeps busy (fixed when onnxruntime loads the model); the work
-beside asks, at the start of each of its steps (SIFT extraction, matching), how many cores are left.
+the feed-forward stage *claims* the threads it keeps busy (one, and onnxruntime's while the network
+runs); the work beside asks, at the start of each of its steps (each batch of SIFT extraction,
+matching), how many cores are left.
 
 pycolmap cannot be stopped inside a call, and a process must not end while one runs in another
 thread (the C++ runtime aborts), so the work beside is stopped between its steps: when either side

@@ -85,9 +85,10 @@ def pose_stages(capture: Capture, model: Path | None, options: RunOptions, work:
     so with ``options.concurrent`` COLMAP (in quick mode: the refinement's SIFT extraction) runs in a thread
     beside the feed-forward stage (:mod:`ffrecon.concurrency`).
 
-    The inference claims the cores onnxruntime keeps busy (its intra-op threads on the CPU, fixed when the
-    model loads; one on CUDA); COLMAP's extraction and matching take what is left (at least one) at the
-    start of each, and every core once the inference is done. Its mapping stays single-threaded.
+    The feed-forward stage claims one core for its own thread, and while the network runs the rest of the
+    cores onnxruntime keeps busy (its intra-op threads on the CPU, fixed when the model loads; none more
+    on CUDA). COLMAP's extraction (in up to four batches) and matching take what is left (at least one) at
+    the start of each batch or step. Its mapping stays single-threaded.
     """
     if options.mode is RunMode.QUICK:
         return _quick_pose_stages(capture, model, options, work, stages, inputs)
@@ -128,10 +129,8 @@ def sift_stage(capture: Capture, options: RunOptions, work: Path, stages: StageR
     ``work/sift``; ``step()`` gives the threads to use (the cores the inference leaves)."""
 
     def extract() -> Path:
-        sift = options.refine.sift
-        if step is not None:
-            sift = dataclasses.replace(sift, num_threads=step())
-        return extract_refine_features(capture.image_dir, capture.names, sift, work / "sift" / "database.db")
+        db_path = work / "sift" / "database.db"
+        return extract_refine_features(capture.image_dir, capture.names, options.refine.sift, db_path, threads=step)
 
     return stages.run("sift", extract, options=options.refine.sift, inputs=inputs, outputs=STAGE_OUTPUTS["sift"])
 
@@ -139,7 +138,7 @@ def sift_stage(capture: Capture, options: RunOptions, work: Path, stages: StageR
 def feedforward_stage(
     capture: Capture, model: Path | None, options: RunOptions, work: Path, stages, inputs, *, cores=None
 ) -> tuple:
-    """``cores``: a :class:`CoreShare` the inference claims its CPU threads in while it runs (None: alone)."""
+    """``cores``: a :class:`CoreShare` the stage claims its CPU threads in while it runs (None: alone)."""
     if model is None:
         if len(capture.frames) < 2:
             raise InputError("one photo and no model: nothing can place a camera", "pass --model, or more photos")
@@ -153,8 +152,14 @@ def feedforward_stage(
     def infer() -> FeedForwardResult:
         if cores is None:
             return run_feedforward(capture, model, options.feedforward, work)
-        with cores.claim(cpu_threads(options.feedforward.threads)):
-            return run_feedforward(capture, model, options.feedforward, work)
+        # One core for the stage's own thread throughout (reading, decoding, fusing, writing), and the rest
+        # of onnxruntime's threads only while the network runs: with a small or simulated network most of
+        # the stage is that one thread, and COLMAP's extraction (asking per batch) takes the other core.
+        extra = cpu_threads(options.feedforward.threads) - 1
+        with cores.claim(1):
+            return run_feedforward(
+                capture, model, options.feedforward, work, while_inferring=lambda: cores.claim(extra)
+            )
 
     return stages.run(
         "feedforward",

@@ -1,5 +1,7 @@
 """Work side by side: results, errors raised as they were, the work beside stopped between its steps."""
 
+import dataclasses
+import shutil
 import threading
 import time
 
@@ -72,3 +74,59 @@ def test_an_error_beside_is_raised_here_after_this_side_ends(error):
     assert caught.value is error and done == [True]
     with pytest.raises(Cancelled):
         cores.step()
+
+
+def test_the_feedforward_stage_claims_onnxruntimes_threads_only_while_the_network_runs(
+    small_demo, tmp_path, monkeypatch
+):
+    """One core for the stage's own thread throughout; onnxruntime's other threads only around each run."""
+    import onnxruntime as ort
+
+    from ffrecon.capture import CaptureOptions, run_capture
+    from ffrecon.pipeline import RunOptions
+    from ffrecon.resume import StageRunner
+    from ffrecon.stages import feedforward_stage
+
+    capture = run_capture(small_demo.images, CaptureOptions(), tmp_path / "run")
+    options = RunOptions()
+    options = dataclasses.replace(options, feedforward=dataclasses.replace(options.feedforward, threads=3))
+    cores = CoreShare(8)
+    left_during_runs = []
+    real_run = ort.InferenceSession.run
+
+    def spying_run(session, *args, **kwargs):
+        left_during_runs.append(cores.step())
+        return real_run(session, *args, **kwargs)
+
+    monkeypatch.setattr(ort.InferenceSession, "run", spying_run)
+    stages = StageRunner(tmp_path / "work", reuse=False)
+    real_claim = cores.claim
+    left_outside_runs = []
+
+    def recording_claim(threads):
+        left_outside_runs.append(cores.step())  # as each claim starts: the stage's, then each run's
+        return real_claim(threads)
+
+    monkeypatch.setattr(cores, "claim", recording_claim)
+    ff, _ = feedforward_stage(capture, small_demo.model, options, tmp_path / "run", stages, [], cores=cores)
+    assert len(ff.prediction) == 8 and left_during_runs
+    assert set(left_during_runs) == {8 - 3}  # the stage's core and onnxruntime's two others while it runs
+    assert left_outside_runs[0] == 8 and set(left_outside_runs[1:]) == {8 - 1}  # otherwise the stage's one
+    assert cores.step() == 8  # all released when the stage ends
+
+
+def test_sift_extraction_asks_for_its_threads_before_each_batch(small_demo, tmp_path):
+    from ffrecon.sfm.features import CameraModel, SiftOptions, create_database, extract_sift, feature_stats
+
+    images = tmp_path / "images"
+    images.mkdir()
+    for copy in range(2):  # 16 images: batches of 8 (at least 8 an extraction, at most four batches)
+        for path in sorted(small_demo.images.iterdir()):
+            shutil.copy(path, images / f"{copy}_{path.name}")
+    names = sorted(p.name for p in images.iterdir())
+    db = tmp_path / "database.db"
+    create_database(db, images, names, camera_model=CameraModel.PINHOLE, single_camera=True)
+    asked = []
+    extract_sift(db, images, names, SiftOptions(), threads=lambda: asked.append(len(asked)) or 1)
+    assert len(asked) == 2
+    assert (feature_stats(db, names).num_keypoints > 100).all()  # every image extracted, once

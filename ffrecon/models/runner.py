@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
+from collections.abc import Callable
+from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -61,11 +64,21 @@ def cpu_threads(threads: int = 0, *, use_cuda: bool = True) -> int:
 class OnnxModel:
     """An onnxruntime session with the model's declared I/O and detected family.
 
-    Uses the CUDA provider when onnxruntime offers it, else the CPU with ``threads`` threads.
+    Uses the CUDA provider when onnxruntime offers it, else the CPU with ``threads`` threads. ``while_running``
+    is entered around every run of the session (e.g. a :meth:`ffrecon.concurrency.CoreShare.claim` of the
+    cores it keeps busy).
     """
 
-    def __init__(self, path: Path | str, *, threads: int = 0, use_cuda: bool = True) -> None:
+    def __init__(
+        self,
+        path: Path | str,
+        *,
+        threads: int = 0,
+        use_cuda: bool = True,
+        while_running: Callable[[], AbstractContextManager] = contextlib.nullcontext,
+    ) -> None:
         self.path = Path(path)
+        self.while_running = while_running
         if not self.path.is_file():
             raise InputError(
                 f"model file not found: {self.path}", "pass the path of an .onnx file (see docs/models.md to make one)"
@@ -110,7 +123,8 @@ class OnnxModel:
         """Run the model; returns all declared outputs by name."""
         names = [o.name for o in self.outputs]
         try:
-            values = self.session.run(names, feeds)
+            with self.while_running():
+                values = self.session.run(names, feeds)
         except Exception as exc:
             shapes = {k: v.shape for k, v in feeds.items()}
             raise ModelError(

@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
+from collections.abc import Callable
+from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -160,13 +163,19 @@ def _run_checked(model: OnnxModel, image_input: str, feeds: dict) -> dict:
 
 
 def run_feedforward(
-    capture: Capture, model_path: Path, options: FeedForwardOptions, out_dir: Path
+    capture: Capture,
+    model_path: Path,
+    options: FeedForwardOptions,
+    out_dir: Path,
+    *,
+    while_inferring: Callable[[], AbstractContextManager] = contextlib.nullcontext,
 ) -> FeedForwardResult:
     """Predict, then write ``out_dir/feedforward/{sparse,depth}`` and return the prediction.
 
     The frames are read from the capture's ``images/`` here and released when the stage ends.
+    ``while_inferring`` is entered around each run of the network (see :class:`OnnxModel`).
     """
-    model = OnnxModel(model_path, threads=options.threads)
+    model = OnnxModel(model_path, threads=options.threads, while_running=while_inferring)
     log.info(
         "feed-forward model %s (%s%s) on %d frames",
         Path(model_path).name,

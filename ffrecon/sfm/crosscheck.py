@@ -42,6 +42,7 @@ from ffrecon.sfm.features import (
     focal_prior_flags,
     image_sizes_wh,
     matching_options,
+    threads_at_most,
 )
 from ffrecon.sfm.mapping import MapperKind, MapperRun, map_images, two_view_run
 from ffrecon.sfm.two_view import TwoViewOptions
@@ -380,7 +381,7 @@ def _features_and_matches(
         options.mapper.value,
     )
     with timer.stage("feature_extraction"):
-        extract_sift(db_path, image_dir, names, _with_threads(options, step).sift)
+        extract_sift(db_path, image_dir, names, options.sift, threads=step)
     with timer.stage("matching"), colmap_log_level():
         _match(db_path, pairing, _with_threads(options, step))
     return feature_stats(db_path, names)
@@ -397,13 +398,8 @@ def _with_threads(options: ColmapOptions, step: Callable[[], int] | None) -> Col
     if step is None:
         return options
     free = step()
-    sift = dataclasses.replace(options.sift, num_threads=_at_most(options.sift.num_threads, free))
-    return dataclasses.replace(options, num_threads=_at_most(options.num_threads, free), sift=sift)
-
-
-def _at_most(asked: int, free: int) -> int:
-    """COLMAP's thread count ``asked`` (<= 0: all cores), capped at ``free``."""
-    return free if asked <= 0 else min(asked, free)
+    sift = dataclasses.replace(options.sift, num_threads=threads_at_most(options.sift.num_threads, free))
+    return dataclasses.replace(options, num_threads=threads_at_most(options.num_threads, free), sift=sift)
 
 
 def _no_model_result(names: tuple[str, ...], **provenance) -> ColmapResult:

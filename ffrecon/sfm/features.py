@@ -12,7 +12,7 @@ import contextlib
 import enum
 import logging
 import threading
-from collections.abc import Collection, Iterator, Sequence
+from collections.abc import Callable, Collection, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -211,23 +211,48 @@ def set_database_cameras(db_path: Path, cameras: Sequence[pycolmap.Camera]) -> N
         db.close()
 
 
-def extract_sift(db_path: Path, image_dir: Path, names: Sequence[str], options: SiftOptions) -> None:
-    """SIFT on the CPU for the images of the database that have no keypoints yet."""
+def extract_sift(
+    db_path: Path,
+    image_dir: Path,
+    names: Sequence[str],
+    options: SiftOptions,
+    *,
+    threads: Callable[[], int] | None = None,
+) -> None:
+    """SIFT on the CPU for the images of the database that have no keypoints yet.
+
+    ``threads``: when the cores are shared (:meth:`ffrecon.concurrency.CoreShare.step`), the images are
+    extracted in up to four calls, each with at most the threads ``threads()`` gives as it starts (it may
+    raise to stop between calls), so that cores freed part-way are used for the rest. Without it, one
+    call per octave group with ``options.num_threads``.
+    """
     for first_octave, group in _octave_groups(image_dir, names, options).items():
-        extraction = pycolmap.FeatureExtractionOptions()
-        extraction.num_threads = options.num_threads
-        extraction.max_image_size = options.max_image_size
-        extraction.sift.max_num_features = options.max_num_features
-        extraction.sift.first_octave = first_octave
-        extraction.use_gpu = False
-        with colmap_log_level():
-            pycolmap.extract_features(
-                str(db_path),
-                str(image_dir),
-                image_names=group,
-                extraction_options=extraction,
-                device=pycolmap.Device.cpu,
-            )
+        size = len(group) if threads is None else max(8, -(-len(group) // 4))
+        for start in range(0, len(group), size):
+            extraction = pycolmap.FeatureExtractionOptions()
+            asked = options.num_threads
+            extraction.num_threads = asked if threads is None else threads_at_most(asked, threads())
+            extraction.max_image_size = options.max_image_size
+            extraction.sift.max_num_features = options.max_num_features
+            extraction.sift.first_octave = first_octave
+            extraction.use_gpu = False
+            with colmap_log_level():
+                pycolmap.extract_features(
+                    str(db_path),
+                    str(image_dir),
+                    image_names=group[start : start + size],
+                    extraction_options=extraction,
+                    device=pycolmap.Device.cpu,
+                )
+
+
+def threads_at_most(asked: int, free: int) -> int:
+    """COLMAP's thread count ``asked`` (<= 0: all cores), capped at ``free``.
+
+    >>> threads_at_most(-1, 2), threads_at_most(4, 2), threads_at_most(1, 2)
+    (2, 2, 1)
+    """
+    return free if asked <= 0 else min(asked, free)
 
 
 def _octave_groups(image_dir: Path, names: Sequence[str], options: SiftOptions) -> dict[int, list[str]]:

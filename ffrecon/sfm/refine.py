@@ -13,7 +13,7 @@ from __future__ import annotations
 import enum
 import logging
 import shutil
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -342,9 +342,11 @@ def _match(
     return stats
 
 
-def extract_refine_features(image_dir: Path, names: Sequence[str], sift: SiftOptions, db_path: Path) -> Path:
+def extract_refine_features(
+    image_dir: Path, names: Sequence[str], sift: SiftOptions, db_path: Path, *, threads: Callable[[], int] | None = None
+) -> Path:
     """SIFT of ``names`` (``image_dir``) into a fresh COLMAP database at ``db_path``, for the refinement to reuse
-    (:attr:`RefineOptions.reuse_features_from`); returns ``db_path``.
+    (:attr:`RefineOptions.reuse_features_from`); returns ``db_path``. ``threads``: see :func:`extract_sift`.
 
     Quick mode runs it beside the feed-forward inference, the part COLMAP's extraction plays in the full
     run: the features depend only on the photos, so they need not wait for the cameras.
@@ -352,7 +354,7 @@ def extract_refine_features(image_dir: Path, names: Sequence[str], sift: SiftOpt
     db_path = Path(db_path)
     db_path.parent.mkdir(parents=True, exist_ok=True)
     create_database(db_path, Path(image_dir), list(names), camera_model=CameraModel.PINHOLE, single_camera=False)
-    extract_sift(db_path, Path(image_dir), list(names), sift)
+    extract_sift(db_path, Path(image_dir), list(names), sift, threads=threads)
     return db_path
 
 
