@@ -1,0 +1,32 @@
+"""Fusing depth maps: reducing each frame first keeps exactly the voxels of the whole cloud at once."""
+
+import numpy as np
+
+from ffrecon.export.pointcloud import FuseOptions, downsample
+
+
+def _voxels(xyz: np.ndarray, size: float) -> set[tuple[int, int, int]]:
+    return set(map(tuple, np.floor(xyz / size).astype(int)))
+
+
+def test_frame_by_frame_reduction_keeps_the_voxels_of_the_union():
+    rng = np.random.default_rng(0)
+    # 6 overlapping "frames" of a noisy plane with a bump: many points per voxel, shared voxels.
+    frames, colours = [], []
+    for k in range(6):
+        uv = rng.uniform(-1, 1, (50_000, 2)) + [0.2 * k, 0.0]
+        z = 0.3 * np.exp(-4 * (uv**2).sum(1)) + rng.normal(0, 0.002, len(uv))
+        frames.append(np.column_stack([uv, z]))
+        colours.append(rng.uniform(0, 1, (len(uv), 3)).astype(np.float32))
+    union = np.concatenate(frames)
+    options = FuseOptions(remove_outliers=False)
+    lo, hi = np.quantile(union, [0.02, 0.98], axis=0)
+    size = float(np.linalg.norm(hi - lo)) * options.voxel_fraction
+
+    by_frame, rgb = downsample(frames, colours, options)
+    at_once, _ = downsample([union], [np.concatenate(colours)], options)
+
+    assert len(by_frame) == len(at_once) == len(_voxels(union, size))
+    assert _voxels(by_frame, size) == _voxels(union, size)  # one point per occupied voxel, inside it
+    assert rgb.dtype == np.float32 and rgb.shape == (len(by_frame), 3) and 0 <= rgb.min() <= rgb.max() <= 1
+    assert len(by_frame) < len(union) / 3  # and it did reduce
