@@ -88,11 +88,16 @@ def downsample(
 
 
 def _voxel_means(xyz: np.ndarray, rgb: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
-    """Per occupied voxel of the grid ``floor(p / voxel)``: the mean point (float64) and colour (float32)."""
+    """Per occupied voxel of the grid ``floor(p / voxel)``: the mean point (float64) and colour (float32), in
+    the order of the voxel indices (open3d returns them in its hash map's order, which varies from call to
+    call: a resumed run must write the same points.ply)."""
     cloud = o3d.t.geometry.PointCloud(o3d.core.Tensor(np.ascontiguousarray(xyz, np.float64)))
     cloud.point.colors = o3d.core.Tensor(np.ascontiguousarray(rgb, np.float32))
     down = cloud.voxel_down_sample(voxel)
-    return down.point.positions.numpy(), down.point.colors.numpy()
+    points, colours = down.point.positions.numpy(), down.point.colors.numpy()
+    index = np.floor(points / voxel).astype(np.int64)
+    order = np.lexsort((index[:, 2], index[:, 1], index[:, 0]))
+    return points[order], colours[order]
 
 
 def write_point_cloud(path: Path, xyz: np.ndarray, rgb: np.ndarray) -> Path:
