@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 import open3d as o3d
 
-from ffrecon.geometry.projection import unproject_pixels
+from ffrecon.geometry.projection import pixel_centers, unproject_pixels
 from ffrecon.types import Prediction
 
 log = logging.getLogger("ffrecon.export")
@@ -46,8 +46,7 @@ def fuse_prediction(
         )
         idx = np.flatnonzero(valid)
         idx = idx[:: max(1, len(idx) // options.max_points_per_frame)]
-        rows, cols = np.divmod(idx, w)
-        uv = np.stack([cols + 0.5, rows + 0.5], axis=-1)  # pixel centres, COLMAP convention
+        uv = pixel_centers(h, w).reshape(-1, 2)[idx]
         cam = prediction.depth_camera(k)
         xyz_all.append(unproject_pixels(uv, prediction.depth[k].reshape(-1)[idx], cam.K, prediction.cam_from_world[k]))
         rgb_all.append(colour.reshape(-1, 3)[idx].astype(np.float32) / 255.0)
