@@ -6,7 +6,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from ffrecon.errors import ModelError
+import math
+
+from ffrecon.errors import InputError, ModelError
 
 
 def check_shape(name: str, array: np.ndarray, expected: Sequence[int | None]) -> None:
@@ -92,3 +94,49 @@ def check_finite(name: str, array: np.ndarray, *, model: str = "") -> None:
             "the ONNX export is probably broken (fp16 overflow is a common cause): re-export in fp32, "
             "or check the model on one image with `ffrecon inspect-model`",
         )
+
+
+def check_number(
+    name: str,
+    value: float | int | None,
+    *,
+    low: float | None = None,
+    high: float | None = None,
+    low_open: bool = False,
+    integer: bool = False,
+    allow_none: bool = False,
+    flag: str = "",
+) -> None:
+    """Raise :class:`InputError` unless ``value`` is a finite number in ``[low, high]`` (``(low, high]``
+    with ``low_open``); ``integer`` also asks for a whole number. ``flag`` names the command-line option
+    that sets it, so the CLI and the Python API give the same message.
+
+    Option dataclasses call it from ``__post_init__``, so an option is checked where it is made.
+
+    >>> check_number("splat max_seconds", 60.0, low=0.0, low_open=True)
+    >>> check_number("splat max_seconds", float("nan"), low=0.0, low_open=True, flag="--splat-seconds")
+    Traceback (most recent call last):
+    ...
+    ffrecon.errors.InputError: --splat-seconds (splat max_seconds) must be a finite number > 0; got nan
+      fix: pass --splat-seconds with a finite number > 0
+    """
+    if value is None and allow_none:
+        return
+    label = f"{flag} ({name})" if flag else name
+    want = "a whole number" if integer else "a finite number"
+    bounds = []
+    if low is not None:
+        bounds.append(f"{'>' if low_open else '>='} {low:g}")
+    if high is not None:
+        bounds.append(f"<= {high:g}")
+    want_text = f"{want} {' and '.join(bounds)}".strip()
+    fix = f"pass {flag} with {want_text}" if flag else f"set {name} to {want_text}"
+    ok = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
+    if ok:
+        ok = math.isfinite(float(value)) and (not integer or float(value) == int(value))
+    if ok and low is not None:
+        ok = float(value) > low if low_open else float(value) >= low
+    if ok and high is not None:
+        ok = float(value) <= high
+    if not ok:
+        raise InputError(f"{label} must be {want_text}; got {value!r}", fix)

@@ -25,9 +25,17 @@ class ModelError(FFReconError):
 
 
 class OutputExistsError(FFReconError):
-    """The output folder already holds results that the run would overwrite."""
+    """The output folder cannot be used: it holds results (without --overwrite/--resume), it holds files
+    ffrecon did not write, another run is using it, it is a file, or it overlaps the input."""
 
     exit_code = 4
+
+
+class ResourceError(FFReconError):
+    """The machine lacks what the run needs: write access, disk space or memory (checked before the work
+    where it can be, else when the operating system says so); nothing already there is touched."""
+
+    exit_code = 6
 
 
 class GateFailed(FFReconError):
