@@ -18,7 +18,7 @@ from ffrecon.errors import InputError, Interrupted
 from ffrecon.export.report import write_report
 from ffrecon.export.stage import ExportOptions
 from ffrecon.models.stage import FeedForwardOptions
-from ffrecon.results import RunMode, RunResults
+from ffrecon.results import RunMode, RunResults, Verdict
 from ffrecon.resume import StageRunner, file_key, rebase_paths
 from ffrecon.sfm.crosscheck import ColmapOptions
 from ffrecon.sfm.evidence import EvidenceOptions, EvidenceResult
@@ -96,15 +96,20 @@ def run(source: Path, out_dir: Path, model: Path | None, options: RunOptions | N
     options = options or RunOptions()
     check_run_options(model, options)
     created = dt.datetime.now().isoformat(timespec="seconds")
-    with staged_output(Path(out_dir), overwrite=options.overwrite, resume=options.resume, fresh=options.fresh) as work:
+    flags = {"overwrite": options.overwrite, "resume": options.resume, "fresh": options.fresh}
+    with staged_output(Path(out_dir), Path(source), **flags) as staging:
+        work = staging.path
         stages = StageRunner(work, reuse=not options.fresh)
         try:
             results = _run_stages(Path(source), model and Path(model), options, work, stages, created)
         except KeyboardInterrupt:
             resume = options.command or "the same command"
             raise Interrupted(stages.current, stages.finished, str(work), _resume_command(resume)) from None
-        results = rebase_paths(results, work, Path(out_dir).resolve())  # where the files are once swapped in
+        # A rejected run does not replace earlier good results: it stays where it was built (said in a warning).
+        kept_aside = staging.keeps_earlier(results.verdict is Verdict.GATE_FAILED)
+        results = rebase_paths(results, work, work if kept_aside else staging.out_dir)  # where the files end up
         write_report(results, work)
+        staging.verdict = results.verdict.value
     return results
 
 

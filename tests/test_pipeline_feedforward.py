@@ -122,11 +122,11 @@ def test_single_photo_gives_depth_camera_and_cloud(small_demo, tmp_path):
 
 def test_bad_models_and_existing_output_leave_results_intact(small_demo, tmp_path, capsys):
     out = tmp_path / "out"
-    out.mkdir()
+    (out / ".ffrecon").mkdir(parents=True)  # an earlier ffrecon output (its marker)
     (out / "report.json").write_text('{"earlier": true}')
     # An existing OUT with results: refused, untouched.
     assert main(["run", str(small_demo.images), "-o", str(out), "--model", str(small_demo.model)]) == 4
-    assert "already holds results" in capsys.readouterr().err
+    assert "already holds the results of an earlier ffrecon run" in capsys.readouterr().err
     # A model whose outputs hold NaNs: refused even with --overwrite, OUT untouched.
     nan_model = vggt_like(tmp_path / "nan.onnx", fill=float("nan"))
     assert main(["run", str(small_demo.images), "-o", str(out), "--model", str(nan_model), "--overwrite"]) == 3
@@ -143,7 +143,7 @@ def test_bad_models_and_existing_output_leave_results_intact(small_demo, tmp_pat
     junk.write_bytes(b"not a model")
     assert main(["run", str(small_demo.images), "-o", str(out), "--model", str(junk), "--overwrite"]) == 3
     assert json.loads((out / "report.json").read_text()) == {"earlier": True}
-    assert sorted(p.name for p in out.iterdir()) == ["report.json"]
+    assert sorted(p.name for p in out.iterdir()) == [".ffrecon", "report.json"]
 
 
 def test_inspect_model_prints_contract(small_demo, capsys):

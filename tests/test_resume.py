@@ -51,7 +51,7 @@ def uninterrupted(demo12, tmp_path_factory):
 def test_interrupted_splat_resumes_with_only_the_splat_recomputed(demo12, uninterrupted, tmp_path, monkeypatch):
     whole_dir, whole = uninterrupted
     out = tmp_path / "out"
-    out.mkdir()
+    (out / ".ffrecon").mkdir(parents=True)  # an earlier ffrecon output (its marker)
     (out / "earlier.txt").write_text("earlier results")
 
     def interrupt(*args, **kwargs):
@@ -64,7 +64,7 @@ def test_interrupted_splat_resumes_with_only_the_splat_recomputed(demo12, uninte
     err = caught.value
     assert err.stage == "splat" and err.kept == BEFORE_SPLAT and err.exit_code == 130
     assert "--resume" in err.fix
-    assert sorted(p.name for p in out.iterdir()) == ["earlier.txt"]  # OUT untouched
+    assert sorted(p.name for p in out.iterdir()) == [".ffrecon", "earlier.txt"]  # OUT untouched
     assert (staging_path(out.resolve()) / ".ffrecon" / "stages" / "refine.json").is_file()
 
     resumed = run(demo12.images, out, demo12.model, _options(resume=True))
@@ -141,7 +141,7 @@ def test_interrupted_cross_check_keeps_the_feedforward_stage_that_ran_beside_it(
 def test_ctrl_c_prints_one_line_and_keeps_out(demo12, tmp_path):
     """A real SIGINT (and SIGTERM) during the splat: exit 130, one line, no stack trace, OUT untouched."""
     out = tmp_path / "out"
-    out.mkdir()
+    (out / ".ffrecon").mkdir(parents=True)  # an earlier ffrecon output (its marker)
     (out / "earlier.txt").write_text("earlier results")
     cmd = [str(Path(sys.executable).parent / "ffrecon"), "run", str(demo12.images), "-o", str(out)]
     cmd += ["--model", str(demo12.model), "--overwrite", "--splat-seconds", "600", "-q"]
@@ -161,4 +161,4 @@ def test_ctrl_c_prints_one_line_and_keeps_out(demo12, tmp_path):
         said = [line for line in lines if line.startswith("ffrecon:")]  # earlier lines: capture warnings
         assert said == lines[-1:] and "Traceback" not in stderr and "KeyboardInterrupt" not in stderr, stderr
         assert "interrupted during splat" in said[0] and "--resume" in said[0]
-        assert sorted(p.name for p in out.iterdir()) == ["earlier.txt"]
+        assert sorted(p.name for p in out.iterdir()) == [".ffrecon", "earlier.txt"]
