@@ -1,6 +1,6 @@
 """The output folder: ffrecon writes, replaces and resumes only folders it made, one run at a time.
 
-Rules (``../shared/CONTRACTS.md`` section 7, README "Exit codes"):
+Rules (``docs/contracts.md``, README "Exit codes"):
 
 - **Ownership.** Every folder ffrecon writes carries ``.ffrecon/output.json`` (the marker) listing the
   files it wrote. An ``-o`` that is a file, or a non-empty folder without the marker, is refused
@@ -40,7 +40,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ffrecon import __version__
-from ffrecon.errors import FFReconError, OutputExistsError, ResourceError
+from ffrecon.errors import FFReconError, Interrupted, OutputExistsError, ResourceError
 
 log = logging.getLogger("ffrecon")
 
@@ -337,6 +337,7 @@ def _commit_by_rename(out_dir: Path, stage: Path) -> None:
         held = _lock_dir(out_dir)  # so that no other run treats the old folder as its own mid-swap
     except _Busy:
         raise _busy_error(out_dir, "another process") from None
+    _link_user_files(out_dir, stage)  # so that OUT holds them at every moment of the swap
     try:
         if _exchange(stage, out_dir):
             stage.rename(old)  # the old results, now at the staging path
@@ -346,6 +347,22 @@ def _commit_by_rename(out_dir: Path, stage: Path) -> None:
         _retire(old, out_dir)
     finally:
         os.close(held)
+
+
+def _link_user_files(out_dir: Path, stage: Path) -> None:
+    """Hard-link (else copy) into ``stage`` the files of ``out_dir`` that ffrecon did not write."""
+    ours = _listed_files(read_output_record(out_dir))
+    if ours is None:
+        return
+    for rel in _files_under(out_dir):
+        target = stage / rel
+        if rel in ours or rel.startswith(f"{MARKER}/") or target.exists():
+            continue
+        target.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            os.link(out_dir / rel, target)
+        except OSError:
+            shutil.copy2(out_dir / rel, target)
 
 
 def _commit_in_place(out_dir: Path, stage: Path, *, keep_staging: bool = False) -> None:
@@ -462,6 +479,10 @@ def _empty_into(folder: Path, out_dir: Path | None) -> None:
 
 
 def _keep_file(src: Path, target: Path) -> None:
+    """Move a person's file ``src`` to ``target`` (``target.kept`` when another file is there already)."""
+    if target.exists() and os.path.samefile(src, target):  # already linked into the new results
+        src.unlink()
+        return
     if target.exists():
         target = target.with_name(target.name + ".kept")
     target.parent.mkdir(parents=True, exist_ok=True)
@@ -523,8 +544,9 @@ def staged_output(
 
     Everything that refuses the run happens here, before any work: the paths (:func:`check_paths`),
     the owner of ``out_dir``, the lock, the free space. On an error the staging folder is removed when
-    no stage had finished in it (a failed start leaves nothing), and always on a full disk; after
-    Ctrl-C its finished stages are kept for ``--resume``. ``out_dir`` is never touched by a failed run.
+    this run made it (a failed start leaves nothing; a folder an interrupted run left is kept), and
+    always on a full disk; after Ctrl-C its finished stages are kept for ``--resume``. ``out_dir`` is
+    never touched by a failed run.
     """
     out_dir = Path(os.path.abspath(out_dir))
     check_paths(source, out_dir)
@@ -551,8 +573,12 @@ def staged_output(
             _write_run_record(staging)
             log.debug("building results in %s", staging.path)
             yield staging
-        except FFReconError:  # Interrupted (Ctrl-C) included
+        except Interrupted:  # Ctrl-C: the finished stages are kept for --resume
             if not staging.finished_stages() or _disk_full(staging.path):
+                staging.discard()
+            raise
+        except FFReconError:  # bad input or model: nothing is left of a run that made its staging folder
+            if staging.created or _disk_full(staging.path):
                 staging.discard()
             raise
         except OSError as err:
