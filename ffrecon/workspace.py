@@ -25,11 +25,8 @@ Rules (``docs/contracts.md``, README "Exit codes"):
 
 from __future__ import annotations
 
-import ctypes
-import ctypes.util
 import datetime as dt
 import errno
-import fcntl
 import json
 import logging
 import os
@@ -41,18 +38,32 @@ from pathlib import Path
 
 from ffrecon import __version__
 from ffrecon.errors import FFReconError, Interrupted, OutputExistsError, ResourceError
+from ffrecon.folders import (
+    IN_PLACE_OLD,
+    IN_PLACE_STAGING,
+    MARKER,
+    OURS_INSIDE,
+    OUTPUT_RECORD,
+    RECORD_FORMAT,
+    RUN_RECORD,
+    Busy,
+    clear,
+    commit_by_rename,
+    commit_in_place,
+    empty_into,
+    files_under,
+    is_ffrecon_output,
+    listed_files,
+    lock_dir,
+    read_output_record,
+    retire,
+    visible_entries,
+)
 
 log = logging.getLogger("ffrecon")
 
-MARKER = ".ffrecon"  # the folder that says "ffrecon wrote this"
-OUTPUT_RECORD = "output.json"  # MARKER/OUTPUT_RECORD: format, version, state, verdict, files written
-RUN_RECORD = "run.json"  # MARKER/RUN_RECORD in a staging folder: the process that holds it
-RECORD_FORMAT = 1
-IN_PLACE_STAGING = ".ffrecon-partial"  # inside OUT, when OUT cannot be swapped by renaming
-IN_PLACE_OLD = ".ffrecon-old"
-_OURS_INSIDE = {IN_PLACE_STAGING, IN_PLACE_OLD}
 _DISK_ERRNOS = {errno.ENOSPC, errno.EDQUOT}
-_WRITE_ERRNOS = {errno.EROFS, errno.EACCES, errno.EPERM}
+
 MIN_FREE_BYTES = 1 << 20  # below this, a failure while writing is taken as the disk being full
 
 
@@ -64,27 +75,6 @@ def staging_path(out_dir: Path) -> Path:
 def retired_path(out_dir: Path) -> Path:
     """Where the replaced results wait while files a person added are moved out of them."""
     return out_dir.parent / f".{out_dir.name}.old"
-
-
-def read_output_record(folder: Path) -> dict | None:
-    """``folder``'s ``.ffrecon/output.json`` as a dict, ``{}`` for a folder of an older ffrecon (the marker
-    folder without the record), None when ``folder`` is not an ffrecon output."""
-    marker = folder / MARKER
-    if not marker.is_dir():
-        return None
-    try:
-        record = json.loads((marker / OUTPUT_RECORD).read_text())
-    except (OSError, ValueError):
-        return {}
-    return record if isinstance(record, dict) else {}
-
-
-def is_ffrecon_output(folder: Path) -> bool:
-    return read_output_record(folder) is not None
-
-
-def _visible_entries(folder: Path) -> list[Path]:
-    return [p for p in folder.iterdir() if p.name not in _OURS_INSIDE]
 
 
 def check_paths(source: Path, out_dir: Path) -> None:
@@ -146,28 +136,6 @@ def estimate_output_bytes(source: Path) -> int:
 # --- locks -----------------------------------------------------------------------------------------
 
 
-class _Busy(Exception):
-    """The folder's lock is held by another process."""
-
-
-def _lock_dir(path: Path) -> int:
-    """An exclusive, non-blocking ``flock`` on the folder ``path`` (which exists); its descriptor.
-
-    Raises :class:`_Busy` when another process holds it, ``FileNotFoundError`` when the folder was
-    renamed or removed between opening and locking (the caller tries again)."""
-    fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
-        os.close(fd)
-        raise _Busy from None
-    now, held = os.stat(path), os.fstat(fd)
-    if (now.st_ino, now.st_dev) != (held.st_ino, held.st_dev):
-        os.close(fd)
-        raise FileNotFoundError(path)
-    return fd
-
-
 def _other_run(path: Path) -> str:
     try:
         record = json.loads((path / MARKER / RUN_RECORD).read_text())
@@ -188,8 +156,8 @@ def _peek_lock(path: Path, out_dir: Path) -> None:
     if not path.is_dir():
         return
     try:
-        fd = _lock_dir(path)
-    except _Busy:
+        fd = lock_dir(path)
+    except Busy:
         raise _busy_error(out_dir, _other_run(path)) from None
     except FileNotFoundError:
         return
@@ -197,53 +165,6 @@ def _peek_lock(path: Path, out_dir: Path) -> None:
 
 
 # --- swapping folders ------------------------------------------------------------------------------
-
-_RENAME_EXCHANGE = 2
-_AT_FDCWD = -100
-
-
-def _exchange(a: Path, b: Path) -> bool:
-    """Swap two folders atomically (Linux ``renameat2(RENAME_EXCHANGE)``); False where unsupported."""
-    name = ctypes.util.find_library("c")
-    try:
-        libc = ctypes.CDLL(name, use_errno=True)
-        renameat2 = libc.renameat2
-    except (OSError, AttributeError, TypeError):
-        return False
-    renameat2.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_uint]
-    if renameat2(_AT_FDCWD, os.fsencode(a), _AT_FDCWD, os.fsencode(b), _RENAME_EXCHANGE) == 0:
-        return True
-    code = ctypes.get_errno()
-    if code in (errno.ENOSYS, errno.EINVAL, errno.ENOTSUP):
-        return False
-    raise OSError(code, os.strerror(code), str(a))
-
-
-def _listed_files(record: dict | None) -> set[str] | None:
-    """The files an output record says ffrecon wrote (relative, posix); None: unknown (older ffrecon)."""
-    files = (record or {}).get("files")
-    return set(files) if isinstance(files, list) else None
-
-
-def _files_under(root: Path) -> list[str]:
-    return sorted(p.relative_to(root).as_posix() for p in root.rglob("*") if p.is_file() or p.is_symlink())
-
-
-def _retire(old: Path, new: Path | None) -> None:
-    """Delete replaced results ``old`` (an ffrecon output), after moving into ``new`` every file of it
-    that ffrecon did not write (a person's notes, say): those are never deleted."""
-    if not old.exists():
-        return
-    if read_output_record(old) is None:
-        log.warning("left %s in place: it is not an ffrecon output", old)
-        return
-    ours = _listed_files(read_output_record(old))
-    if ours is not None and new is not None:
-        for rel in _files_under(old):
-            if rel in ours or rel.startswith(f"{MARKER}/"):
-                continue
-            _keep_file(old / rel, new / rel)
-    shutil.rmtree(old)
 
 
 @dataclass
@@ -268,7 +189,7 @@ class Staging:
         if rejected and self.out_dir.is_dir():
             record = read_output_record(self.out_dir)
             self.keep_earlier = record is not None and record.get("verdict", "ok") != "gate_failed"
-            if not _visible_entries(self.out_dir):
+            if not visible_entries(self.out_dir):
                 self.keep_earlier = False
         return self.keep_earlier
 
@@ -287,7 +208,7 @@ class Staging:
         if verdict is not None:
             record["verdict"] = verdict
         if state == "complete":
-            record["files"] = [f for f in _files_under(self.path) if f != f"{MARKER}/{RUN_RECORD}"]
+            record["files"] = [f for f in files_under(self.path) if f != f"{MARKER}/{RUN_RECORD}"]
         tmp = marker / f".{OUTPUT_RECORD}.tmp"
         tmp.write_text(json.dumps(record, indent=1))
         os.replace(tmp, marker / OUTPUT_RECORD)
@@ -306,9 +227,12 @@ class Staging:
             return self.path
         self.write_record("complete", verdict)
         if self.in_place:
-            _commit_in_place(self.out_dir, self.path)
+            commit_in_place(self.out_dir, self.path)
         else:
-            _commit_by_rename(self.out_dir, self.path)
+            try:
+                commit_by_rename(self.out_dir, self.path, retired_path(self.out_dir))
+            except Busy:
+                raise _busy_error(self.out_dir, "another process") from None
         return self.out_dir
 
     def discard(self) -> None:
@@ -325,67 +249,6 @@ class Staging:
         if self._fd is not None:
             os.close(self._fd)
             self._fd = None
-
-
-def _commit_by_rename(out_dir: Path, stage: Path) -> None:
-    """Swap ``stage`` in as ``out_dir``: atomically where the kernel can exchange two folders."""
-    old = retired_path(out_dir)
-    if not out_dir.exists():
-        stage.rename(out_dir)
-        return
-    try:
-        held = _lock_dir(out_dir)  # so that no other run treats the old folder as its own mid-swap
-    except _Busy:
-        raise _busy_error(out_dir, "another process") from None
-    _link_user_files(out_dir, stage)  # so that OUT holds them at every moment of the swap
-    try:
-        if _exchange(stage, out_dir):
-            stage.rename(old)  # the old results, now at the staging path
-        else:  # two renames: a kill between them leaves OUT at .OUT.old, which the next run moves back
-            out_dir.rename(old)
-            stage.rename(out_dir)
-        _retire(old, out_dir)
-    finally:
-        os.close(held)
-
-
-def _link_user_files(out_dir: Path, stage: Path) -> None:
-    """Hard-link (else copy) into ``stage`` the files of ``out_dir`` that ffrecon did not write."""
-    ours = _listed_files(read_output_record(out_dir))
-    if ours is None:
-        return
-    for rel in _files_under(out_dir):
-        target = stage / rel
-        if rel in ours or rel.startswith(f"{MARKER}/") or target.exists():
-            continue
-        target.parent.mkdir(parents=True, exist_ok=True)
-        try:
-            os.link(out_dir / rel, target)
-        except OSError:
-            shutil.copy2(out_dir / rel, target)
-
-
-def _commit_in_place(out_dir: Path, stage: Path, *, keep_staging: bool = False) -> None:
-    """Move the results of ``OUT/.ffrecon-partial`` up into ``OUT`` (a mount point cannot be renamed).
-
-    Not atomic; it can be repeated after a kill (it moves what is left), which the next run does."""
-    old = out_dir / IN_PLACE_OLD
-    old.mkdir(exist_ok=True)
-    earlier = read_output_record(out_dir)
-    ours = _listed_files(earlier) if earlier is not None else set()
-    for entry in _visible_entries(out_dir):  # ffrecon's earlier results move aside
-        rel = entry.name
-        mine = ours is None or rel == MARKER or any(f == rel or f.startswith(rel + "/") for f in ours)
-        if mine or (stage / rel).exists():
-            os.replace(entry, old / rel)
-    for entry in list(stage.iterdir()):
-        os.replace(entry, out_dir / entry.name)
-    if not keep_staging:
-        shutil.rmtree(stage)
-    if (old / MARKER).exists():
-        _retire(old, out_dir)
-    else:
-        shutil.rmtree(old)
 
 
 # --- opening ----------------------------------------------------------------------------------------
@@ -426,8 +289,8 @@ def _open_staging(out_dir: Path) -> Staging:
                 f"move {path} away, or choose another folder with -o",
             )
         try:
-            fd = _lock_dir(path)
-        except _Busy:
+            fd = lock_dir(path)
+        except Busy:
             raise _busy_error(out_dir, _other_run(path)) from None
         except FileNotFoundError:
             continue
@@ -449,9 +312,9 @@ def _recover(staging: Staging) -> None:
     if staging.in_place:
         if record.get("state") == "complete":  # killed while moving its results up: go on with it
             log.info("finishing the swap of an earlier run into %s", out_dir)
-            _commit_in_place(out_dir, staging.path, keep_staging=True)
+            commit_in_place(out_dir, staging.path, keep_staging=True)
         elif (out_dir / IN_PLACE_OLD).exists():
-            _retire(out_dir / IN_PLACE_OLD, out_dir)
+            retire(out_dir / IN_PLACE_OLD, out_dir)
         return
     old = retired_path(out_dir)
     _peek_lock(out_dir, out_dir)
@@ -460,38 +323,16 @@ def _recover(staging: Staging) -> None:
         if not out_dir.exists() and is_ffrecon_output(old):
             old.rename(out_dir)  # killed between the two renames of a swap: the earlier results come back
         else:
-            _retire(old, out_dir if out_dir.is_dir() else None)
+            retire(old, out_dir if out_dir.is_dir() else None)
     if record.get("state") == "complete":
         # Killed just before or after the swap: this folder is a complete result that is not OUT (the
         # earlier one after an exchange, or a new one whose swap never happened); OUT is whole either way.
         log.info("removing a complete result left beside %s by a run killed while swapping", out_dir)
-        _empty_into(staging.path, out_dir if is_ffrecon_output(out_dir) else None)
-
-
-def _empty_into(folder: Path, out_dir: Path | None) -> None:
-    """Empty ``folder`` (an ffrecon output), moving the files ffrecon did not write into ``out_dir``."""
-    ours = _listed_files(read_output_record(folder))
-    if ours is not None and out_dir is not None:
-        for rel in _files_under(folder):
-            if rel not in ours and not rel.startswith(f"{MARKER}/"):
-                _keep_file(folder / rel, out_dir / rel)
-    _clear(folder)
-
-
-def _keep_file(src: Path, target: Path) -> None:
-    """Move a person's file ``src`` to ``target`` (``target.kept`` when another file is there already)."""
-    if target.exists() and os.path.samefile(src, target):  # already linked into the new results
-        src.unlink()
-        return
-    if target.exists():
-        target = target.with_name(target.name + ".kept")
-    target.parent.mkdir(parents=True, exist_ok=True)
-    os.replace(src, target)
-    log.info("kept %s (not written by ffrecon) in the new results", target)
+        empty_into(staging.path, out_dir if is_ffrecon_output(out_dir) else None)
 
 
 def _check_owner(out_dir: Path, *, overwrite: bool, resume: bool) -> None:
-    if not out_dir.is_dir() or not _visible_entries(out_dir):
+    if not out_dir.is_dir() or not visible_entries(out_dir):
         return
     if not is_ffrecon_output(out_dir):
         raise OutputExistsError(
@@ -506,18 +347,13 @@ def _check_owner(out_dir: Path, *, overwrite: bool, resume: bool) -> None:
         )
 
 
-def _clear(folder: Path) -> None:
-    for entry in list(folder.iterdir()):
-        shutil.rmtree(entry) if entry.is_dir() and not entry.is_symlink() else entry.unlink()
-
-
 def _seed_from_output(staging: Staging) -> None:
     """Copy the files ffrecon wrote in OUT into an empty staging folder, so ``--resume`` reuses its stages."""
     out_dir = staging.out_dir
-    ours = _listed_files(read_output_record(out_dir))
+    ours = listed_files(read_output_record(out_dir))
     log.info("resuming from the finished stages in %s", out_dir)
-    for rel in _files_under(out_dir):
-        if rel.split("/")[0] in _OURS_INSIDE or (ours is not None and rel not in ours and not rel.startswith(MARKER)):
+    for rel in files_under(out_dir):
+        if rel.split("/")[0] in OURS_INSIDE or (ours is not None and rel not in ours and not rel.startswith(MARKER)):
             continue
         target = staging.path / rel
         target.parent.mkdir(parents=True, exist_ok=True)
@@ -562,7 +398,7 @@ def staged_output(
             _recover(staging)
             _check_owner(out_dir, overwrite=overwrite, resume=resume)  # again, under the lock
             if fresh:
-                _clear(staging.path)
+                clear(staging.path)
             if resume and not staging.finished_stages() and is_ffrecon_output(out_dir):
                 _seed_from_output(staging)
             elif staging.finished_stages():
