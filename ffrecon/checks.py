@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import numpy as np
-
-import math
 
 from ffrecon.errors import InputError, ModelError
 

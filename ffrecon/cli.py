@@ -26,8 +26,12 @@ def _setup_logging(verbose: int) -> None:
     root.setLevel(level)
 
 
-def _add_run_options(p: argparse.ArgumentParser) -> None:
-    """Options of ``run`` and ``demo``; their defaults live in the stage options classes alone."""
+def _field_default(options_class, name: str):
+    """The default of a field of an options dataclass, for help texts (the value lives in the class alone)."""
+    return options_class.__dataclass_fields__[name].default
+
+
+def _add_output_folder_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("-o", "--out", type=Path, required=True, help="output folder (see the README for its layout)")
     p.add_argument("--overwrite", action="store_true", help="replace results already in the output folder")
     p.add_argument(
@@ -36,32 +40,9 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
         help="reuse the stages OUT (or an interrupted run into OUT) finished, where inputs and options are unchanged",
     )
     p.add_argument("--fresh", action="store_true", help="recompute every stage, even those an interrupted run finished")
-    p.add_argument(
-        "--chunk-size",
-        type=int,
-        default=None,
-        help="frames per model call (default: as many as fit in 60%% of the free memory; docs/benchmarks.md)",
-    )
-    p.add_argument("--chunk-overlap", type=int, default=None, help="frames shared by consecutive chunks")
-    p.add_argument(
-        "--preprocess",
-        choices=["crop", "pad", "resize"],
-        default=None,
-        help="preprocessing mode (default: the model family's reference; VGGT: crop or pad, DA3: resize or crop)",
-    )
-    p.add_argument("--threads", type=int, default=None, help="CPU threads for inference (default: all)")
-    p.add_argument(
-        "--quick",
-        action="store_true",
-        help="needs --model: no COLMAP reconstruction; the model's cameras refined by bundle adjustment on SIFT "
-        "matches of the pairs they say overlap (faster; nothing independent checks the cameras)",
-    )
-    p.add_argument("--no-colmap", action="store_true", help="skip the COLMAP cross-check")
-    p.add_argument("--no-refine", action="store_true", help="skip the bundle-adjustment refinement")
-    p.add_argument("--no-splat", action="store_true", help="skip the Gaussian splat")
-    p.add_argument("--force", action="store_true", help="go on past failed verification gates")
-    p.add_argument("--min-registration", type=float, default=None, help="registration-ratio gate (default 0.85)")
-    p.add_argument("--splat-seconds", type=float, default=None, help="splat optimisation budget in seconds")
+
+
+def _add_extra_output_options(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--compare-seeds",
         action="store_true",
@@ -74,11 +55,75 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
         help="also write splat.sog (PlayCanvas) with splat-transform (`make clients`); minutes for 10k+ Gaussians",
     )
     p.add_argument("--reference", type=Path, default=None, help="a reference COLMAP model to score the cameras against")
+
+
+def _add_run_options(p: argparse.ArgumentParser) -> None:
+    """Options of ``run`` and ``demo``; their defaults live in the stage options classes alone, and so do
+    their checks (each class's ``__post_init__``: a bad value is an InputError naming the flag)."""
+    from ffrecon.models.multiview import MultiviewOptions
+    from ffrecon.sfm.gates import GateOptions
+
+    _add_output_folder_options(p)
+    p.add_argument(
+        "--chunk-size",
+        type=int,
+        default=None,
+        help="frames per model call (default: as many as fit in 60%% of the free memory; docs/benchmarks.md)",
+    )
+    p.add_argument(
+        "--chunk-overlap",
+        type=int,
+        default=None,
+        help="frames shared by consecutive chunks, at least 1 and less than the chunk size "
+        f"(default {_field_default(MultiviewOptions, 'chunk_overlap')})",
+    )
+    p.add_argument(
+        "--preprocess",
+        choices=["crop", "pad", "resize"],
+        default=None,
+        help="preprocessing mode (default: the model family's reference; VGGT: crop or pad, DA3: resize or crop)",
+    )
+    p.add_argument("--threads", type=int, default=None, help="CPU threads for inference, >= 1 (default: all)")
+    p.add_argument(
+        "--max-image-size",
+        type=int,
+        default=None,
+        metavar="N",
+        help="long side in pixels of the frames every stage works on; larger photos are downscaled at capture "
+        "(default 1600, as 3DGS; 0 keeps full size, which costs memory and time: docs/benchmarks.md)",
+    )
+    p.add_argument(
+        "--quick",
+        action="store_true",
+        help="needs --model: no COLMAP reconstruction; the model's cameras refined by bundle adjustment on SIFT "
+        "matches of the pairs they say overlap (faster; nothing independent checks the cameras)",
+    )
+    p.add_argument("--no-colmap", action="store_true", help="skip the COLMAP cross-check")
+    p.add_argument("--no-refine", action="store_true", help="skip the bundle-adjustment refinement")
+    p.add_argument("--no-splat", action="store_true", help="skip the Gaussian splat")
+    p.add_argument("--force", action="store_true", help="go on past failed verification gates")
+    p.add_argument(
+        "--min-registration",
+        type=float,
+        default=None,
+        help="registration-ratio gate: the share of the images COLMAP must register, 0 to 1 "
+        f"(default {_field_default(GateOptions, 'min_registration_ratio')})",
+    )
+    p.add_argument(
+        "--splat-seconds",
+        type=float,
+        default=None,
+        help="splat optimisation budget in seconds, > 0 (default: OptimizeOptions.brief()'s)",
+    )
+    _add_extra_output_options(p)
     p.add_argument("-v", "--verbose", action="count", default=0)
     p.add_argument("-q", "--quiet", action="store_true")
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from ffrecon.capture import CaptureOptions
+    from ffrecon.view import ViewOptions
+
     parser = argparse.ArgumentParser(
         prog="ffrecon", description="Photos or a video in, a verified 3D reconstruction out."
     )
@@ -93,7 +138,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="ONNX model (any family in docs/models.md; make one with `ffrecon export-model`); "
         "without one, COLMAP makes the cameras and the splat is seeded from its points",
     )
-    run.add_argument("--video-frames", type=int, default=48, help="frames to keep from a video")
+    run.add_argument(
+        "--video-frames",
+        type=int,
+        default=None,
+        help=f"frames to keep from a video (default {_field_default(CaptureOptions, 'video_frames')})",
+    )
     run.add_argument(
         "--skip-bad-images", action="store_true", help="leave out unreadable files and non-images instead of stopping"
     )
@@ -112,10 +162,16 @@ def build_parser() -> argparse.ArgumentParser:
     view.add_argument("--host", default="127.0.0.1", help="address to listen on (default %(default)s: this machine)")
     view.add_argument("--port", type=int, default=8080, help="port to listen on (default %(default)s)")
     view.add_argument(
-        "--max-points", type=int, default=None, help="points drawn at most (default 200000; the rest subsampled)"
+        "--max-points",
+        type=int,
+        default=None,
+        help=f"points drawn at most (default {_field_default(ViewOptions, 'max_points')}; the rest subsampled)",
     )
     view.add_argument(
-        "--max-gaussians", type=int, default=None, help="Gaussians drawn at most, most opaque first (default 100000)"
+        "--max-gaussians",
+        type=int,
+        default=None,
+        help=f"Gaussians drawn at most, most opaque first (default {_field_default(ViewOptions, 'max_gaussians')})",
     )
     view.add_argument("-v", "--verbose", action="count", default=0)
     return parser
@@ -258,7 +314,9 @@ def _run_options(args: argparse.Namespace, ground_truth: Path | None = None):
     multiview = MultiviewOptions(mode=mode, **_given(chunk_size=args.chunk_size, chunk_overlap=args.chunk_overlap))
     capture = CaptureOptions(
         **_given(
-            video_frames=getattr(args, "video_frames", None), skip_bad_images=getattr(args, "skip_bad_images", None)
+            video_frames=getattr(args, "video_frames", None),
+            skip_bad_images=getattr(args, "skip_bad_images", None),
+            max_image_size=args.max_image_size,
         )
     )
     splat = SplatOptions(

@@ -20,6 +20,7 @@ from ffrecon.export.stage import ExportOptions
 from ffrecon.models.stage import FeedForwardOptions
 from ffrecon.results import RunMode, RunResults, Verdict
 from ffrecon.resume import StageRunner, file_key, rebase_paths
+from ffrecon.sfm.comparisons import check_references
 from ffrecon.sfm.crosscheck import ColmapOptions
 from ffrecon.sfm.evidence import EvidenceOptions, EvidenceResult
 from ffrecon.sfm.gates import GateOptions
@@ -126,6 +127,7 @@ def check_run_options(model: Path | None, options: RunOptions) -> None:
             "quick mode (--quick) is the model's cameras refined by bundle adjustment; --no-refine leaves none of it",
             "drop --no-refine, or drop --quick and pass --no-colmap --no-refine for the model's cameras alone",
         )
+    check_references(options.ground_truth, options.reference)
 
 
 def _resume_command(command: str) -> str:

@@ -1,25 +1,30 @@
 """Finished stages are kept and reused, as hloc does it: a stage whose inputs and options are
 unchanged is not run again.
 
-Each stage that finishes writes, under ``<run folder>/.ffrecon/stages/``, its typed result
-(``<stage>.pkl``) and a small record (``<stage>.json``: the key, the seconds it took, its options
-and the keys of what it read). The record is written last, so a stage interrupted half-way has no
-record and runs again. A stage's key hashes its name, ffrecon's version, its options and the keys
-of its inputs (file names, sizes and modification times for files the user gave; the keys of the
-stages it read), so changing anything upstream recomputes everything that depends on it.
+Each stage that finishes writes, under ``<run folder>/.ffrecon/stages/``, a typed record of its result
+(:mod:`ffrecon.records`): ``<stage>.json`` holds the key, the seconds it took, its options, the keys of
+what it read and the result itself, and ``<stage>.npz`` the result's arrays. The JSON is written
+last, so a stage interrupted half-way has no record and runs again. A stage's key hashes its name,
+ffrecon's version, its options and the keys of its inputs (file names, sizes and modification times
+for files the user gave; the keys of the stages it read), so changing anything upstream recomputes
+everything that depends on it.
+
+Reading a record runs no code: it constructs only ffrecon's own dataclasses and enums, so resuming
+into a folder someone else made is safe. A record that does not decode into today's classes, or of
+another record format, is refused with a log line and its stage runs again. ``<stage>.pkl`` files
+left by versions that pickled results are never read.
 
 Results are stored with their paths relative to the run folder, so a finished ``OUT`` copied
-back to the staging folder (``--resume``) reads them as its own. pycolmap reconstructions do not
-pickle: they are dropped on write and read back from the result's ``model_path``.
+back to the staging folder (``--resume``) reads them as its own. pycolmap reconstructions are not
+data: they are dropped on write and read back from the result's ``model_path``.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import hashlib
-import json
 import logging
-import pickle
+import math
 import shutil
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -29,6 +34,7 @@ from pathlib import Path
 from typing import TypeVar
 
 from ffrecon import __version__
+from ffrecon.records import RecordError, RecordFormatError, read_meta, read_result, write_record
 from ffrecon.timing import StageTimer
 
 log = logging.getLogger("ffrecon")
@@ -113,7 +119,7 @@ def rebase_paths(obj, old: Path, new: Path):
 
 
 def _drop_reconstruction(obj):
-    """pycolmap reconstructions do not pickle; results that hold one also hold its ``model_path``."""
+    """pycolmap reconstructions are not data; results that hold one also hold its ``model_path``."""
     if dataclasses.is_dataclass(obj) and getattr(obj, "reconstruction", None) is not None:
         return dataclasses.replace(obj, reconstruction=None)
     return obj
@@ -125,13 +131,6 @@ def _reload_reconstruction(obj):
 
         return dataclasses.replace(obj, reconstruction=pycolmap.Reconstruction(str(obj.model_path)))
     return obj
-
-
-def _same_shape(obj) -> bool:
-    """Whether a stored result has the fields its class has now (a record from older code may not)."""
-    if not dataclasses.is_dataclass(obj):
-        return True
-    return set(vars(obj)) == {f.name for f in dataclasses.fields(obj)}
 
 
 class StageRunner:
@@ -148,31 +147,39 @@ class StageRunner:
         self.current: str | None = None  # the stage running now (named when interrupted)
         self.overlaps: list[OverlapTiming] = []  # groups of stages that ran at the same time
 
-    def _paths(self, stage: str) -> tuple[Path, Path]:
+    def _paths(self, stage: str) -> tuple[Path, Path, Path]:
+        """``(record, arrays, legacy pickle)``: ``<stage>.json`` (written last), ``<stage>.npz`` and the
+        ``<stage>.pkl`` of earlier versions (never read; removed with the record)."""
         folder = self.run_dir / _RECORDS
-        return folder / f"{stage}.pkl", folder / f"{stage}.json"
+        return folder / f"{stage}.json", folder / f"{stage}.npz", folder / f"{stage}.pkl"
 
-    def _load(self, stage: str, key: str):
-        pkl, record = self._paths(stage)
-        if not (self.reuse and pkl.is_file() and record.is_file()):
-            return None, None
+    def _load(self, stage: str, key: str) -> tuple[object, float | None] | None:
+        """``(result, seconds it took when it ran)`` from the stage's record when its key is ``key``, else None."""
+        record, arrays, _ = self._paths(stage)
+        if not (self.reuse and record.is_file()):
+            return None
         try:
-            meta = json.loads(record.read_text())
+            meta = read_meta(record)
             if meta.get("key") != key:
-                return None, None
-            with open(pkl, "rb") as fh:
-                stored = pickle.load(fh)
-        except (OSError, ValueError, pickle.UnpicklingError, EOFError, AttributeError, ImportError) as err:
-            log.warning("the record of stage %s cannot be read (%s); running it again", stage, err)
-            return None, None
-        if not _same_shape(stored):
-            log.info("the record of stage %s was written by another version of ffrecon; running it again", stage)
-            return None, None
-        return _reload_reconstruction(rebase_paths(stored, _RUN_ROOT, self.run_dir)), meta
+                return None
+            stored = rebase_paths(read_result(meta, arrays), _RUN_ROOT, self.run_dir)
+        except RecordFormatError as err:
+            log.info("the record of stage %s was %s; running it again", stage, err)
+            return None
+        except (RecordError, OSError) as err:
+            log.warning("the record of stage %s cannot be used (%s); running it again", stage, err)
+            return None
+        try:
+            stored = _reload_reconstruction(stored)
+        except (OSError, ValueError, RuntimeError) as err:  # pycolmap: ValueError for a missing or broken model
+            log.warning("stage %s's COLMAP model cannot be read (%s); running it again", stage, err)
+            return None
+        seconds = meta.get("seconds")
+        return stored, float(seconds) if type(seconds) in (int, float) else None
 
     def forget(self, stage: str, outputs: Sequence[str] = ()) -> None:
         """Remove a stage's record and the files it writes (relative to the run folder)."""
-        for path in self._paths(stage):
+        for path in self._paths(stage):  # the JSON first: without it the stage is not finished
             path.unlink(missing_ok=True)
         for rel in outputs:
             target = self.run_dir / rel
@@ -198,11 +205,13 @@ class StageRunner:
         key = stage_key(stage, options, inputs)
         timer = StageTimer()
         with timer.stage(stage):
-            stored, meta = self._load(stage, key)
-        if meta is not None:
-            self.timings.append(StageTiming(stage, timer.freeze().total_s, True, meta.get("seconds")))
+            found = self._load(stage, key)
+        if found is not None:
+            stored, first_seconds = found
+            self.timings.append(StageTiming(stage, timer.freeze().total_s, True, first_seconds))
             self.finished.append(stage)
-            log.info("%s: reused from the earlier run (%.1f s then)", stage, meta.get("seconds", float("nan")))
+            then = math.nan if first_seconds is None else first_seconds
+            log.info("%s: reused from the earlier run (%.1f s then)", stage, then)
             return stored, key
         self.forget(stage, outputs)
         self.current = stage
@@ -244,13 +253,8 @@ class StageRunner:
             self.current = branch.current if self.current is None else f"{self.current} and {branch.current}"
 
     def _store(self, stage: str, key: str, result, seconds: float, options: object, inputs: Sequence[str]) -> None:
-        pkl, record = self._paths(stage)
-        pkl.parent.mkdir(parents=True, exist_ok=True)
+        record, arrays, _ = self._paths(stage)
         portable = rebase_paths(_drop_reconstruction(result), self.run_dir, _RUN_ROOT)
-        tmp = pkl.with_suffix(".tmp")
-        with open(tmp, "wb") as fh:
-            pickle.dump(portable, fh, protocol=pickle.HIGHEST_PROTOCOL)
-        tmp.replace(pkl)
         meta = {
             "stage": stage,
             "key": key,
@@ -259,4 +263,7 @@ class StageRunner:
             "options": repr(options),
             "inputs": list(inputs),
         }
-        record.write_text(json.dumps(meta, indent=2))  # written last: the stage counts as finished
+        try:
+            write_record(record, arrays, meta, portable)  # the JSON last: then the stage counts as finished
+        except RecordError as err:
+            log.warning("the result of stage %s cannot be recorded (%s); a resumed run will run it again", stage, err)

@@ -12,21 +12,69 @@ import cv2
 import numpy as np
 from tqdm.auto import tqdm
 
-from ffrecon.capture.images import IMAGE_EXTENSIONS, VIDEO_EXTENSIONS, list_images, load_image
+from ffrecon.capture.images import (
+    IMAGE_EXTENSIONS,
+    VIDEO_EXTENSIONS,
+    Photo,
+    broken_links,
+    capped_size,
+    list_images,
+    load_photo,
+)
 from ffrecon.capture.quality import CaptureQuality, FrameMeasures, QualityOptions, assess_capture, measure_frame
 from ffrecon.capture.video import extract_video_frames
-from ffrecon.errors import FFReconError, InputError
+from ffrecon.checks import check_number
+from ffrecon.errors import FFReconError, InputError, ResourceError
 from ffrecon.types import Frame
 
 log = logging.getLogger("ffrecon.capture")
 
 
+MIN_IMAGE_SIZE = 64  # the smallest cap: below it SIFT and the models find next to nothing
+
+
 @dataclass(frozen=True, kw_only=True)
 class CaptureOptions:
-    video_frames: int = 48  # frames kept from a video
-    skip_bad_images: bool = False  # leave out unreadable files and non-images instead of stopping
+    """How photos or a video become frames. Checked where made (``__post_init__``): the CLI and the
+    Python API refuse the same values with the same message.
+
+    ``max_image_size``: the long side, in pixels, of the frames every later stage works on; larger
+    photos and video frames are area-averaged to it at capture and written so into ``images/``
+    (COLMAP, the model, the splat and transforms.json all see the same frames; the report records each
+    frame's original size and scale). None or 0 keeps full size. 1600 is the 3DGS reference's choice
+    (its convert and train scripts scale wider images to 1600 px) and nerfstudio's downscale factors
+    serve the same end: the model works at about 518 px and COLMAP's SIFT at most 3200 px anyway, while
+    the splat holds every training image in float32 and renders at full size, so its memory and time
+    grow with the pixels. Measured (docs/benchmarks.md, "Very large photos"): one 12000x9000 photo
+    among five 1024x768 ones was killed at 23 GB at full size and runs in a few GB capped.
+    """
+
+    video_frames: int = 48  # frames kept from a video (at least 2)
+    skip_bad_images: bool = (
+        False  # leave out unreadable, truncated and corrupt files and non-images instead of stopping
+    )
     max_images: int | None = None  # keep at most this many (evenly spaced), None for all
+    max_image_size: int | None = 1600  # long side of the frames, px; larger ones are downscaled; None or 0: full size
     quality: QualityOptions = field(default_factory=QualityOptions)
+
+    def __post_init__(self) -> None:
+        check_number("capture video_frames", self.video_frames, low=2, integer=True, flag="--video-frames")
+        check_number("capture max_images", self.max_images, low=1, integer=True, allow_none=True)
+        try:
+            check_number(
+                "capture max_image_size",
+                self.max_image_size or None,
+                low=MIN_IMAGE_SIZE,
+                integer=True,
+                allow_none=True,
+                flag="--max-image-size",
+            )
+        except InputError as err:
+            raise InputError(err.problem, f"{err.fix}, or 0 for full size") from None
+        # Whole numbers as int, 0 as None: equal options give equal stage keys (ffrecon.resume).
+        object.__setattr__(self, "video_frames", int(self.video_frames))
+        object.__setattr__(self, "max_images", None if self.max_images is None else int(self.max_images))
+        object.__setattr__(self, "max_image_size", int(self.max_image_size) if self.max_image_size else None)
 
 
 @dataclass(frozen=True)
@@ -39,10 +87,18 @@ class Capture:
     is_video: bool
     skipped: tuple[tuple[str, str], ...]  # (file name, reason)
     quality: CaptureQuality
+    original_sizes_wh: tuple[tuple[int, int], ...] = ()  # per frame, upright size in the input (empty: = size_wh)
+    max_image_size: int | None = None  # the cap the frames were made with (CaptureOptions.max_image_size)
 
     @property
     def names(self) -> tuple[str, ...]:
         return tuple(f.name for f in self.frames)
+
+    @property
+    def scales(self) -> tuple[float, ...]:
+        """Per frame, its long side over the input's (1.0: full size; below 1: downscaled at capture)."""
+        originals = self.original_sizes_wh or tuple(f.size_wh for f in self.frames)
+        return tuple(max(f.size_wh) / max(o) for f, o in zip(self.frames, originals))
 
     def read_images(self, indices: Sequence[int] | None = None) -> list[np.ndarray]:
         """``[H_i, W_i, 3]`` uint8 RGB upright images of the frames at ``indices`` (all by default), read from disk."""
@@ -56,6 +112,9 @@ class Capture:
             "num_frames": len(self.frames),
             "names": list(self.names),
             "sizes_wh": [list(f.size_wh) for f in self.frames],
+            "max_image_size": self.max_image_size,
+            "original_sizes_wh": [list(o) for o in (self.original_sizes_wh or [f.size_wh for f in self.frames])],
+            "scales": [round(s, 6) for s in self.scales],
             "focal_prior_px": [f.focal_prior_px for f in self.frames],
             "skipped": [{"name": n, "reason": r} for n, r in self.skipped],
             "quality": self.quality.to_report(),
@@ -63,35 +122,60 @@ class Capture:
 
 
 DATASET_DOCUMENTS = frozenset({"license", "licence", "readme", "copying", "credits", "attribution", "authors"})
+_LISTED = 8  # bad files named in one error message; the rest are counted
 
 
-def _list_inputs(folder: Path, options: CaptureOptions) -> tuple[list[Path], list[tuple[str, str]]]:
-    """The image files to load (at most ``max_images``, evenly spaced) and the files left out, with why."""
+@dataclass
+class _BadInputs:
+    """Input files that cannot be used, collected so that one error (or the skipped list) names them all."""
+
+    folder: Path
+    not_images: list[Path] = field(default_factory=list)
+    unusable: list[tuple[str, str]] = field(default_factory=list)  # (file name, why, naming the file)
+
+    def __bool__(self) -> bool:
+        return bool(self.not_images or self.unusable)
+
+    def skipped(self) -> list[tuple[str, str]]:
+        return [(p.name, "not an image") for p in self.not_images] + self.unusable
+
+    def error(self) -> InputError:
+        """One error naming every bad file (the first few; the rest counted)."""
+        sentences = [why for _, why in self.unusable]
+        if self.not_images:
+            listed = ", ".join(p.name for p in self.not_images[:_LISTED])
+            more = " ..." if len(self.not_images) > _LISTED else ""
+            sentences.insert(
+                0,
+                f"{self.folder} holds {len(self.not_images)} file(s) that are not images ({listed}{more}); "
+                f"supported: {', '.join(IMAGE_EXTENSIONS)}",
+            )
+        count = len(self.not_images) + len(self.unusable)
+        text = "; ".join(sentences[:_LISTED]) + (
+            f"; and {len(sentences) - _LISTED} more" if len(sentences) > _LISTED else ""
+        )
+        return InputError(
+            text if count == 1 else f"{count} input files cannot be used: {text}",
+            "move out or replace the files named, or pass --skip-bad-images to leave them out (the report lists them)",
+        )
+
+
+def _list_inputs(folder: Path, options: CaptureOptions) -> tuple[list[Path], list[tuple[str, str]], _BadInputs]:
+    """The image files to load (at most ``max_images``, evenly spaced), the files left out on purpose
+    (a dataset's documentation) and the bad ones found so far (non-images, links to missing files)."""
     paths, others = list_images(folder)
     # A dataset's license and readme files travel with its photos: leave them out, and say so.
     docs = [p for p in others if p.stem.lower() in DATASET_DOCUMENTS]
-    others = [p for p in others if p not in docs]
     skipped: list[tuple[str, str]] = [(p.name, "a dataset's documentation, not an image") for p in docs]
     for p in docs:
         log.info("leaving out %s (a dataset's documentation, not an image)", p.name)
-    if others:
-        listed = ", ".join(p.name for p in others[:5]) + (" ..." if len(others) > 5 else "")
-        if not options.skip_bad_images:
-            raise InputError(
-                f"{folder} holds {len(others)} file(s) that are not images ({listed}); "
-                f"supported: {', '.join(IMAGE_EXTENSIONS)}",
-                "move them out of the folder, or pass --skip-bad-images to leave them out",
-            )
-        skipped += [(p.name, "not an image") for p in others]
-    if not paths:
-        raise InputError(
-            f"no images found in {folder}",
-            f"put photos ({', '.join(IMAGE_EXTENSIONS)}) in the folder, or pass a video file",
-        )
+    bad = _BadInputs(folder, not_images=[p for p in others if p not in docs])
+    for link in broken_links(folder):
+        bad.unusable.append((link.name, f"{link.name} is a symbolic link to {link.readlink()}, which does not exist"))
     if options.max_images and len(paths) > options.max_images:
         step = len(paths) / options.max_images
         paths = [paths[int(k * step)] for k in range(options.max_images)]
-    return paths, skipped
+    return paths, skipped, bad
 
 
 def _store_frame(
@@ -100,59 +184,125 @@ def _store_frame(
     """Measure one loaded frame (``[H, W, 3]`` uint8 RGB, upright) and put its file at ``target``.
 
     ``original`` is the source file when its bytes already hold these pixels (it is copied as is);
-    None writes the pixels with OpenCV (converted photos, video frames): an upright 8-bit RGB file
-    for tools that read files directly (COLMAP, nerfstudio). The caller then drops the pixels.
+    None writes the pixels with OpenCV (converted or downscaled photos, video frames): an upright 8-bit
+    RGB file for tools that read files directly (COLMAP, nerfstudio). The caller then drops the pixels.
+    Raises :class:`ResourceError` when the file cannot be written (disk full, read-only folder).
     """
-    if original is None:
-        if not cv2.imwrite(str(target), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)):
-            raise FFReconError(f"cannot write {target}", "check that the output folder is writable and has space")
-    elif not target.exists() or target.stat().st_size != original.stat().st_size:
-        shutil.copyfile(original, target)
+    try:
+        if original is None:
+            if not cv2.imwrite(str(target), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)):
+                raise OSError("OpenCV could not write the file")
+        elif not target.exists() or target.stat().st_size != original.stat().st_size:
+            shutil.copyfile(original, target)
+    except (OSError, cv2.error) as err:
+        raise _write_error(target, err) from None
     frame = Frame(name=target.name, path=target, size_wh=(int(rgb.shape[1]), int(rgb.shape[0])), focal_prior_px=focal)
     return frame, measure_frame(rgb)
 
 
-def _load_folder(
-    folder: Path, options: CaptureOptions, image_dir: Path
-) -> tuple[list[Frame], list[FrameMeasures], list[tuple[str, str]]]:
-    paths, skipped = _list_inputs(folder, options)
-    frames, measures = [], []
+def _write_error(target: Path, err: Exception) -> ResourceError:
+    reason = getattr(err, "strerror", None) or str(err).strip().splitlines()[-1]
+    try:
+        free = f"; {shutil.disk_usage(target.parent).free / 2**20:.0f} MB free there"
+    except OSError:
+        free = ""
+    return ResourceError(
+        f"cannot write frame {target.name} into {target.parent} ({reason}{free})",
+        "free disk space, or pass an output folder (-o) on a writable disk with room",
+    )
+
+
+@dataclass
+class _Loaded:
+    """What loading keeps per frame: the frame (a path, no pixels), its measures and its input size."""
+
+    frames: list[Frame] = field(default_factory=list)
+    measures: list[FrameMeasures] = field(default_factory=list)
+    original_sizes_wh: list[tuple[int, int]] = field(default_factory=list)
+
+    def add(self, frame: Frame, measures: FrameMeasures, original_wh: tuple[int, int]) -> None:
+        self.frames.append(frame)
+        self.measures.append(measures)
+        self.original_sizes_wh.append(original_wh)
+
+
+def _load_folder(folder: Path, options: CaptureOptions, image_dir: Path) -> tuple[_Loaded, list[tuple[str, str]]]:
+    """Every listed image decoded strictly. Without ``skip_bad_images`` the first bad file (or non-image)
+    stops the storing, not the checking: the rest are still decoded, so that one error names them all."""
+    paths, skipped, bad = _list_inputs(folder, options)
+    if not paths and not bad:
+        raise InputError(
+            f"no images found in {folder}",
+            f"put photos ({', '.join(IMAGE_EXTENSIONS)}) in the folder, or pass a video file",
+        )
+    loaded = _Loaded()
     for path in tqdm(paths, desc="loading images", unit="img", disable=None):
         try:
-            rgb, focal, converted = load_image(path)
+            photo = load_photo(path, max_size=options.max_image_size)
         except InputError as err:
-            if not options.skip_bad_images:
-                raise
-            skipped.append((path.name, err.problem))
-            log.warning("skipping %s: %s", path.name, err.problem)
+            bad.unusable.append((path.name, err.problem))
             continue
-        frame, measured = _store_frame(rgb, image_dir / path.name, focal, None if converted else path)
-        frames.append(frame)
-        measures.append(measured)
-    return frames, measures, skipped
+        if bad and not options.skip_bad_images:
+            continue  # the run stops below: only check the remaining files
+        frame, measured = _store_frame(photo.rgb, image_dir / path.name, photo.focal_prior_px, _original(path, photo))
+        loaded.add(frame, measured, photo.original_size_wh)
+    if bad and not options.skip_bad_images:
+        raise bad.error()
+    for name, why in bad.skipped():
+        log.warning("skipping %s: %s", name, why)
+    return loaded, skipped + bad.skipped()
 
 
-def _load_video(source: Path, options: CaptureOptions, image_dir: Path) -> tuple[list[Frame], list[FrameMeasures]]:
-    frames, measures = [], []
+def _original(path: Path, photo: Photo) -> Path | None:
+    """The input file when its bytes hold the frame's pixels as they are (copied, not re-encoded)."""
+    return None if photo.converted else path
+
+
+def _load_video(source: Path, options: CaptureOptions, image_dir: Path) -> _Loaded:
+    loaded = _Loaded()
     for name, rgb in extract_video_frames(source, options.video_frames):
+        original_wh = (int(rgb.shape[1]), int(rgb.shape[0]))
+        size = capped_size(*original_wh, options.max_image_size)
+        if size != original_wh:
+            rgb = cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)
         frame, measured = _store_frame(rgb, image_dir / name, None, None)
-        frames.append(frame)
-        measures.append(measured)
-    return frames, measures
+        loaded.add(frame, measured, original_wh)
+    return loaded
+
+
+def _log_downscaled(loaded: _Loaded, max_size: int | None) -> None:
+    shrunk = [(f, o) for f, o in zip(loaded.frames, loaded.original_sizes_wh) if tuple(f.size_wh) != tuple(o)]
+    if shrunk:
+        f, o = shrunk[0]
+        log.info(
+            "%d of %d frames downscaled to %d px on the long side (e.g. %s: %dx%d -> %dx%d); "
+            "--max-image-size 0 keeps full size",
+            len(shrunk),
+            len(loaded.frames),
+            max_size,
+            f.name,
+            *o,
+            *f.size_wh,
+        )
 
 
 def run_capture(source: Path, options: CaptureOptions, out_dir: Path) -> Capture:
     """Load ``source`` (a folder of images or a video) into frames under ``out_dir/images``.
 
-    Each image is decoded once: measured for the capture checks, written (or copied) upright and
+    Each image is decoded once, strictly (:func:`ffrecon.capture.images.load_photo`): downscaled to
+    ``options.max_image_size``, measured for the capture checks, written (or copied) upright and
     8-bit to ``out_dir/images``, and dropped; :meth:`Frame.read_rgb` reads it back when needed.
-    Raises :class:`InputError` with the problem and the fix for unusable input.
+    Raises :class:`InputError` with the problem and the fix for unusable input (naming every bad file),
+    :class:`ResourceError` when ``out_dir`` cannot take the frames.
     """
     source = Path(source)
     if not source.exists():
         raise InputError(f"input not found: {source}", "pass an existing folder of images or a video file")
     image_dir = Path(out_dir) / "images"
-    image_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        image_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise _write_error(image_dir, err) from None
     skipped: list[tuple[str, str]] = []
     if source.is_file():
         if source.suffix.lower() not in VIDEO_EXTENSIONS:
@@ -160,15 +310,25 @@ def run_capture(source: Path, options: CaptureOptions, out_dir: Path) -> Capture
                 f"{source.name} is neither a folder nor a video ({', '.join(VIDEO_EXTENSIONS)})",
                 "pass a folder of images or a video file",
             )
-        frames, measures = _load_video(source, options, image_dir)
+        loaded = _load_video(source, options, image_dir)
     else:
-        frames, measures, skipped = _load_folder(source, options, image_dir)
-    if not frames:
+        loaded, skipped = _load_folder(source, options, image_dir)
+    if not loaded.frames:
         raise InputError(f"no readable images in {source}", "check the files open in an image viewer")
-    names = [f.name for f in frames]
+    names = [f.name for f in loaded.frames]
     if len(set(names)) != len(names):
         raise FFReconError("two input files share a name", "rename them so every image name is unique")
-    quality = assess_capture(names, measures, options.quality)
+    _log_downscaled(loaded, options.max_image_size)
+    quality = assess_capture(names, loaded.measures, options.quality)
     for flag in quality.flags:
         log.warning(flag.message)
-    return Capture(tuple(frames), image_dir, source, source.is_file(), tuple(skipped), quality)
+    return Capture(
+        tuple(loaded.frames),
+        image_dir,
+        source,
+        source.is_file(),
+        tuple(skipped),
+        quality,
+        original_sizes_wh=tuple(loaded.original_sizes_wh),
+        max_image_size=options.max_image_size,
+    )

@@ -1,24 +1,45 @@
-"""Loading photos: formats, bit depths, alpha, EXIF orientation and EXIF focal length.
+"""Loading photos strictly: formats, bit depths, alpha, EXIF orientation and focal length, the size cap.
 
-Pixels are decoded by OpenCV (it reads 16-bit and float TIFF/PNG that PIL cannot); EXIF is read by
+Pixels are decoded by OpenCV (it reads 16-bit and float TIFF/PNG that Pillow cannot); EXIF is read by
 Pillow. OpenCV's ``IMREAD_UNCHANGED`` ignores the EXIF orientation, so it is applied here, once.
+
+Strict decoding, chosen by measurement (OpenCV 5.0, Pillow 13, one 1024x768 photo cut or damaged):
+OpenCV refuses a PNG cut short, without IEND or with a bad chunk CRC, a truncated TIFF, WebP or BMP
+(``imread`` returns None), but decodes a JPEG cut anywhere, even in half, filling the rest grey with
+only a warning on stderr. So JPEGs are also decoded by Pillow at 1/8 scale (``draft``: the whole
+entropy-coded stream is read, the inverse DCT is cheap), which raises "image file is truncated" for
+any cut; this costs 2 ms for 1 MP and 0.13 s for 108 MP (OpenCV's full decode: 0.48 s). Data appended
+after the image (motion photos) is accepted, as by both decoders; damage inside the stream that still
+decodes (zeroed bytes) is not detected by either.
+
+Frames larger than the cap are area-averaged (``cv2.INTER_AREA``) to it right after decoding, before
+any colour conversion, so the full-size array is the only large one and is freed at once.
+OpenCV's ``IMREAD_REDUCED_*`` flags (JPEG decoded at 1/2, 1/4, 1/8 by the DCT) would avoid the full
+decode, but they are not an area average: on a 4096x3072 mosaic of real photos reduced to 1600 px,
+the 1/2 decode followed by INTER_AREA differs from the full decode followed by INTER_AREA by 1.4 grey
+levels on average and up to 46, so they are not used.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import warnings
+from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
-from PIL import Image, UnidentifiedImageError
+from PIL import Image, ImageFile, UnidentifiedImageError
 
-from ffrecon.errors import InputError
+from ffrecon.errors import InputError, ResourceError
 
 log = logging.getLogger("ffrecon.capture")
 
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".webp", ".bmp")
 VIDEO_EXTENSIONS = (".mp4", ".mov", ".avi", ".mkv", ".m4v", ".webm")
+OPENCV_MAX_PIXELS = 1 << 30  # OpenCV refuses to decode larger images (its CV_IO_MAX_IMAGE_PIXELS default)
 _EXIF_IFD = 0x8769
 _TAG_ORIENTATION = 0x0112
 _TAG_FOCAL_35MM = 0xA405
@@ -26,6 +47,7 @@ _TAG_FOCAL_MM = 0x920A
 _TAG_FPLANE_XRES = 0xA20E
 _TAG_FPLANE_UNIT = 0xA210
 _UNIT_MM = {2: 25.4, 3: 10.0, 4: 1.0, 5: 0.001}  # EXIF resolution units in mm
+_JPEG_FORMATS = ("JPEG", "MPO")  # MPO: a multi-picture JPEG (some cameras); both decoders read its first image
 
 
 def list_images(folder: Path) -> tuple[list[Path], list[Path]]:
@@ -36,6 +58,141 @@ def list_images(folder: Path) -> tuple[list[Path], list[Path]]:
     images = [p for p in files if p.suffix.lower() in IMAGE_EXTENSIONS]
     others = [p for p in files if p.suffix.lower() not in IMAGE_EXTENSIONS]
     return images, others
+
+
+def broken_links(folder: Path) -> list[Path]:
+    """Visible symbolic links in ``folder`` whose target does not exist (sorted by name)."""
+    return sorted(p for p in folder.iterdir() if p.is_symlink() and not p.exists() and not p.name.startswith("."))
+
+
+def capped_size(width: int, height: int, max_size: int | None) -> tuple[int, int]:
+    """``(width, height)`` scaled so that the long side is at most ``max_size`` (None or 0: unchanged).
+
+    >>> capped_size(3000, 2000, 1600), capped_size(1200, 1600, 1600), capped_size(12000, 9000, None)
+    ((1600, 1067), (1200, 1600), (12000, 9000))
+    """
+    long_side = max(width, height)
+    if not max_size or long_side <= max_size:
+        return width, height
+    scale = max_size / long_side
+    return max(1, round(width * scale)), max(1, round(height * scale))
+
+
+@dataclass(frozen=True)
+class Photo:
+    """One decoded photo, upright, at most the cap on its long side."""
+
+    rgb: np.ndarray  # [H, W, 3] uint8 RGB, upright
+    focal_prior_px: float | None  # EXIF focal length in pixels of ``rgb`` (scaled with it), or None
+    converted: bool  # the pixels differ from the file's own (orientation, bit depth, alpha, gray, size)
+    original_size_wh: tuple[int, int]  # upright size of the file's pixels
+
+    @property
+    def scale(self) -> float:
+        """Long side of ``rgb`` over the file's long side: 1.0 when kept at full size."""
+        return max(self.rgb.shape[:2]) / max(self.original_size_wh)
+
+
+@dataclass(frozen=True)
+class _Header:
+    """What Pillow reads without decoding the pixels (``size_wh`` None where Pillow cannot read the file,
+    e.g. float TIFF, which OpenCV decodes), and the strict check's verdict (``problem``)."""
+
+    size_wh: tuple[int, int] | None  # as stored, before the EXIF orientation
+    bands: int
+    orientation: int = 1
+    focal_35mm: float | None = None
+    focal_px: float | None = None
+    problem: str | None = None
+
+
+@contextlib.contextmanager
+def _strict_pillow() -> Iterator[None]:
+    """Pillow raising on truncated files, quiet (ffrecon reports the problems it finds), and without its
+    decompression-bomb limit (it warns above 89 MP and refuses 179 MP; ffrecon bounds the decode itself,
+    see :func:`_check_decode_memory`)."""
+    truncated, limit = ImageFile.LOAD_TRUNCATED_IMAGES, Image.MAX_IMAGE_PIXELS
+    ImageFile.LOAD_TRUNCATED_IMAGES, Image.MAX_IMAGE_PIXELS = False, None
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # "Corrupt EXIF data", DecompressionBombWarning
+            yield
+    finally:
+        ImageFile.LOAD_TRUNCATED_IMAGES, Image.MAX_IMAGE_PIXELS = truncated, limit
+
+
+@contextlib.contextmanager
+def _quiet_opencv() -> Iterator[None]:
+    """OpenCV's own log silenced (a truncated TIFF or BMP logs errors on stderr before imread returns None)."""
+    previous = cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+    try:
+        yield
+    finally:
+        cv2.utils.logging.setLogLevel(previous)
+
+
+def _completeness_problem(path: Path) -> str | None:
+    """Why Pillow finds ``path`` cut short or corrupt, or None: a JPEG is decoded at 1/8 scale (the whole
+    entropy-coded stream is read), a PNG's chunks are walked to IEND with their CRCs checked (``verify``,
+    no decoding; OpenCV would refuse such a PNG too, but libpng prints on stderr first). Other formats:
+    None (OpenCV refuses them when broken). Raises Pillow's errors for files it cannot identify."""
+    with Image.open(path) as img:
+        try:
+            if img.format in _JPEG_FORMATS:
+                img.draft(None, (max(1, img.width // 8), max(1, img.height // 8)))
+                img.load()
+            elif img.format == "PNG":
+                img.verify()
+        except (OSError, ValueError, SyntaxError, EOFError) as err:  # Pillow's "image file is truncated" and kin
+            return str(err) or type(err).__name__
+    return None
+
+
+def _read_header(path: Path, *, strict: bool) -> _Header:
+    """EXIF and size from Pillow, and with ``strict`` its completeness check (:func:`_completeness_problem`)."""
+    try:
+        with _strict_pillow():
+            problem = _completeness_problem(path) if strict else None
+            if problem:
+                return _Header(None, 0, problem=problem)
+            with Image.open(path) as img:
+                exif = img.getexif()
+                sub = exif.get_ifd(_EXIF_IFD)
+                f_mm, xres, unit = sub.get(_TAG_FOCAL_MM), sub.get(_TAG_FPLANE_XRES), sub.get(_TAG_FPLANE_UNIT, 2)
+                f35 = sub.get(_TAG_FOCAL_35MM)
+                orientation = int(exif.get(_TAG_ORIENTATION, 1) or 1)
+                size_wh, bands = img.size, len(img.getbands())
+    except (UnidentifiedImageError, OSError, ValueError, SyntaxError, EOFError):
+        return _Header(None, 0)
+    f_px = None
+    if f_mm and xres and unit in _UNIT_MM and float(xres) > 0:
+        f_px = float(f_mm) * float(xres) / _UNIT_MM[unit]
+    return _Header(size_wh, bands, orientation, float(f35) if f35 else None, f_px)
+
+
+def read_exif(path: Path) -> tuple[int, float | None, float | None]:
+    """``(orientation, focal_35mm_equivalent_mm, focal_mm_per_pixel_based)`` from EXIF.
+
+    The third value is the focal length in *pixels* computed from FocalLength and the focal-plane
+    resolution when both exist (independent of the 35 mm table), else None.
+    """
+    header = _read_header(path, strict=False)
+    return header.orientation, header.focal_35mm, header.focal_px
+
+
+def focal_prior_px(width: int, height: int, focal_35mm: float | None, focal_px_exif: float | None) -> float | None:
+    """Focal length in pixels of an upright image from EXIF, or None.
+
+    A 35 mm-equivalent focal length refers to a 36 mm wide frame, matched to the long image side.
+
+    >>> round(focal_prior_px(4000, 3000, 26.0, None), 3)
+    2888.889
+    """
+    if focal_px_exif:
+        return focal_px_exif
+    if focal_35mm:
+        return focal_35mm / 36.0 * max(width, height)
+    return None
 
 
 def _to_rgb8(pixels: np.ndarray) -> np.ndarray:
@@ -73,57 +230,87 @@ def _apply_orientation(rgb: np.ndarray, orientation: int) -> np.ndarray:
     return np.ascontiguousarray(op(rgb)) if op else rgb
 
 
-def read_exif(path: Path) -> tuple[int, float | None, float | None]:
-    """``(orientation, focal_35mm_equivalent_mm, focal_mm_per_pixel_based)`` from EXIF.
+def _check_decode_memory(path: Path, header: _Header) -> None:
+    """Refuse, before decoding, a photo whose full-size decode cannot fit (OpenCV's limit or free memory).
 
-    The third value is the focal length in *pixels* computed from FocalLength and the focal-plane
-    resolution when both exist (independent of the 35 mm table), else None.
+    Up to 8 bytes a pixel for the decoded array (16-bit RGBA), 40 more while RGBA is composited in float32.
     """
+    from ffrecon.machine import available_memory_bytes
+
+    if header.size_wh is None:
+        return
+    w, h = header.size_wh
+    if w * h > OPENCV_MAX_PIXELS:
+        raise InputError(
+            f"{path.name} is {w}x{h} ({w * h / 1e6:.0f} MP), "
+            f"more than OpenCV decodes ({OPENCV_MAX_PIXELS / 1e6:.0f} MP)",
+            f"downscale it first (e.g. `convert {path.name} -resize 8000x8000 smaller.jpg`), or leave it out",
+        )
+    need = w * h * (8 + (40 if header.bands == 4 else 0))
+    available = available_memory_bytes()
+    if need > available:
+        raise ResourceError(
+            f"decoding {path.name} ({w}x{h}) needs about {need / 2**30:.1f} GB; {available / 2**30:.1f} GB is free",
+            "free memory (close other programs), or downscale the photo first",
+        )
+
+
+def _unreadable(path: Path) -> str | None:
+    """Why ``path`` cannot be opened for reading (permissions, I/O error), or None."""
     try:
-        with Image.open(path) as img:
-            exif = img.getexif()
-            sub = exif.get_ifd(_EXIF_IFD)
-            orientation = int(exif.get(_TAG_ORIENTATION, 1) or 1)
-            f35 = sub.get(_TAG_FOCAL_35MM)
-            f_mm, xres, unit = sub.get(_TAG_FOCAL_MM), sub.get(_TAG_FPLANE_XRES), sub.get(_TAG_FPLANE_UNIT, 2)
-    except (UnidentifiedImageError, OSError, ValueError):
-        return 1, None, None
-    f_px = None
-    if f_mm and xres and unit in _UNIT_MM and float(xres) > 0:
-        f_px = float(f_mm) * float(xres) / _UNIT_MM[unit]
-    return orientation, (float(f35) if f35 else None), f_px
-
-
-def focal_prior_px(width: int, height: int, focal_35mm: float | None, focal_px_exif: float | None) -> float | None:
-    """Focal length in pixels of an upright image from EXIF, or None.
-
-    A 35 mm-equivalent focal length refers to a 36 mm wide frame, matched to the long image side.
-
-    >>> round(focal_prior_px(4000, 3000, 26.0, None), 3)
-    2888.889
-    """
-    if focal_px_exif:
-        return focal_px_exif
-    if focal_35mm:
-        return focal_35mm / 36.0 * max(width, height)
+        with path.open("rb") as f:
+            f.read(1)
+    except OSError as err:
+        return err.strerror or str(err)
     return None
 
 
+def load_photo(path: Path, *, max_size: int | None = None) -> Photo:
+    """Read one photo strictly, upright, its long side capped at ``max_size`` pixels (None or 0: full size).
+
+    Raises :class:`InputError` naming the file for one that cannot be read, is cut short (truncated
+    JPEG) or cannot be decoded; :class:`ResourceError` when its decode would not fit in memory.
+    """
+    path = Path(path)
+    fix = f"remove or replace {path}, or pass --skip-bad-images to leave it out"
+    reason = _unreadable(path)
+    if reason:
+        raise InputError(f"cannot read {path.name} ({reason})", fix)
+    header = _read_header(path, strict=True)
+    if header.problem:
+        raise InputError(f"{path.name} is truncated or corrupt: {header.problem}", fix)
+    _check_decode_memory(path, header)
+    with _quiet_opencv():
+        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED | cv2.IMREAD_ANYDEPTH)
+    if raw is None or raw.size == 0:
+        raise InputError(
+            f"cannot decode image {path.name} (corrupt, truncated or not really a {path.suffix} file)", fix
+        )
+    stored_wh = (int(raw.shape[1]), int(raw.shape[0]))
+    size = capped_size(*stored_wh, max_size)
+    kept = size == stored_wh
+    converted = not kept or raw.dtype != np.uint8 or raw.ndim == 2 or raw.shape[2] != 3
+    if not kept and (raw.ndim == 2 or raw.shape[2] != 4):  # average first: the large array is freed at once
+        raw = cv2.resize(raw, size, interpolation=cv2.INTER_AREA)
+    rgb = _to_rgb8(raw)
+    del raw
+    if rgb.shape[1::-1] != size:  # RGBA: composited on white at full size first (averaging is exact after)
+        rgb = cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)
+    upright = _apply_orientation(rgb, header.orientation)
+    original = stored_wh[::-1] if header.orientation in (5, 6, 7, 8) else stored_wh
+    scale = max(size) / max(stored_wh)
+    focal = focal_prior_px(
+        upright.shape[1], upright.shape[0], header.focal_35mm, header.focal_px and header.focal_px * scale
+    )
+    return Photo(upright, focal, converted or header.orientation != 1, original)
+
+
 def load_image(path: Path) -> tuple[np.ndarray, float | None, bool]:
-    """Read one photo: ``(rgb [H, W, 3] uint8 upright, focal prior in px or None, converted)``.
+    """Read one photo at full size: ``(rgb [H, W, 3] uint8 upright, focal prior in px or None, converted)``.
 
     ``converted`` is True when the pixels differ from the file's own (orientation, bit depth,
     alpha, gray), so the caller must write a normalised copy for tools that read files directly.
+    See :func:`load_photo` (strict decoding, the size cap).
     """
-    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED | cv2.IMREAD_ANYDEPTH)
-    if raw is None or raw.size == 0:
-        raise InputError(
-            f"cannot decode image {path.name} (corrupt, truncated or not really a {path.suffix} file)",
-            f"remove or replace {path}, or pass --skip-bad-images to leave it out",
-        )
-    rgb = _to_rgb8(raw)
-    orientation, f35, f_px = read_exif(path)
-    upright = _apply_orientation(rgb, orientation)
-    converted = orientation != 1 or raw.dtype != np.uint8 or raw.ndim == 2 or raw.shape[2] != 3
-    focal = focal_prior_px(upright.shape[1], upright.shape[0], f35, f_px)
-    return upright, focal, converted
+    photo = load_photo(path)
+    return photo.rgb, photo.focal_prior_px, photo.converted

@@ -40,18 +40,22 @@ def extract_video_frames(path: Path, num_frames: int) -> Iterator[tuple[str, np.
     Yields ``(name, rgb [H, W, 3] uint8)`` with names ``<stem>_<frame index:06d>.png``, each as soon
     as its window has been read, so only one kept frame is held at a time. Sharpness is
     :func:`ffrecon.capture.quality.edge_sharpness` (every frame is decoded anyway, so scoring all of
-    them costs little beside decoding).
+    them costs little beside decoding). Fewer frames than asked come with a warning saying why (a
+    shorter video, or decoding that stopped before the frame count the container reports).
     """
     cap, total = _open(path)
     num = min(num_frames, total)
+    if num < num_frames:
+        log.warning("%s has only %d frames: keeping all of them, not %d (--video-frames)", path.name, total, num_frames)
     edges = np.linspace(0, total, num + 1).round().astype(int)
     best: tuple[float, int, np.ndarray | None] = (-1.0, -1, None)
-    window = kept = 0
+    window = kept = decoded = 0
     try:
         for index in tqdm(range(total), desc="video frames", unit="frame", disable=None):
             ok, bgr = cap.read()
             if not ok:
                 break
+            decoded += 1
             if window < num - 1 and index >= edges[window + 1]:
                 if best[2] is not None:
                     kept += 1
@@ -72,4 +76,14 @@ def extract_video_frames(path: Path, num_frames: int) -> Iterator[tuple[str, np.
             f"no frame of {path.name} could be decoded",
             "re-encode the video (ffmpeg) or extract frames to a folder yourself",
         )
-    log.info("kept %d of %d video frames (sharpest of each window)", kept, total)
+    if kept < num:  # windows past the last decodable frame stayed empty
+        log.warning(
+            "%s: decoding stopped after %d of the %d frames its container reports, so %d of the %d windows "
+            "had a frame to keep; re-encode it (`ffmpeg -i IN -c:v libx264 OUT.mp4`) to keep them all",
+            path.name,
+            decoded,
+            total,
+            kept,
+            num,
+        )
+    log.info("kept %d of %d video frames (sharpest of each window)", kept, decoded)

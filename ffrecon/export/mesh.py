@@ -10,7 +10,7 @@ import numpy as np
 import open3d as o3d
 import trimesh
 
-from ffrecon.checks import check_shape
+from ffrecon.checks import check_number, check_shape
 from ffrecon.errors import InputError
 
 logger = logging.getLogger("ffrecon.export")
@@ -21,6 +21,11 @@ class MeshOptions:
     depth: int = 8  # Poisson octree depth (2^depth cells across the cloud)
     density_quantile: float = 0.05  # drop vertices supported by the fewest points (Poisson's extrapolation)
     normal_neighbours: int = 30
+
+    def __post_init__(self) -> None:
+        check_number("MeshOptions.depth", self.depth, low=1, integer=True)
+        check_number("MeshOptions.density_quantile", self.density_quantile, low=0, high=1)
+        check_number("MeshOptions.normal_neighbours", self.normal_neighbours, low=1, integer=True)
 
 
 def poisson_mesh(

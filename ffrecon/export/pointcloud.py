@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 import open3d as o3d
 
+from ffrecon.checks import check_number
 from ffrecon.geometry.projection import pixel_centers, unproject_pixels
 from ffrecon.types import Prediction
 
@@ -24,6 +25,12 @@ class FuseOptions:
     voxel_fraction: float = 1 / 250  # voxel size as a fraction of the cloud's robust extent
     max_points_per_frame: int = 200_000
     remove_outliers: bool = True
+
+    def __post_init__(self) -> None:
+        check_number("FuseOptions.conf_quantile", self.conf_quantile, low=0, high=1)
+        check_number("FuseOptions.min_conf", self.min_conf, low=0)
+        check_number("FuseOptions.voxel_fraction", self.voxel_fraction, low=0, low_open=True)
+        check_number("FuseOptions.max_points_per_frame", self.max_points_per_frame, low=1, integer=True)
 
 
 def fuse_prediction(

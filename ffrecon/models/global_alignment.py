@@ -32,7 +32,7 @@ import torch
 import torch.nn.functional as F
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 
-from ffrecon.checks import require_finite
+from ffrecon.checks import check_number, require_finite
 from ffrecon.errors import FFReconError, ModelError
 from ffrecon.geometry.alignment import Sim3, umeyama
 from ffrecon.geometry.poses import invert_pose
@@ -81,10 +81,10 @@ class AlignmentOptions:
     keep_best: bool = True  # return the lowest-loss iterate (False: the last one)
 
     def __post_init__(self) -> None:
-        if self.iterations < 0 or self.lr <= 0 or self.depth_downsample < 1:
-            raise FFReconError(
-                f"unusable alignment options {self}", "use iterations >= 0, lr > 0 and depth_downsample >= 1"
-            )
+        check_number("AlignmentOptions.iterations", self.iterations, low=0, integer=True)
+        check_number("AlignmentOptions.lr", self.lr, low=0, low_open=True)
+        check_number("AlignmentOptions.lr_min", self.lr_min, low=0)
+        check_number("AlignmentOptions.depth_downsample", self.depth_downsample, low=1, integer=True)
 
 
 @dataclass(frozen=True)

@@ -16,9 +16,10 @@ available now (``/proc/meminfo``), between ``MIN_CHUNK`` and ``MAX_CHUNK``.
 from __future__ import annotations
 
 import logging
-import os
 from dataclasses import dataclass
 from pathlib import Path
+
+from ffrecon.machine import available_memory_bytes
 
 log = logging.getLogger("ffrecon.models")
 
@@ -29,17 +30,6 @@ MEMORY_FRACTION = 0.7
 MIN_CHUNK, MAX_CHUNK = 2, 64
 DEFAULT_HEADS = 16  # VGGT-1B, Pi3 and DA3-large use 16-head global attention
 SPECIAL_TOKENS = 5  # camera/register tokens per frame (VGGT, Pi3)
-
-
-def available_memory_bytes() -> int:
-    """Memory available to a new allocation now (Linux ``MemAvailable``; else total physical memory)."""
-    try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemAvailable:"):
-                return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
 
 
 @dataclass(frozen=True)

@@ -15,7 +15,8 @@ from dataclasses import dataclass
 import numpy as np
 from tqdm.auto import tqdm
 
-from ffrecon.errors import FFReconError, ModelError
+from ffrecon.checks import check_number
+from ffrecon.errors import InputError, ModelError
 from ffrecon.geometry.alignment import Sim3, umeyama
 from ffrecon.models.adapters import MultiviewAdapter, PreprocessMode
 from ffrecon.models.validate import validate_prediction
@@ -36,11 +37,20 @@ class MultiviewOptions:
     align_points_per_frame: int = 4000  # depth points per shared frame used for the chunk Sim(3)
 
     def __post_init__(self) -> None:
-        if self.chunk_size is not None and (self.chunk_size < 2 or not 0 < self.chunk_overlap < self.chunk_size):
-            raise FFReconError(
-                f"chunk size {self.chunk_size} with overlap {self.chunk_overlap} is not usable",
-                "use chunk_size >= 2 and 0 < chunk_overlap < chunk_size",
+        # Consecutive chunks must share a frame (the Sim(3) between them is fitted on it); without a chunk size
+        # the overlap is capped at the chosen size less one (ffrecon.models.stage.predict).
+        check_number(
+            "MultiviewOptions.chunk_size", self.chunk_size, low=2, integer=True, allow_none=True, flag="--chunk-size"
+        )
+        check_number("MultiviewOptions.chunk_overlap", self.chunk_overlap, low=1, integer=True, flag="--chunk-overlap")
+        if self.chunk_size is not None and self.chunk_overlap >= self.chunk_size:
+            raise InputError(
+                f"--chunk-overlap (MultiviewOptions.chunk_overlap) {self.chunk_overlap} is not less than "
+                f"--chunk-size {self.chunk_size}: each chunk must bring at least one new frame",
+                f"pass --chunk-overlap at most {self.chunk_size - 1} (at least 1), or a larger --chunk-size",
             )
+        check_number("MultiviewOptions.max_depth_side", self.max_depth_side, low=1, integer=True, allow_none=True)
+        check_number("MultiviewOptions.align_points_per_frame", self.align_points_per_frame, low=1, integer=True)
 
 
 def plan_chunks(num_frames: int, chunk_size: int, overlap: int) -> list[list[int]]:

@@ -17,7 +17,7 @@ import numpy as np
 from PIL import Image
 from tqdm.auto import tqdm
 
-from ffrecon.checks import check_finite, require_outputs
+from ffrecon.checks import check_finite, check_number, require_outputs
 from ffrecon.errors import FFReconError, InputError, ModelError
 from ffrecon.models.global_alignment import AlignmentOptions, AlignmentResult, PairPrediction, global_align
 from ffrecon.models.resize import ResizeTransform
@@ -320,16 +320,15 @@ class PairwiseOptions:
     max_depth_side: int | None = 1024  # cap on stored depth grids (None: original resolution)
 
     def __post_init__(self) -> None:
-        if (
-            self.batch_size < 1
-            or self.align_stride < 1
-            or PATCH_SIZE % self.align_stride
-            or self.long_side < PATCH_SIZE
-        ):
-            raise FFReconError(
-                f"unusable pairwise options: batch_size {self.batch_size}, align_stride {self.align_stride}, "
-                f"long_side {self.long_side}",
-                f"use batch_size >= 1, an align_stride dividing {PATCH_SIZE} and long_side >= {PATCH_SIZE}",
+        for name in ("window", "batch_size", "align_stride"):
+            check_number(f"PairwiseOptions.{name}", getattr(self, name), low=1, integer=True)
+        check_number("PairwiseOptions.reference", self.reference, low=0, integer=True)
+        check_number("PairwiseOptions.long_side", self.long_side, low=PATCH_SIZE, integer=True)
+        check_number("PairwiseOptions.max_depth_side", self.max_depth_side, low=1, integer=True, allow_none=True)
+        if PATCH_SIZE % self.align_stride:
+            raise InputError(
+                f"PairwiseOptions.align_stride {self.align_stride} does not divide the {PATCH_SIZE}-pixel patches",
+                f"set align_stride to a divisor of {PATCH_SIZE} (1, 2, 4, 8 or 16)",
             )
 
 

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from ffrecon.capture import Capture
+from ffrecon.checks import check_number
 from ffrecon.errors import InputError, ModelError
 from ffrecon.export.pointcloud import FuseOptions, fuse_prediction, write_depth_maps
 from ffrecon.models.adapters import adapter_for
@@ -29,10 +30,13 @@ log = logging.getLogger("ffrecon.models")
 
 @dataclass(frozen=True, kw_only=True)
 class FeedForwardOptions:
-    threads: int = 0  # onnxruntime intra-op threads (0: all cores)
+    threads: int | None = None  # onnxruntime intra-op threads (None: all cores)
     multiview: MultiviewOptions = field(default_factory=MultiviewOptions)
     pairwise: PairwiseOptions = field(default_factory=PairwiseOptions)
     fuse: FuseOptions = field(default_factory=FuseOptions)
+
+    def __post_init__(self) -> None:
+        check_number("FeedForwardOptions.threads", self.threads, low=1, integer=True, allow_none=True, flag="--threads")
 
 
 @dataclass(frozen=True)
@@ -175,7 +179,7 @@ def run_feedforward(
     The frames are read from the capture's ``images/`` here and released when the stage ends.
     ``while_inferring`` is entered around each run of the network (see :class:`OnnxModel`).
     """
-    model = OnnxModel(model_path, threads=options.threads, while_running=while_inferring)
+    model = OnnxModel(model_path, threads=options.threads or 0, while_running=while_inferring)
     log.info(
         "feed-forward model %s (%s%s) on %d frames",
         Path(model_path).name,

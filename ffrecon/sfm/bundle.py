@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from ffrecon.checks import check_number
 from ffrecon.geometry.alignment import Sim3, umeyama
 from ffrecon.geometry.poses import camera_centers
 from ffrecon.geometry.rotations import matrix_to_quat_xyzw
@@ -49,6 +50,16 @@ class BundleOptions:
     max_num_iterations: int = 100  # Ceres iterations per bundle adjustment
     max_solver_seconds: float = 600.0  # wall-clock bound per bundle adjustment (Ceres stops and keeps its best)
     num_threads: int = 1  # 1 makes refinement repeatable (multi-threaded Ceres sums in varying order); -1: all
+
+    def __post_init__(self) -> None:
+        for name in ("coarse_error_deg", "max_reproj_error_px", "prior_position_std", "max_solver_seconds"):
+            check_number(f"BundleOptions.{name}", getattr(self, name), low=0, low_open=True)
+        for name in ("min_tri_angle_deg", "min_distortion_px", "coarse_function_tolerance", "fine_function_tolerance"):
+            check_number(f"BundleOptions.{name}", getattr(self, name), low=0)
+        for name in ("min_distortion_gain", "max_refinement_change"):
+            check_number(f"BundleOptions.{name}", getattr(self, name), low=0, high=1)
+        for name in ("coarse_refinements", "coarse_max_iterations", "max_refinements", "max_num_iterations"):
+            check_number(f"BundleOptions.{name}", getattr(self, name), low=0, integer=True)
 
 
 @dataclass(frozen=True)

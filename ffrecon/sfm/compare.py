@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from ffrecon.checks import check_number
 from ffrecon.geometry.metrics import PoseErrors, pose_errors
 from ffrecon.geometry.poses import camera_centers
 from ffrecon.sfm.colmap_io import cam_from_world_by_name
@@ -28,6 +29,10 @@ class DisagreementOptions:
 
     max_rotation_deg: float = 5.0
     max_center_error: float = 0.05  # as a fraction of the extent of the reference camera centres
+
+    def __post_init__(self) -> None:
+        check_number("DisagreementOptions.max_rotation_deg", self.max_rotation_deg, low=0, low_open=True, high=180)
+        check_number("DisagreementOptions.max_center_error", self.max_center_error, low=0, low_open=True)
 
 
 @dataclass(frozen=True)

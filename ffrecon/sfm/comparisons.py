@@ -14,8 +14,9 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from ffrecon.errors import InputError
 from ffrecon.export.plots import up_from_cameras
-from ffrecon.sfm.colmap_io import cam_from_world_by_name
+from ffrecon.sfm.colmap_io import cam_from_world_by_name, is_model_dir
 from ffrecon.sfm.compare import PoseComparison, compare_poses
 
 # Reference poses by label: (cam_from_world [N, 3, 4], has a pose [N] bool), over the run's names.
@@ -37,6 +38,30 @@ class ComparisonsResult:
     def by_label(self, estimate: str, reference: str) -> PoseComparison | None:
         """The comparison of ``estimate`` against ``reference`` (e.g. "feed-forward", "COLMAP")."""
         return next((c for c in self.comparisons if (c.estimate, c.reference) == (estimate, reference)), None)
+
+
+def check_references(ground_truth: Path | None, reference: Path | None) -> None:
+    """Raise InputError unless the references load: called before any work, so a bad ``--reference`` stops
+    the run in seconds rather than after COLMAP, and read again by :func:`load_references` at the end."""
+    if ground_truth is not None and not (Path(ground_truth) / "ground_truth.json").is_file():
+        raise InputError(
+            f"ground truth {ground_truth} is not a synthetic scene folder (no ground_truth.json)",
+            "set RunOptions.ground_truth to a folder written by ffrecon.synthetic.write_scene, or None",
+        )
+    if reference is None:
+        return
+    ref = Path(reference)
+    fix = "pass --reference the folder of a COLMAP model (cameras, images, points3D .bin or .txt; e.g. sparse/0)"
+    if not is_model_dir(ref):
+        inside = [p for p in (ref / "sparse" / "0", ref / "0", ref.parent) if is_model_dir(p)]
+        what = "is not a COLMAP model folder (no images.bin or images.txt)" if ref.exists() else "does not exist"
+        raise InputError(f"--reference {ref} {what}", f"pass --reference {inside[0]}" if inside else fix)
+    try:
+        registered = pycolmap.Reconstruction(str(ref)).num_reg_images()
+    except Exception as err:  # pycolmap raises ValueError, RuntimeError or MemoryError on bad files
+        raise InputError(f"--reference {ref}: COLMAP cannot read the model ({err})", fix) from None
+    if registered == 0:
+        raise InputError(f"--reference {ref} has no registered images to score the cameras against", fix)
 
 
 def load_references(ground_truth: Path | None, reference: Path | None, names: Sequence[str]) -> References:

@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from ffrecon.checks import check_number
 from ffrecon.errors import InputError
 from ffrecon.sfm.colmap_io import cam_from_world_by_name, cameras_by_name, write_reconstruction
 from ffrecon.sfm.features import (
@@ -97,6 +98,13 @@ class ColmapOptions:
     two_view: TwoViewOptions = TwoViewOptions()
     mapper_num_threads: int = 1  # 1 makes mapping repeatable (COLMAP's multi-threaded solvers are not); -1: all
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("exhaustive_max_images", "min_points_per_image"):
+            check_number(f"ColmapOptions.{name}", getattr(self, name), low=0, integer=True)
+        check_number("ColmapOptions.sequential_overlap", self.sequential_overlap, low=1, integer=True)
+        # COLMAP takes whole seconds, and 0 there means no bound
+        check_number("ColmapOptions.max_mapping_seconds", self.max_mapping_seconds, low=1)
 
 
 @dataclass(frozen=True)

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ffrecon.checks import check_number
 from ffrecon.sfm.compare import DisagreementOptions, compare_poses
 from ffrecon.sfm.crosscheck import ColmapResult
 from ffrecon.sfm.gates import GatesResult, GateStatus, GateVerdict
@@ -44,6 +45,13 @@ class EvidenceOptions:
     min_common_images: int = 3  # fewer images registered by both: agreement is not judged
     unsuited_share: float = 0.5  # a healthy COLMAP model disagreeing with the model on more: unsuited
     disagreement: DisagreementOptions = DisagreementOptions()
+
+    def __post_init__(self) -> None:
+        for name in ("min_refined_ratio", "min_colmap_agreement", "unsuited_share"):
+            check_number(f"EvidenceOptions.{name}", getattr(self, name), low=0, high=1)
+        check_number("EvidenceOptions.max_reprojection_px", self.max_reprojection_px, low=0, low_open=True)
+        check_number("EvidenceOptions.min_track_length", self.min_track_length, low=0)
+        check_number("EvidenceOptions.min_common_images", self.min_common_images, low=0, integer=True)
 
 
 @dataclass(frozen=True)

@@ -20,6 +20,7 @@ import numpy as np
 import pycolmap
 from PIL import Image, UnidentifiedImageError
 
+from ffrecon.checks import check_number
 from ffrecon.errors import InputError
 
 logger = logging.getLogger("ffrecon.sfm")
@@ -48,6 +49,14 @@ class SiftOptions:
     max_ratio: float = 0.8  # Lowe ratio test
     min_num_inliers: int = 15  # two-view geometry: fewer verified matches = no edge
     num_threads: int = -1  # -1: all cores
+
+    def __post_init__(self) -> None:
+        for name in ("max_num_features", "max_image_size"):
+            check_number(f"SiftOptions.{name}", getattr(self, name), low=1, integer=True)
+        check_number("SiftOptions.first_octave", self.first_octave, low=-1, integer=True)
+        check_number("SiftOptions.upsample_below_px", self.upsample_below_px, low=0, integer=True)
+        check_number("SiftOptions.max_ratio", self.max_ratio, low=0, low_open=True, high=1)
+        check_number("SiftOptions.min_num_inliers", self.min_num_inliers, low=0, integer=True)
 
 
 @dataclass(frozen=True)

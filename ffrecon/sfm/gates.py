@@ -18,6 +18,7 @@ import numpy as np
 import pycolmap
 
 from ffrecon.capture.quality import CaptureQuality
+from ffrecon.checks import check_number
 from ffrecon.sfm.crosscheck import ColmapResult
 from ffrecon.types import Prediction
 
@@ -102,6 +103,17 @@ class GateOptions:
     # registration is then small parallax (or disconnected groups), never "too little overlap". 100 is
     # what COLMAP's incremental mapper asks of an initial pair (init_min_num_inliers).
     overlap_matches: int = 100
+
+    def __post_init__(self) -> None:
+        check_number(
+            "GateOptions.min_registration_ratio", self.min_registration_ratio, low=0, high=1, flag="--min-registration"
+        )
+        for name in ("min_in_front_ratio", "min_depth_coverage", "cause_share"):
+            check_number(f"GateOptions.{name}", getattr(self, name), low=0, high=1)
+        for name in ("min_points", "min_keypoints", "overlap_matches"):
+            check_number(f"GateOptions.{name}", getattr(self, name), low=0, integer=True)
+        for name in ("min_cloud_spread", "max_cloud_tail", "min_depth_conf"):
+            check_number(f"GateOptions.{name}", getattr(self, name), low=0)
 
 
 _FIXES = {

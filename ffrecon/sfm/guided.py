@@ -24,6 +24,7 @@ import cv2
 import numpy as np
 import pycolmap
 
+from ffrecon.checks import check_number
 from ffrecon.models.validate import validate_prediction
 from ffrecon.types import Prediction
 
@@ -50,6 +51,17 @@ class GuidanceOptions:
     min_fit_matches: int = 8  # fewer candidates than this: keep those inside the first cut only
     seed: int = 0  # RANSAC of the filter
     fit_keypoints: int = 500  # guided: keypoints used in the wide search that measures the pair's error
+
+    def __post_init__(self) -> None:
+        check_number("GuidanceOptions.auto_max_rejected", self.auto_max_rejected, low=0, high=1)
+        check_number("GuidanceOptions.max_ratio", self.max_ratio, low=0, low_open=True, high=1)
+        # the first cut is focal * tan(window_deg): unbounded at 90 degrees
+        check_number("GuidanceOptions.window_deg", self.window_deg, low=0, low_open=True, high=89)
+        for name in ("tolerance", "filter_tolerance", "max_distance"):
+            check_number(f"GuidanceOptions.{name}", getattr(self, name), low=0, low_open=True)
+        check_number("GuidanceOptions.min_depth_conf", self.min_depth_conf, low=0)
+        check_number("GuidanceOptions.min_fit_matches", self.min_fit_matches, low=0, integer=True)
+        check_number("GuidanceOptions.fit_keypoints", self.fit_keypoints, low=1, integer=True)
 
 
 @dataclass(frozen=True)

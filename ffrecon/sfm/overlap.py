@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ffrecon.checks import check_number
 from ffrecon.geometry.projection import pixel_centers, project_points
 from ffrecon.types import Prediction
 
@@ -30,6 +31,15 @@ class OverlapOptions:
     max_depth_ratio: float = 0.15  # |z_projected / z_j - 1| above this: occluded in j
     samples_per_image: int = 1500
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("min_overlap", "min_any_overlap"):
+            check_number(f"OverlapOptions.{name}", getattr(self, name), low=0, high=1)
+        for name in ("max_pairs_per_image", "min_pairs_per_image", "fallback_neighbours"):
+            check_number(f"OverlapOptions.{name}", getattr(self, name), low=0, integer=True)
+        check_number("OverlapOptions.samples_per_image", self.samples_per_image, low=1, integer=True)
+        check_number("OverlapOptions.min_depth_conf", self.min_depth_conf, low=0)
+        check_number("OverlapOptions.max_depth_ratio", self.max_depth_ratio, low=0, low_open=True)
 
 
 @dataclass(frozen=True)

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from ffrecon.checks import check_number
 from ffrecon.errors import InputError
 from ffrecon.geometry.alignment import Sim3
 from ffrecon.geometry.undistort import NO_DISTORTION, opencv_coefficients
@@ -103,6 +104,10 @@ class RefineOptions:
     min_matches: int = 50  # verified matches summed over the frame's pairs
     min_observations: int = 40
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("min_features", "min_matches", "min_observations"):
+            check_number(f"RefineOptions.{name}", getattr(self, name), low=0, integer=True)
 
     @classmethod
     def quick(cls, **overrides) -> RefineOptions:

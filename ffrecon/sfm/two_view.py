@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 import pycolmap
 
+from ffrecon.checks import check_number
 from ffrecon.sfm.colmap_io import rigid_from_pose
 
 logger = logging.getLogger("ffrecon.sfm")
@@ -34,6 +35,13 @@ class TwoViewOptions:
     min_tri_angle_deg: float = 0.5  # forward motion: small angles are all there is, but not none
     min_points: int = 30
     max_iterations: int = 100  # bundle adjustment
+
+    def __post_init__(self) -> None:
+        for name in ("min_inliers", "min_points", "max_iterations"):
+            check_number(f"TwoViewOptions.{name}", getattr(self, name), low=0, integer=True)
+        for name in ("ransac_px", "max_reproj_error_px"):
+            check_number(f"TwoViewOptions.{name}", getattr(self, name), low=0, low_open=True)
+        check_number("TwoViewOptions.min_tri_angle_deg", self.min_tri_angle_deg, low=0)
 
 
 def _keypoints(db: pycolmap.Database, image_id: int) -> np.ndarray:

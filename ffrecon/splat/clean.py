@@ -16,6 +16,8 @@ import numpy as np
 import open3d as o3d
 import torch
 
+from ffrecon.checks import check_number
+from ffrecon.errors import InputError
 from ffrecon.splat.gaussians import Gaussians
 from ffrecon.types import PinholeCamera
 
@@ -34,6 +36,23 @@ class CleanOptions:
     floater_neighbours: int = 16
     floater_std_ratio: float = 4.0  # statistical outlier threshold (in standard deviations); 0 disables
     max_scale_fraction: float = 0.25  # prune Gaussians larger than this fraction of the box diagonal
+
+    def __post_init__(self) -> None:
+        if self.crop_box is not None:
+            box = np.asarray(self.crop_box, dtype=np.float64)
+            if box.shape != (2, 3) or not np.isfinite(box).all() or not (box[0] < box[1]).all():
+                raise InputError(
+                    f"CleanOptions.crop_box {self.crop_box} is not a box",
+                    "set crop_box to ((x0, y0, z0), (x1, y1, z1)) with finite x0 < x1, y0 < y1, z0 < z1, "
+                    "or None for the automatic box",
+                )
+        check_number("CleanOptions.box_percentile", self.box_percentile, low=0, high=50)
+        check_number("CleanOptions.min_opacity", self.min_opacity, low=0, high=1)
+        for name in ("box_margin", "floater_std_ratio"):  # floater_std_ratio 0: no floater pruning
+            check_number(f"CleanOptions.{name}", getattr(self, name), low=0)
+        for name in ("far_factor", "max_scale_fraction"):
+            check_number(f"CleanOptions.{name}", getattr(self, name), low=0, low_open=True)
+        check_number("CleanOptions.floater_neighbours", self.floater_neighbours, low=1, integer=True)
 
 
 @dataclass(frozen=True)

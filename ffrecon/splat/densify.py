@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import kornia
 import torch
 
+from ffrecon.checks import check_number
 from ffrecon.splat.gaussians import Gaussians
 
 logger = logging.getLogger("ffrecon.splat")
@@ -79,6 +80,15 @@ class DensifyOptions:
     percent_dense: float = 0.01  # clone if largest scale <= this * scene scale, else split
     prune_opacity: float = 0.005
     max_world_size: float = 0.1  # prune Gaussians larger than this * scene scale (after the first round)
+
+    def __post_init__(self) -> None:
+        check_number("DensifyOptions.start_iteration", self.start_iteration, low=0, integer=True)
+        check_number("DensifyOptions.every", self.every, low=1, integer=True)
+        for name in ("stop_fraction", "prune_opacity"):
+            check_number(f"DensifyOptions.{name}", getattr(self, name), low=0, high=1)
+        for name in ("grad_threshold", "percent_dense"):
+            check_number(f"DensifyOptions.{name}", getattr(self, name), low=0)
+        check_number("DensifyOptions.max_world_size", self.max_world_size, low=0, low_open=True)
 
 
 class Densifier:

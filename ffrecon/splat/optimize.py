@@ -12,7 +12,7 @@ import math
 import os
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 import torch
@@ -20,6 +20,8 @@ import torch.nn.functional as F
 from kornia.geometry.liegroup import So3
 from tqdm import tqdm
 
+from ffrecon.checks import check_number
+from ffrecon.errors import InputError
 from ffrecon.geometry.poses import camera_centers
 from ffrecon.splat.appearance import appearance_penalty, apply_color_transform, identity_transforms
 from ffrecon.splat.densify import Densifier, DensifyOptions, replace_rows
@@ -83,6 +85,30 @@ class OptimizeOptions:
     threads: int | None = None  # torch CPU threads while optimising; None: see cpu_threads()
     seed: int = 0
     progress: bool = True
+
+    def __post_init__(self) -> None:
+        check_number("OptimizeOptions.max_seconds", self.max_seconds, low=0, low_open=True, flag="--splat-seconds")
+        check_number("OptimizeOptions.iterations", self.iterations, low=1, integer=True)
+        for name in ("plateau_window", "sh_band_every"):
+            check_number(f"OptimizeOptions.{name}", getattr(self, name), low=0, integer=True)
+        check_number("OptimizeOptions.sh_degree", self.sh_degree, low=0, high=3, integer=True)
+        check_number("OptimizeOptions.max_gaussians", self.max_gaussians, low=1, integer=True)
+        check_number("OptimizeOptions.threads", self.threads, low=1, integer=True, allow_none=True)
+        rates = [f.name for f in fields(self) if f.name.startswith("lr_")]  # 0 keeps that tensor as it is
+        for name in (*rates, "plateau_tolerance", "appearance_weight"):
+            check_number(f"OptimizeOptions.{name}", getattr(self, name), low=0)
+        for name in ("plateau_after", "ssim_weight"):
+            check_number(f"OptimizeOptions.{name}", getattr(self, name), low=0, high=1)
+        for start, factor in self.resolution_schedule:
+            check_number("OptimizeOptions.resolution_schedule start", start, low=0, high=1)
+            check_number("OptimizeOptions.resolution_schedule factor", factor, low=1, integer=True)
+        if len(self.background) != 3:
+            raise InputError(
+                f"OptimizeOptions.background {self.background} is not an RGB triple",
+                "set OptimizeOptions.background to (r, g, b), each in [0, 1]",
+            )
+        for value in self.background:
+            check_number("OptimizeOptions.background", value, low=0, high=1)
 
     @staticmethod
     def brief(**overrides) -> OptimizeOptions:

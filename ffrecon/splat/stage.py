@@ -28,7 +28,7 @@ import cv2
 import numpy as np
 import torch
 
-from ffrecon.checks import check_shape, require_finite
+from ffrecon.checks import check_number, check_shape, require_finite
 from ffrecon.errors import InputError
 from ffrecon.export.web import WebExportError, write_sog, write_splat_spz
 from ffrecon.splat.appearance import apply_color_transform, fit_color_transform
@@ -83,6 +83,12 @@ class SplatOptions:
     device: SplatDevice | str = SplatDevice.AUTO
     optimize: OptimizeOptions = field(default_factory=OptimizeOptions.brief)
     clean: CleanOptions = field(default_factory=CleanOptions)
+
+    def __post_init__(self) -> None:
+        for name in ("holdout_every", "report_views", "curve_every"):
+            check_number(f"SplatOptions.{name}", getattr(self, name), low=0, integer=True)
+        for name in ("max_seed_points", "video_frames"):
+            check_number(f"SplatOptions.{name}", getattr(self, name), low=1, integer=True)
 
 
 @dataclass(frozen=True)
