@@ -25,7 +25,7 @@ from ffrecon.sfm.crosscheck import ColmapOptions
 from ffrecon.sfm.evidence import EvidenceOptions, EvidenceResult
 from ffrecon.sfm.gates import GateOptions
 from ffrecon.sfm.refine import RefineOptions
-from ffrecon.splat.stage import SplatOptions
+from ffrecon.splat.stage import SplatOptions, check_splat_memory
 from ffrecon.stages import (
     STAGE_OUTPUTS,
     comparisons_stage,
@@ -145,6 +145,8 @@ def _run_stages(
         inputs=[file_key(source)],
         outputs=STAGE_OUTPUTS["capture"],
     )
+    if options.splat.enabled:  # a splat that cannot fit in memory at all is refused now, not after the poses
+        check_splat_memory([f.size_wh for f in capture.frames], options.splat, when=" (planned)")
     (ff, k_ff), (colmap, k_colmap), sift = pose_stages(capture, model, options, work, stages, [k_capture])
     gates, k_gates = gates_stage(capture, ff, colmap, options, stages, [k_capture, k_ff, k_colmap])
     k_pose = [k_capture, k_ff, k_colmap]

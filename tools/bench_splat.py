@@ -9,6 +9,11 @@ Usage (from the repository root):
     .venv/bin/python tools/bench_splat.py --optimize-only --iterations 300 --seconds 1e9 --appearance both
     .venv/bin/python tools/bench_splat.py --optimize-only --iterations 300 --seconds 1e9 --appearance both \
         --exposure 0.3
+    .venv/bin/python tools/bench_splat.py --memory        # peak memory of a step against ffrecon.splat.memory
+
+``--memory`` runs, in a fresh process per size, three full-resolution optimisation steps on two views
+of random pixels and 200k Gaussians, at 1600x1200 to 6400x4800, and prints how much the peak resident
+memory grew against the estimate of :mod:`ffrecon.splat.memory` (the constants there were fitted so).
 
 The scene is the demo's synthetic one (24 views at 320x240, every 8th held out). Seeds come from the
 simulated model's depth maps (a smooth ~3 % error field, as the demo's simulated VGGT) unprojected
@@ -25,6 +30,8 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import resource
+import subprocess
 import sys
 import time
 from dataclasses import replace
@@ -147,6 +154,38 @@ def bench_optimize(scene, images, xyz, rgb, train, test, args, appearance: bool)
     )
 
 
+MEMORY_SIZES = ((1600, 1200), (3200, 2400), (4800, 3600), (6400, 4800))
+MEMORY_GAUSSIANS = 200_000
+
+
+def memory_probe(width: int, height: int, count: int) -> None:
+    """One process's part of ``--memory``: prints the growth of its peak RSS over three steps, in bytes."""
+    from ffrecon.splat.gaussians import Gaussians
+
+    rng = np.random.default_rng(0)
+    xyz = np.c_[rng.uniform(-1, 1, (count, 2)), rng.uniform(2, 4, count)]
+    g = Gaussians.from_points(xyz, rng.uniform(0, 1, (count, 3)), np.full(count, np.log(0.01)), opacity=0.5)
+    k = np.array([[0.9 * width, 0, width / 2], [0, 0.9 * width, height / 2], [0, 0, 1]])
+    images = [torch.rand(height, width, 3) for _ in range(2)]
+    base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    options = replace(
+        SplatOptions().optimize, iterations=3, max_seconds=1e9, progress=False, resolution_schedule=((0.0, 1),)
+    )
+    optimize(g, images, np.stack([np.eye(3, 4)] * 2), np.stack([k, k]), [0, 1], options, scale=1.0)
+    print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 - base)
+
+
+def bench_memory() -> None:
+    from ffrecon.splat.memory import BASE_BYTES, splat_peak_bytes
+
+    print(f"{'view':>10} {'measured growth':>16} {'estimate':>9}  (2 views, {MEMORY_GAUSSIANS} Gaussians)")
+    for w, h in MEMORY_SIZES:
+        probe = [sys.executable, __file__, "--memory-probe", str(w), str(h), str(MEMORY_GAUSSIANS)]
+        grown = int(subprocess.run(probe, check=True, capture_output=True, text=True).stdout.split()[-1])
+        estimate = splat_peak_bytes([(w, h)] * 2, MEMORY_GAUSSIANS) - BASE_BYTES
+        print(f"{w}x{h:<5} {grown / 2**30:13.2f} GB {estimate / 2**30:6.2f} GB")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--frames", type=int, default=24)
@@ -164,7 +203,15 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--render-only", action="store_true")
     parser.add_argument("--optimize-only", action="store_true")
+    parser.add_argument("--memory", action="store_true", help="peak memory of a step against the splat's estimate")
+    parser.add_argument("--memory-probe", nargs=3, type=int, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
+    if args.memory_probe:
+        memory_probe(*args.memory_probe)
+        return 0
+    if args.memory:
+        bench_memory()
+        return 0
     logging.basicConfig(level=logging.WARNING)
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     print(f"torch {torch.__version__}, {os.cpu_count()} CPUs, load average {load:.2f} at start")

@@ -503,6 +503,52 @@ class _Plateau:
         return done
 
 
+class _StepClock:
+    """Predicts the next step's seconds from its pixels, so that the time budget ends the loop before a step
+    would overrun it (one step on a 27 MP view takes 20 s: checking only after it overran a 10 s budget).
+
+    A step costs a part per Gaussian and a part per pixel. The prediction for a view size already seen is
+    the last step's time at that size; for a new size, the line through the last times of the smallest
+    and the largest sizes seen (slope at least 0), or with one size seen, its time scaled up by the pixels
+    (an overestimate: near the end of the budget a step may be left out rather than overrun it). Before
+    any step: 0.
+    """
+
+    def __init__(self) -> None:
+        self.last: dict[int, float] = {}  # pixels -> seconds of the last step at that size
+
+    def predict(self, pixels: int) -> float:
+        if pixels in self.last or not self.last:
+            return self.last.get(pixels, 0.0)
+        small, large = min(self.last), max(self.last)
+        if small == large:
+            return self.last[small] * max(1.0, pixels / small)
+        slope = max(0.0, (self.last[large] - self.last[small]) / (large - small))
+        return max(0.0, self.last[small] + slope * (pixels - small))
+
+    def record(self, pixels: int, seconds: float) -> float:
+        """Note a step's seconds; returns them."""
+        self.last[pixels] = seconds
+        return seconds
+
+
+def _pixels(views: _TrainingViews, view: int, factor: int) -> int:
+    image = views.levels.get(factor, (views.images, views.k_mats))[0][view]
+    return int(image.shape[0] * image.shape[1])
+
+
+def _prepare(gaussians, images, cam_from_world, Ks, train, o: OptimizeOptions, scale):
+    """``(views, params, adam, densifier)``: the optimisation's state before its first step."""
+    views = _training_views(images, cam_from_world, Ks, train, o)
+    if o.device == "cpu" and (seconds := warm_up()) > 1.0:  # not counted in the budget
+        logger.info("readied the CPU renderer in %.1f s (compiled on first use, then cached)", seconds)
+    params, adam = _trainable(gaussians, o, scale, len(views.poses))
+    densifier = None
+    if o.densify is not None:
+        densifier = Densifier(len(params["means"]), o.densify, scale, o.max_gaussians, o.seed, o.device)
+    return views, params, adam, densifier
+
+
 def _optimize(
     gaussians, images, cam_from_world, Ks, train, options: OptimizeOptions, *, scale, callback, callback_every
 ) -> OptimizeResult:
@@ -515,36 +561,32 @@ def _optimize(
         raise ValueError("optimize: no training views")
     torch.manual_seed(o.seed)
     rng = np.random.default_rng(o.seed)
-    views = _training_views(images, cam_from_world, Ks, train, o)
-    if o.device == "cpu" and (seconds := warm_up()) > 1.0:  # not counted in the budget
-        logger.info("readied the CPU renderer in %.1f s (compiled on first use, then cached)", seconds)
-    params, adam = _trainable(gaussians, o, scale, len(views.poses))
-    densifier = None
-    if o.densify is not None:
-        densifier = Densifier(len(params["means"]), o.densify, scale, o.max_gaussians, o.seed, o.device)
+    views, params, adam, densifier = _prepare(gaussians, images, cam_from_world, Ks, train, o, scale)
     history: list[tuple[int, float, float]] = []
     plateau = _Plateau(o)
     order: list[int] = []
     elapsed, it, reason = 0.0, 0, "iterations"
+    clock = _StepClock()
     disable = None if o.progress else True  # None: off when not a terminal
     bar = tqdm(total=o.iterations, desc="splat", unit="it", disable=disable, leave=False)
     while it < o.iterations:
-        if elapsed >= o.max_seconds:
+        fraction = max(it / o.iterations, elapsed / o.max_seconds)
+        factor = resolution_factor(o, fraction)
+        if not order:
+            order = [train[j] for j in rng.permutation(len(train))]
+        pixels = _pixels(views, order[-1], factor)
+        if elapsed + clock.predict(pixels) > o.max_seconds:  # the budget is an upper bound
             reason = "time budget"
             break
         start = time.perf_counter()
-        fraction = max(it / o.iterations, elapsed / o.max_seconds)
         _set_lr(adam, "means", _log_lerp(o.lr_means * scale, o.lr_means_final * scale, fraction))
-        if not order:
-            order = [train[j] for j in rng.permutation(len(train))]
         degree = min(o.sh_degree, it // max(o.sh_band_every, 1))
-        factor = resolution_factor(o, fraction)
         with interrupts_deferred():  # a Ctrl-C is taken between steps, never inside a numba kernel
             loss = _train_step(params, adam, views, order.pop(), degree, o, densifier, factor).item()
         it += 1
         if densifier is not None and densifier.due(it, fraction):
             params = _densify(densifier, params, adam)
-        elapsed += time.perf_counter() - start
+        elapsed += clock.record(pixels, time.perf_counter() - start)
         if it % 10 == 0:
             history.append((it, elapsed, loss))
             bar.set_postfix(loss=f"{loss:.4f}", n=len(params["means"]), res=f"1/{factor}")

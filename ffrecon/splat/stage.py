@@ -34,6 +34,7 @@ from ffrecon.export.web import WebExportError, write_sog, write_splat_spz
 from ffrecon.splat.appearance import apply_color_transform, fit_color_transform
 from ffrecon.splat.clean import CleanOptions, CleanReport, clean_gaussians
 from ffrecon.splat.gaussians import Gaussians
+from ffrecon.splat.memory import capped_size, splat_peak_bytes, training_side
 from ffrecon.splat.optimize import (
     OptimizeOptions,
     OptimizeResult,
@@ -145,6 +146,7 @@ class SplatResult:
     stop_reason: str = ""  # what ended the optimisation: "plateau", "iterations" or "time budget"
     spz_path: Path | None = None  # splat.spz, the same splat in Niantic's SPZ (options.spz)
     sog_path: Path | None = None  # splat.sog, PlayCanvas's SOG (options.sog)
+    max_side: int | None = None  # views longer than this (px) were shrunk to it to fit memory (splat.memory)
 
     def mean(self, key: str) -> float:
         """Mean over held-out views of a :class:`ViewMetrics` field (nan without held-out views)."""
@@ -173,6 +175,7 @@ class SplatResult:
         keys = ViewMetrics.KEYS
         return {
             "backend": self.backend,
+            "max_side": self.max_side,
             "splat_ply": rel(self.ply_path),
             "splat_spz": rel(self.spz_path),
             "splat_sog": rel(self.sog_path),
@@ -246,6 +249,46 @@ def resolve_device(device: SplatDevice | str) -> str:
             "device 'cuda' needs CUDA and gsplat", "install ffrecon[gpu] on a CUDA machine, or use device 'auto'"
         )
     return "cuda" if device is SplatDevice.CUDA or (device is SplatDevice.AUTO and gsplat_available()) else "cpu"
+
+
+def check_splat_memory(sizes_wh: Sequence[tuple[int, int]], options: SplatOptions, *, when: str = "") -> int | None:
+    """The long side (px) to which the CPU splat shrinks larger views of ``sizes_wh`` to fit the memory free
+    now (None: full size; :mod:`ffrecon.splat.memory`), logged when it shrinks any. The pipeline asks before
+    any work, so that a splat that cannot fit at all is a :class:`~ffrecon.errors.ResourceError` in seconds;
+    the stage asks again when it starts, with the memory free then. On CUDA (gsplat): None."""
+    if not sizes_wh or resolve_device(options.device) != "cpu":
+        return None
+    side = training_side(sizes_wh, options.optimize.max_gaussians)
+    if side is not None:
+        w, h = max(sizes_wh, key=lambda s: s[0] * s[1])
+        full = splat_peak_bytes(sizes_wh, options.optimize.max_gaussians)
+        shrunk = sum(max(s) > side for s in sizes_wh)
+        logger.warning(
+            "splat%s: training %d view(s) at %d px on the long side (%dx%d instead of %dx%d): full size needs "
+            "about %.1f GB, more than memory allows; smaller frames (--max-image-size, default 1600) avoid this",
+            when,
+            shrunk,
+            side,
+            *capped_size(w, h, side),
+            w,
+            h,
+            full / 2**30,
+        )
+    return side
+
+
+def _capped(images, cameras, max_side: int | None) -> tuple[list[np.ndarray], list[PinholeCamera]]:
+    """Views whose long side exceeds ``max_side`` shrunk to it (area average), their cameras scaled to the
+    new pixel grid; the others as they are."""
+    out_images, out_cameras = [], []
+    for im, cam in zip(images, cameras):
+        w, h = capped_size(im.shape[1], im.shape[0], max_side)
+        if (w, h) != (im.shape[1], im.shape[0]):
+            cam = cam.scaled(w / im.shape[1], h / im.shape[0])
+            im = cv2.resize(im, (w, h), interpolation=cv2.INTER_AREA)
+        out_images.append(im)
+        out_cameras.append(cam)
+    return out_images, out_cameras
 
 
 def run_splat(
@@ -347,6 +390,8 @@ def _splat(
     out_dir = Path(out_dir)
     device = resolve_device(options.device)
     logger.info("splat: %d training and %d held-out views, device %s", len(train), len(heldout), device)
+    max_side = check_splat_memory([(im.shape[1], im.shape[0]) for im in images], options)
+    images, cameras = _capped(images, cameras, max_side)
     curve: list[tuple[int, float, float, float]] = []
     seed, result, cleaned, clean_report = _fit_and_clean(
         images, cam_from_world, cameras, seed_xyz, seed_rgb, split, options, device, timer, curve
@@ -378,6 +423,7 @@ def _splat(
         color_transforms=result.color_transforms,
         heldout_curve=tuple(curve),
         stop_reason=result.stop_reason,
+        max_side=max_side,
         **web_paths,
     )
     _log_summary(res)
