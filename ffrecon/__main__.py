@@ -1,3 +1,3 @@
-from ffrecon.cli import main
+from ffrecon.cli import entry
 
-raise SystemExit(main())
+raise SystemExit(entry())

@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 
 from ffrecon import __version__
+from ffrecon.concurrency import interrupts_deferred
 from ffrecon.errors import FFReconError, Interrupted
 
 log = logging.getLogger("ffrecon")
@@ -423,6 +424,30 @@ def _leave_if_work_beside(exit_code: int) -> None:
         os._exit(exit_code)
 
 
+def _parse_with_imports(argv: list[str] | None) -> argparse.Namespace:
+    """Parse the command line and import what the command runs, with Ctrl-C and SIGTERM held until done.
+
+    Held, because a KeyboardInterrupt inside a C extension's initialisation becomes an ImportError with a
+    traceback (:func:`~ffrecon.concurrency.interrupts_deferred`); a signal is then taken once the imports
+    end. pycolmap's logging library (glog) installs, when pycolmap is imported, a SIGTERM handler that
+    prints a native stack trace and kills the process, so pycolmap is imported in a block of its own, whose
+    end puts the held handlers back. numpy, OpenCV and Pillow load before it, in the order the package
+    has always imported them: with pycolmap's bundled libraries loaded first, Pillow's PNG writer aborts in
+    zlib's deflateEnd ("double free", reproduced with `ffrecon demo`).
+    """
+    with interrupts_deferred():
+        import cv2  # noqa: F401
+        import numpy  # noqa: F401
+        import PIL.Image  # noqa: F401
+        import pycolmap  # noqa: F401
+    with interrupts_deferred():  # seconds of imports: the option classes, then the pipeline
+        args = build_parser().parse_args(argv)
+        _setup_logging(-1 if getattr(args, "quiet", False) else getattr(args, "verbose", 0))
+        if args.command in ("run", "demo"):
+            import ffrecon.pipeline  # noqa: F401
+    return args
+
+
 def _terminate(signum, frame) -> None:
     """SIGTERM ends the run like Ctrl-C: finished stages kept, one line said, no stack trace."""
     raise KeyboardInterrupt
@@ -442,14 +467,9 @@ def _run_command(args: argparse.Namespace):
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    _setup_logging(-1 if getattr(args, "quiet", False) else getattr(args, "verbose", 0))
-    if args.command in ("run", "demo"):
-        # pycolmap's logging library installs a SIGTERM handler that prints a native stack trace when
-        # pycolmap is imported; importing it first lets ours, installed next, take its place.
-        import ffrecon.pipeline  # noqa: F401
     previous = signal.signal(signal.SIGTERM, _terminate)
     try:
+        args = _parse_with_imports(argv)
         if args.command == "inspect-model":
             _inspect(args.model)
             return 0
@@ -477,3 +497,12 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "quiet", False):
         _print_summary(results)
     return results.exit_code
+
+
+def entry() -> int:
+    """The ``ffrecon`` command (and ``python -m ffrecon``): :func:`main`, then SIGTERM ignored while the
+    interpreter shuts down (torch, numba and open3d take a moment), so that a finished run's exit code
+    is not turned into a kill."""
+    code = main()
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    return code

@@ -18,6 +18,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import signal
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -155,3 +156,34 @@ def _wait(ended: threading.Event, cores: CoreShare, label: str, *, interrupted: 
 
 def _say_stopping(label: str) -> None:
     log.warning("stopping: %s ends its current step first (Ctrl-C again to stop at once)", label)
+
+
+_DEFERRED = (signal.SIGINT, signal.SIGTERM)
+
+
+@contextlib.contextmanager
+def interrupts_deferred():
+    """Hold SIGINT and SIGTERM until the block ends, then raise KeyboardInterrupt if one came.
+
+    Wraps every stretch of numba kernels (the warm-up, each training step, each render_view): numba
+    calls back into Python (LLVM while it compiles, ``_numba_unpickle`` while a kernel runs), and a
+    KeyboardInterrupt raised in such a callback is swallowed ("Exception ignored on calling ctypes
+    callback"), leaving a kernel half-built (the process crashed or hung), or turns into a SystemError
+    that escapes the CLI's interrupt handling (both reproduced by a Ctrl-C or SIGTERM during a splat).
+    The signal is then taken at the end of the block, a fraction of a second later. The command line holds
+    them the same way while it imports (a KeyboardInterrupt inside a C extension's initialisation becomes
+    an ImportError, reproduced with open3d). Only the main thread can handle signals; elsewhere the block
+    runs as it is."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    came: list[int] = []
+    held = [sig for sig in _DEFERRED if signal.getsignal(sig) is not signal.SIG_IGN]  # ignored ones stay ignored
+    previous = {sig: signal.signal(sig, lambda signum, frame: came.append(signum)) for sig in held}
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    if came:
+        raise KeyboardInterrupt

@@ -202,6 +202,21 @@ def test_two_runs_on_one_folder_give_one_result_and_one_clear_refusal(demo12, tm
     assert report["verdict"]["status"] == "ok"
 
 
+@pytest.mark.parametrize("after_s", [0.25, 0.5, 0.8, 1.2, 2.0])
+def test_sigterm_while_starting_up_ends_in_one_line(demo12, tmp_path, after_s):
+    """SIGTERM during the imports (pycolmap installs glog's stack-dumping handler; a signal inside a C
+    extension's initialisation becomes an ImportError): exit 130 with one line, never a stack dump. Before
+    main() runs (the interpreter's first ~0.15 s) Python's default applies: a silent exit by SIGTERM."""
+    out = tmp_path / "out"
+    proc = _cli(["run", str(demo12.images), "-o", str(out), "--model", str(demo12.model), "--no-splat", "-q"])
+    time.sleep(after_s)
+    proc.terminate()
+    _, err = proc.communicate(timeout=300)
+    assert "Traceback" not in err and "Aborted" not in err and "stack trace" not in err, err
+    assert proc.returncode in (0, 130) or (proc.returncode == -15 and not err.strip()), (proc.returncode, err)
+    assert not out.exists() or _complete(out) or not any(out.iterdir())
+
+
 # --- crash recovery of the swap ------------------------------------------------------------------------
 
 

@@ -66,7 +66,10 @@ def test_twenty_interrupted_runs_leave_the_old_or_a_complete_new_result(demo12, 
         _, err = proc.communicate(timeout=300)
         context = f"run {i} ({flags}, stopped by {stopped!r}, exit {proc.returncode}): {err[-2000:]}"
         assert "Traceback" not in err, context
-        assert proc.returncode in (0, 130, -signal.SIGKILL), context
+        # A SIGTERM in the interpreter's first ~0.15 s, before main() installs its handler, ends the process
+        # silently (Python's default); from then on it must end in one line and exit 130.
+        before_main = proc.returncode == -signal.SIGTERM and not err.strip()
+        assert proc.returncode in (0, 130, -signal.SIGKILL) or before_main, context
         after = _snapshot(out)
         if after == before:
             outcomes["old"] += 1

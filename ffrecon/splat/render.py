@@ -15,9 +15,6 @@ added on its diagonal (a low-pass filter), and the Jacobian is evaluated with x/
 
 from __future__ import annotations
 
-import contextlib
-import signal
-import threading
 import time
 from dataclasses import dataclass
 
@@ -25,6 +22,7 @@ import numpy as np
 import torch
 
 from ffrecon.checks import check_number
+from ffrecon.concurrency import interrupts_deferred
 from ffrecon.splat.gaussians import Gaussians, sh_to_rgb
 from ffrecon.splat.project import project_gaussians
 from ffrecon.splat.raster import TileLayout, bin_gaussians, composite
@@ -161,35 +159,6 @@ def render_view(
             options=raster or RasterOptions(),
         )
     return out.rgb.clamp(0, 1)
-
-
-@contextlib.contextmanager
-def interrupts_deferred():
-    """Hold SIGINT and SIGTERM until the block ends, then raise KeyboardInterrupt if one came.
-
-    Wraps every stretch of numba kernels (the warm-up, each training step, each render_view): numba
-    calls back into Python (LLVM while it compiles, ``_numba_unpickle`` while a kernel runs), and a
-    KeyboardInterrupt raised in such a callback is swallowed ("Exception ignored on calling ctypes
-    callback"), leaving a kernel half-built (the process crashed or hung), or turns into a SystemError
-    that escapes the CLI's interrupt handling (both reproduced by a Ctrl-C or SIGTERM during a splat).
-    The signal is then taken at the end of the block, a fraction of a second later. Only the main thread
-    can handle signals; elsewhere the block runs as it is."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    came: list[int] = []
-    held = [sig for sig in _DEFERRED if signal.getsignal(sig) is not signal.SIG_IGN]  # ignored ones stay ignored
-    previous = {sig: signal.signal(sig, lambda signum, frame: came.append(signum)) for sig in held}
-    try:
-        yield
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
-    if came:
-        raise KeyboardInterrupt
-
-
-_DEFERRED = (signal.SIGINT, signal.SIGTERM)
 
 
 _READY = False  # set once warm_up has run in this process
