@@ -201,6 +201,7 @@ def test_untrained_fov_stops_within_a_minute_with_exit_3(tmp_path, photo_folder)
     """The same tiny VGGT with its field-of-view bias left at random: the decoded focal length is infinite."""
     model = _export(tmp_path, (392, 518), "--keep-untrained-heads")
     out = tmp_path / "out"
+    (out / ".ffrecon").mkdir(parents=True)  # an earlier ffrecon output (its marker)
     (out / "earlier").mkdir(parents=True)
     (out / "earlier" / "result.txt").write_text("keep me")
     start = time.monotonic()
