@@ -1,9 +1,10 @@
 """Verification gates: cheap checks that stop a run before the expensive stages.
 
 Each gate returns a :class:`GateVerdict` with its value, threshold, reason and fix. A failed
-registration gate names the likely cause (blur, lack of texture, too little overlap) from the
-capture checks' per-frame measures (:class:`ffrecon.capture.quality.CaptureQuality`), so the user
-knows what to change; the images are not read again.
+registration gate names the likely cause (blur, lack of texture, small parallax, too little overlap)
+from the capture checks' per-frame measures (:class:`ffrecon.capture.quality.CaptureQuality`) and from
+the verified pairs of the images COLMAP left out (:mod:`ffrecon.sfm.verified_pairs`: their matches
+and triangulation angles), so the user knows what to change; the images are not read again.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ import pycolmap
 from ffrecon.capture.quality import CaptureQuality
 from ffrecon.checks import check_number
 from ffrecon.sfm.crosscheck import ColmapResult
+from ffrecon.sfm.verified_pairs import ImagePairs, read_image_pairs
 from ffrecon.types import Prediction
 
 logger = logging.getLogger("ffrecon.sfm")
@@ -38,7 +40,7 @@ class FailureCause(enum.Enum):
     MIXED_CAMERAS = "mixed_cameras"  # the unregistered photos come from other cameras or zoom settings
     DISCONNECTED = "disconnected"  # several models: groups of photos that share no views
     SMALL_PARALLAX = "small_parallax"  # plenty of verified matches, too little baseline to triangulate
-    OVERLAP = "overlap"
+    OVERLAP = "overlap"  # the photos left out share few matches: too little overlap or too wide a baseline
 
 
 @dataclass(frozen=True)
@@ -99,10 +101,21 @@ class GateOptions:
     # A cause is named when this share of the images carries its capture flag ("blur", "texture";
     # thresholds in ffrecon.capture.quality.QualityOptions).
     cause_share: float = 0.3
-    # Median verified inlier matches per image from which the photos clearly overlap: a failed
-    # registration is then small parallax (or disconnected groups), never "too little overlap". 100 is
-    # what COLMAP's incremental mapper asks of an initial pair (init_min_num_inliers).
+    # Verified inlier matches from which two photos clearly overlap: 100 is what COLMAP's incremental
+    # mapper asks of an initial pair (init_min_num_inliers). A photo COLMAP left out whose best pair shares
+    # fewer has too little overlap, or too wide a baseline, with every other photo.
     overlap_matches: int = 100
+    # Median triangulation angle (degrees) of a pair's verified matches under which it lacks parallax. A
+    # photo left out whose pairs with overlap_matches or more are under this (their median) lacks
+    # parallax, not overlap. Measured on such pairs: lund's forward walk 0.4 to 2.6 degrees (with or
+    # without EXIF), the wide synthetic scenes 8 to 18 (true focal length) or 26 (COLMAP's guess, 39%
+    # long); COLMAP wants 16 of its initial pair and drops points seen under 1.5. Pairs with fewer
+    # matches give no angle to trust (their relative pose is often wrong), so they are not asked.
+    small_parallax_deg: float = 5.0
+    # Bounds on the diagnosis's work: the verified pairs of at most this many photos left out (evenly
+    # spread), and the relative poses of each one's best pairs only.
+    diagnosis_max_images: int = 50
+    diagnosis_max_pairs: int = 5
 
     def __post_init__(self) -> None:
         check_number(
@@ -112,6 +125,9 @@ class GateOptions:
             check_number(f"GateOptions.{name}", getattr(self, name), low=0, high=1)
         for name in ("min_points", "min_keypoints", "overlap_matches"):
             check_number(f"GateOptions.{name}", getattr(self, name), low=0, integer=True)
+        for name in ("diagnosis_max_images", "diagnosis_max_pairs"):
+            check_number(f"GateOptions.{name}", getattr(self, name), low=1, integer=True)
+        check_number("GateOptions.small_parallax_deg", self.small_parallax_deg, low=0, high=180)
         for name in ("min_cloud_spread", "max_cloud_tail", "min_depth_conf"):
             check_number(f"GateOptions.{name}", getattr(self, name), low=0)
 
@@ -130,8 +146,9 @@ _FIXES = {
     FailureCause.SMALL_PARALLAX: "the photos overlap well but their viewpoints barely differ (walking straight "
     "forward, or turning on the spot), so nothing can be triangulated: move sideways between shots, or give a "
     "model (--model) whose cameras can carry the run",
-    FailureCause.OVERLAP: "the images overlap too little or change viewpoint too much: take more photos, each "
-    "sharing about two thirds of its view with the previous one, and move less between shots",
+    FailureCause.OVERLAP: "the photos left out share too few matches with any other photo: too little overlap or "
+    "too wide a baseline between them and the rest (the view turns or moves too far between shots); take more "
+    "photos in between, each sharing about two thirds of its view with the previous one, and move less between shots",
 }
 
 
@@ -141,6 +158,7 @@ def diagnose_registration(
     median_keypoints: int,
     options: GateOptions,
     *,
+    left_out: Sequence[ImagePairs] | None = None,
     median_verified_matches: int = 0,
     num_models: int = 1,
     camera_groups: np.ndarray | None = None,
@@ -154,8 +172,10 @@ def diagnose_registration(
     look fine, the cameras and matches decide: when the photos come from several cameras
     (``camera_groups``, ``[N]`` int) and most unregistered ones (``registered``, ``[N]`` bool) are not of
     the camera most registered ones are of, mixed cameras; several models mean disconnected groups;
-    many verified matches (``median_verified_matches`` per image, summed over its verified pairs) mean
-    the photos overlap but lack parallax; only few mean too little overlap.
+    then the verified pairs of the images COLMAP left out (``left_out``, see :func:`_match_causes`)
+    tell small parallax from too little overlap or too wide a baseline. Without them (no database),
+    ``median_verified_matches`` (the images left out, per verified pair) stands in, angles unknown:
+    many mean small parallax. When nothing else is named: too little overlap or too wide a baseline.
     """
     measured = set(names) & set(quality.names) if quality is not None else set()
     if not measured and median_keypoints < options.min_keypoints:
@@ -170,9 +190,45 @@ def diagnose_registration(
         causes.append(FailureCause.MIXED_CAMERAS)
     if num_models > 1:
         causes.append(FailureCause.DISCONNECTED)
-    if median_verified_matches >= options.overlap_matches:
-        causes.append(FailureCause.SMALL_PARALLAX)
+    causes += _match_causes(left_out, median_verified_matches, options)
     return tuple(causes) or (FailureCause.OVERLAP,)
+
+
+def _match_causes(
+    left_out: Sequence[ImagePairs] | None, median_verified_matches: int, options: GateOptions
+) -> list[FailureCause]:
+    """Small parallax and too little overlap (or too wide a baseline), from the images COLMAP left out.
+
+    Each image left out votes (:func:`_match_vote`); a cause is named when at least ``cause_share``
+    of them vote for it, the one with more votes first.
+
+    >>> pairs = [ImagePairs("a.jpg", np.array([14, 9]), np.array([35.0, 41.0]))]
+    >>> _match_causes(pairs, 0, GateOptions())
+    [<FailureCause.OVERLAP: 'overlap'>]
+    """
+    if left_out is None:
+        return [FailureCause.SMALL_PARALLAX] if median_verified_matches >= options.overlap_matches else []
+    votes = [_match_vote(pairs, options) for pairs in left_out]
+    named = [
+        cause
+        for cause in (FailureCause.SMALL_PARALLAX, FailureCause.OVERLAP)
+        if votes.count(cause) and votes.count(cause) >= options.cause_share * len(votes)
+    ]
+    return sorted(named, key=lambda cause: -votes.count(cause))
+
+
+def _match_vote(pairs: ImagePairs, options: GateOptions) -> FailureCause | None:
+    """What one image's verified pairs say: no pair with ``overlap_matches`` is too little overlap or too wide a
+    baseline; such pairs under ``small_parallax_deg`` (their median angle; none measured counts as under) are
+    small parallax; such pairs with parallax explain nothing (None)."""
+    well = pairs.num_inliers >= options.overlap_matches
+    if not well.any():
+        return FailureCause.OVERLAP
+    angles = pairs.tri_angle_deg[well]
+    angles = angles[np.isfinite(angles)]
+    if not len(angles) or float(np.median(angles)) < options.small_parallax_deg:
+        return FailureCause.SMALL_PARALLAX
+    return None
 
 
 def _mixed_cameras(groups: np.ndarray | None, registered: np.ndarray | None) -> bool:
@@ -198,14 +254,15 @@ _LIKELY = {
     FailureCause.MIXED_CAMERAS: "photos from several cameras or zoom settings",
     FailureCause.DISCONNECTED: "groups of photos that share no views",
     FailureCause.SMALL_PARALLAX: "too little parallax (viewpoints too alike)",
-    FailureCause.OVERLAP: "too little overlap",
+    FailureCause.OVERLAP: "too little overlap or too wide a baseline between the photos left out and the rest",
 }
 
 
 def registration_gate(
     colmap: ColmapResult, options: GateOptions, *, quality: CaptureQuality | None = None
 ) -> GateVerdict:
-    """Share of images COLMAP registered; on failure the likely causes, from ``quality`` when given."""
+    """Share of images COLMAP registered; on failure the likely causes, from ``quality`` when given and from the
+    verified pairs of the images left out (read from COLMAP's database)."""
     ratio = colmap.registration_ratio
     if ratio >= options.min_registration_ratio:
         return GateVerdict(
@@ -216,12 +273,14 @@ def registration_gate(
             f"COLMAP registered {colmap.num_registered} of {len(colmap.names)} images",
         )
     kps = int(np.median(colmap.features.num_keypoints)) if len(colmap.names) else 0
-    matches = int(np.median(colmap.features.num_inlier_matches)) if len(colmap.names) else 0
+    left_out = _left_out_pairs(colmap, options)
+    matches = _left_out_matches_per_pair(colmap)
     causes = diagnose_registration(
         quality,
         colmap.names,
         kps,
         options,
+        left_out=left_out,
         median_verified_matches=matches,
         num_models=colmap.num_models,
         camera_groups=colmap.camera_groups,
@@ -230,8 +289,9 @@ def registration_gate(
     reason = (
         f"COLMAP registered only {colmap.num_registered} of {len(colmap.names)} images ({ratio:.0%} < "
         f"{options.min_registration_ratio:.0%}); median {kps} SIFT features per image, "
-        f"{colmap.features.num_pairs_verified} verified image pairs, median {matches} verified matches per image"
+        f"{colmap.features.num_pairs_verified} verified image pairs"
         f"{f', {colmap.num_models} separate models' if colmap.num_models > 1 else ''}; "
+        f"{_left_out_text(left_out, matches, len(colmap.names) - colmap.num_registered, options)}; "
         f"likely cause: {' or '.join(_LIKELY[c] for c in causes)}"
     )
     return GateVerdict(
@@ -243,6 +303,49 @@ def registration_gate(
         "; ".join(_FIXES[c] for c in causes),
         causes,
     )
+
+
+def _left_out_pairs(colmap: ColmapResult, options: GateOptions) -> tuple[ImagePairs, ...] | None:
+    """The verified pairs of the images COLMAP left out, or None when its database cannot be read."""
+    names = [name for name, done in zip(colmap.names, colmap.registered) if not done]
+    try:
+        return read_image_pairs(
+            colmap.database_path,
+            names,
+            max_pairs=options.diagnosis_max_pairs,
+            max_images=options.diagnosis_max_images,
+        )
+    except (OSError, RuntimeError) as error:  # pycolmap raises RuntimeError on a database it cannot read
+        logger.warning("registration diagnosis from matches per image only: %s", error)
+        return None
+
+
+def _left_out_matches_per_pair(colmap: ColmapResult) -> int:
+    """Median over the images COLMAP left out of their verified matches per verified pair (0 without any)."""
+    features, left = colmap.features, ~colmap.registered
+    if not left.any():
+        return 0
+    per_pair = features.num_inlier_matches[left] / np.maximum(features.num_verified_pairs[left], 1)
+    return int(np.median(per_pair))
+
+
+def _left_out_text(left_out: Sequence[ImagePairs] | None, matches: int, num_left: int, options: GateOptions) -> str:
+    """What the verified pairs of the images left out show, for the gate's reason."""
+    if left_out is None:
+        return f"the {num_left} images left out share a median {matches} verified matches per verified pair"
+    best = int(np.median([pairs.best_inliers for pairs in left_out])) if left_out else 0
+    text = f"the {num_left} images left out share a median {best} verified matches with their best neighbour"
+    angles = [
+        float(np.nanmedian(pairs.tri_angle_deg[well]))
+        for pairs in left_out
+        if (well := (pairs.num_inliers >= options.overlap_matches) & np.isfinite(pairs.tri_angle_deg)).any()
+    ]
+    if angles:
+        text += (
+            f", and their pairs with {options.overlap_matches} or more triangulate at a median angle of "
+            f"{np.median(angles):.1f} deg"
+        )
+    return text
 
 
 def _cloud_checks(rec: pycolmap.Reconstruction, options: GateOptions) -> tuple[float, list[str]]:

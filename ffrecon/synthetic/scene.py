@@ -1,10 +1,11 @@
 """Synthetic textured scenes with exact ground truth (cameras, poses, depth), rendered on the CPU.
 
 A closed room (x, y in [-3, 3], z in [0, 2.6], world z up) with textured boxes and a sphere near the
-centre, seen by OpenCV pinhole cameras on an orbit, an arc or a forward walk. Rendering is numpy ray
-casting with 2x2 supersampling; ``depth`` is the exact z-depth along the ray through each pixel centre
-(COLMAP rule: pixel ``(row v, col u)`` has its centre at ``(u + 0.5, v + 0.5)``), so
-``unproject_depth(depth[i], K, cam_from_world[i])`` gives exact surface points.
+centre, seen by OpenCV pinhole cameras on an orbit, an arc, a forward walk or a few wide steps around
+the objects. Rendering is numpy ray casting with 2x2 supersampling; ``depth`` is the exact z-depth
+along the ray through each pixel centre (COLMAP rule: pixel ``(row v, col u)`` has its centre at
+``(u + 0.5, v + 0.5)``), so ``unproject_depth(depth[i], K, cam_from_world[i])`` gives exact surface
+points.
 
 >>> scene = make_scene(SceneOptions(num_frames=2, width=32, height=24))
 >>> scene.images.shape, scene.depth.dtype, scene.camera.cx
@@ -39,20 +40,27 @@ ORBIT_RADIUS = 1.75
 CAMERA_HEIGHT = 1.35
 _SUPERSAMPLE_OFFSETS = np.array([[-0.25, -0.25], [0.25, -0.25], [-0.25, 0.25], [0.25, 0.25]])
 _TEXTURELESS_CONTRAST = 0.01
+WIDE_STEP_DEG = (30.0, 60.0)  # the wide path's turn about the centre between consecutive views
 ROOM_TEXELS_PER_UNIT = 64.0  # texture resolution of the room's walls, floor and ceiling
 OBJECT_TEXELS_PER_UNIT = 128.0  # and of the boxes and the sphere, seen from closer
+# Room faces (2 * axis + side) near-uniform with Texture.PLAIN_WALLS: the walls at x = 3 and y = 3, the ceiling.
+PLAIN_SURFACES = (1, 3, 5)
 
 
 class CameraPath(enum.Enum):
     ORBIT = "orbit"  # full circle around the centre, looking in
     ARC = "arc"  # 90 degree arc around the centre, looking in
     FORWARD = "forward"  # walk past the objects, looking ahead
+    # A sparse capture around the objects, looking in: each view turns 30 to 60 degrees (drawn from the
+    # seed) from the previous one about the centre, at jittered distance and height (issue 21's scenes).
+    WIDE = "wide"
 
 
 class Texture(enum.Enum):
     RICH = "rich"  # distinct, multi-scale colour detail on every surface
     TEXTURELESS = "textureless"  # near-uniform surfaces
     REPEATED = "repeated"  # one tile repeated on every surface (look-alike views)
+    PLAIN_WALLS = "plain_walls"  # two near-uniform walls and ceiling (PLAIN_SURFACES), the rest rich
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -119,8 +127,11 @@ def scene_geometry() -> render.Geometry:
     return render.Geometry(room_lo=ROOM_LO, room_hi=ROOM_HI, boxes=boxes, spheres=spheres)
 
 
-def camera_path(path: CameraPath, num_frames: int) -> np.ndarray:
-    """``[N, 3, 4]`` cam_from_world poses (OpenCV) along ``path``."""
+def camera_path(path: CameraPath, num_frames: int, *, seed: int = 0) -> np.ndarray:
+    """``[N, 3, 4]`` cam_from_world poses (OpenCV) along ``path``; ``seed`` draws the wide path's steps."""
+    if path is CameraPath.WIDE:
+        centers = _wide_centers(num_frames, seed)
+        return np.stack([look_at_cam_from_world(c, LOOK_TARGET) for c in centers])
     if path in (CameraPath.ORBIT, CameraPath.ARC):
         if path is CameraPath.ORBIT:
             angles = np.radians(-90.0) + 2 * np.pi * np.arange(num_frames) / num_frames
@@ -137,6 +148,20 @@ def camera_path(path: CameraPath, num_frames: int) -> np.ndarray:
     )
     heading = np.array([1.0, 0.28, -0.22])
     return np.stack([look_at_cam_from_world(c, c + heading) for c in centers])
+
+
+def _wide_centers(num_frames: int, seed: int) -> np.ndarray:
+    """``[N, 3]`` world camera centres of the wide path: steps of ``WIDE_STEP_DEG`` about the centre.
+
+    The steps, distances (0.9 to 1.15 x the orbit radius) and heights (+-0.25) come from a stream of
+    their own, so the textures drawn from ``seed`` stay those of the other paths.
+    """
+    rng = np.random.default_rng([seed, 21])
+    steps = rng.uniform(*WIDE_STEP_DEG, size=max(num_frames - 1, 0))
+    angles = np.radians(-90.0 + np.concatenate([[0.0], np.cumsum(steps)]))
+    radii = ORBIT_RADIUS * rng.uniform(0.9, 1.15, num_frames)
+    heights = CAMERA_HEIGHT + rng.uniform(-0.25, 0.25, num_frames)
+    return np.stack([radii * np.cos(angles), radii * np.sin(angles), heights], axis=1)
 
 
 def make_camera(options: SceneOptions) -> PinholeCamera:
@@ -164,9 +189,10 @@ def _surface_textures(
     ]
     densities = tuple(ROOM_TEXELS_PER_UNIT if k < num_room else OBJECT_TEXELS_PER_UNIT for k in range(len(sizes)))
     out = []
-    for (size_v, size_u), density in zip(sizes, densities):
+    for k, ((size_v, size_u), density) in enumerate(zip(sizes, densities)):
         h, w = max(4, int(np.ceil(size_v * density))), max(4, int(np.ceil(size_u * density)))
-        out.append(textures.rich_texture(rng, h, w) if texture is Texture.RICH else textures.plain_texture(rng, h, w))
+        rich = texture is Texture.RICH or (texture is Texture.PLAIN_WALLS and k not in PLAIN_SURFACES)
+        out.append(textures.rich_texture(rng, h, w) if rich else textures.plain_texture(rng, h, w))
     return tuple(out), densities
 
 
@@ -183,7 +209,7 @@ def make_scene(options: SceneOptions = SceneOptions()) -> SyntheticScene:
     surface_textures, densities = _surface_textures(geometry, options.texture, rng)
     gains = np.exp(options.exposure_jitter * rng.standard_normal(options.num_frames))
     camera = make_camera(options)
-    poses = camera_path(options.path, options.num_frames)
+    poses = camera_path(options.path, options.num_frames, seed=options.seed)
     h, w = options.height, options.width
     images = np.empty((options.num_frames, h, w, 3), np.uint8)
     depth = np.empty((options.num_frames, h, w), np.float32)
