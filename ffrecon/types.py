@@ -15,6 +15,20 @@ import numpy as np
 from ffrecon.geometry.projection import unproject_depth
 
 
+def capped_size(width: int, height: int, max_size: int | None) -> tuple[int, int]:
+    """``(width, height)`` scaled so that the long side is at most ``max_size`` (None or 0: unchanged); the one rule
+    for capture's size cap and the splat's memory cap.
+
+    >>> capped_size(3000, 2000, 1600), capped_size(1200, 1600, 1600), capped_size(12000, 9000, None)
+    ((1600, 1067), (1200, 1600), (12000, 9000))
+    """
+    long_side = max(width, height)
+    if not max_size or long_side <= max_size:
+        return width, height
+    scale = max_size / long_side
+    return max(1, round(width * scale)), max(1, round(height * scale))
+
+
 @dataclass(frozen=True)
 class PinholeCamera:
     """Pinhole intrinsics in pixels of an image of ``width`` x ``height``."""

@@ -151,17 +151,21 @@ def _busy_error(out_dir: Path, who: str) -> OutputExistsError:
     )
 
 
-def _peek_lock(path: Path, out_dir: Path) -> None:
-    """Refuse when another run holds ``path`` (it is finishing: swapping its results in)."""
-    if not path.is_dir():
-        return
+def _lock_or_refuse(path: Path, out_dir: Path) -> int | None:
+    """The lock on folder ``path`` (its descriptor), None when it vanished meanwhile; exit 4 naming the
+    other run when one holds it."""
     try:
-        fd = lock_dir(path)
+        return lock_dir(path)
     except Busy:
         raise _busy_error(out_dir, _other_run(path)) from None
     except FileNotFoundError:
-        return
-    os.close(fd)
+        return None
+
+
+def _peek_lock(path: Path, out_dir: Path) -> None:
+    """Refuse when another run holds ``path`` (it is finishing: swapping its results in)."""
+    if path.is_dir() and (fd := _lock_or_refuse(path, out_dir)) is not None:
+        os.close(fd)
 
 
 # --- swapping folders ------------------------------------------------------------------------------
@@ -288,11 +292,8 @@ def _open_staging(out_dir: Path) -> Staging:
                 f"{path} is in the way: ffrecon builds its results there, and it is not a folder ffrecon made",
                 f"move {path} away, or choose another folder with -o",
             )
-        try:
-            fd = lock_dir(path)
-        except Busy:
-            raise _busy_error(out_dir, _other_run(path)) from None
-        except FileNotFoundError:
+        fd = _lock_or_refuse(path, out_dir)
+        if fd is None:
             continue
         staging = Staging(out_dir, path, in_place, created, created_parents, _fd=fd)
         if not created and not is_ffrecon_output(path) and any(path.iterdir()):

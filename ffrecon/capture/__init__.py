@@ -17,7 +17,6 @@ from ffrecon.capture.images import (
     VIDEO_EXTENSIONS,
     Photo,
     broken_links,
-    capped_size,
     list_images,
     load_photo,
 )
@@ -25,7 +24,7 @@ from ffrecon.capture.quality import CaptureQuality, FrameMeasures, QualityOption
 from ffrecon.capture.video import extract_video_frames
 from ffrecon.checks import check_number
 from ffrecon.errors import FFReconError, InputError, ResourceError
-from ffrecon.types import Frame
+from ffrecon.types import Frame, capped_size
 
 log = logging.getLogger("ffrecon.capture")
 

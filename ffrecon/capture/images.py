@@ -34,6 +34,7 @@ import numpy as np
 from PIL import Image, ImageFile, UnidentifiedImageError
 
 from ffrecon.errors import InputError, ResourceError
+from ffrecon.types import capped_size
 
 log = logging.getLogger("ffrecon.capture")
 
@@ -63,19 +64,6 @@ def list_images(folder: Path) -> tuple[list[Path], list[Path]]:
 def broken_links(folder: Path) -> list[Path]:
     """Visible symbolic links in ``folder`` whose target does not exist (sorted by name)."""
     return sorted(p for p in folder.iterdir() if p.is_symlink() and not p.exists() and not p.name.startswith("."))
-
-
-def capped_size(width: int, height: int, max_size: int | None) -> tuple[int, int]:
-    """``(width, height)`` scaled so that the long side is at most ``max_size`` (None or 0: unchanged).
-
-    >>> capped_size(3000, 2000, 1600), capped_size(1200, 1600, 1600), capped_size(12000, 9000, None)
-    ((1600, 1067), (1200, 1600), (12000, 9000))
-    """
-    long_side = max(width, height)
-    if not max_size or long_side <= max_size:
-        return width, height
-    scale = max_size / long_side
-    return max(1, round(width * scale)), max(1, round(height * scale))
 
 
 @dataclass(frozen=True)

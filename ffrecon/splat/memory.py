@@ -26,6 +26,7 @@ from collections.abc import Sequence
 
 from ffrecon.errors import ResourceError
 from ffrecon.machine import available_memory_bytes
+from ffrecon.types import capped_size
 
 log = logging.getLogger("ffrecon.splat")
 
@@ -36,14 +37,6 @@ BYTES_PER_GAUSSIAN = 2000  # parameters, gradients, Adam moments, projection (fi
 MEMORY_FRACTION = 0.7  # of the memory available when the splat starts (as the model's chunk size)
 MIN_TRAIN_SIDE = 256  # a splat trained below this long side is not worth making: refuse instead
 MAX_FACTOR = 64
-
-
-def capped_size(width: int, height: int, max_side: int | None) -> tuple[int, int]:
-    """``(width, height)`` shrunk (aspect kept) so that the long side is at most ``max_side`` (None: as is)."""
-    if max_side is None or max(width, height) <= max_side:
-        return width, height
-    scale = max_side / max(width, height)
-    return max(1, round(width * scale)), max(1, round(height * scale))
 
 
 def splat_peak_bytes(sizes_wh: Sequence[tuple[int, int]], max_gaussians: int, max_side: int | None = None) -> float:

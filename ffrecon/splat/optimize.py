@@ -24,6 +24,7 @@ from ffrecon.checks import check_number
 from ffrecon.errors import InputError
 from ffrecon.geometry.poses import camera_centers
 from ffrecon.splat.appearance import appearance_penalty, apply_color_transform, identity_transforms
+from ffrecon.splat.budget import StepClock
 from ffrecon.splat.densify import Densifier, DensifyOptions, replace_rows
 from ffrecon.splat.gaussians import Gaussians
 from ffrecon.splat.render import RasterOptions, interrupts_deferred, render, warm_up
@@ -503,35 +504,6 @@ class _Plateau:
         return done
 
 
-class _StepClock:
-    """Predicts the next step's seconds from its pixels, so that the time budget ends the loop before a step
-    would overrun it (one step on a 27 MP view takes 20 s: checking only after it overran a 10 s budget).
-
-    A step costs a part per Gaussian and a part per pixel. The prediction for a view size already seen is
-    the last step's time at that size; for a new size, the line through the last times of the smallest
-    and the largest sizes seen (slope at least 0), or with one size seen, its time scaled up by the pixels
-    (an overestimate: near the end of the budget a step may be left out rather than overrun it). Before
-    any step: 0.
-    """
-
-    def __init__(self) -> None:
-        self.last: dict[int, float] = {}  # pixels -> seconds of the last step at that size
-
-    def predict(self, pixels: int) -> float:
-        if pixels in self.last or not self.last:
-            return self.last.get(pixels, 0.0)
-        small, large = min(self.last), max(self.last)
-        if small == large:
-            return self.last[small] * max(1.0, pixels / small)
-        slope = max(0.0, (self.last[large] - self.last[small]) / (large - small))
-        return max(0.0, self.last[small] + slope * (pixels - small))
-
-    def record(self, pixels: int, seconds: float) -> float:
-        """Note a step's seconds; returns them."""
-        self.last[pixels] = seconds
-        return seconds
-
-
 def _pixels(views: _TrainingViews, view: int, factor: int) -> int:
     image = views.levels.get(factor, (views.images, views.k_mats))[0][view]
     return int(image.shape[0] * image.shape[1])
@@ -566,7 +538,7 @@ def _optimize(
     plateau = _Plateau(o)
     order: list[int] = []
     elapsed, it, reason = 0.0, 0, "iterations"
-    clock = _StepClock()
+    clock = StepClock()
     disable = None if o.progress else True  # None: off when not a terminal
     bar = tqdm(total=o.iterations, desc="splat", unit="it", disable=disable, leave=False)
     while it < o.iterations:

@@ -34,7 +34,7 @@ from ffrecon.export.web import WebExportError, write_sog, write_splat_spz
 from ffrecon.splat.appearance import apply_color_transform, fit_color_transform
 from ffrecon.splat.clean import CleanOptions, CleanReport, clean_gaussians
 from ffrecon.splat.gaussians import Gaussians
-from ffrecon.splat.memory import capped_size, splat_peak_bytes, training_side
+from ffrecon.splat.memory import splat_peak_bytes, training_side
 from ffrecon.splat.optimize import (
     OptimizeOptions,
     OptimizeResult,
@@ -50,7 +50,7 @@ from ffrecon.splat.seed import initial_gaussians, reduce_points, seed_from_predi
 from ffrecon.splat.ssim import ssim_mean
 from ffrecon.splat.video import write_flythrough
 from ffrecon.timing import StageTimer, Timings
-from ffrecon.types import PinholeCamera, Prediction
+from ffrecon.types import PinholeCamera, Prediction, capped_size
 
 logger = logging.getLogger("ffrecon.splat")
 

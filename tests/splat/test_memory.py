@@ -13,8 +13,8 @@ from ffrecon.splat import memory
 from ffrecon.splat import optimize as optimize_module
 from ffrecon.splat.memory import MEMORY_FRACTION, splat_peak_bytes, training_side
 from ffrecon.splat.optimize import OptimizeOptions, optimize
-from ffrecon.splat.stage import SplatOptions, run_splat, split_views
-from ffrecon.synthetic import SceneOptions, make_scene
+from ffrecon.splat.stage import SplatOptions, run_splat
+from tests.splat.conftest import seeded_scene
 
 GB = 2**30
 ISSUE_CASE = [(12000, 9000)] + [(1024, 768)] * 5  # the issue's 108 MP photo among five others
@@ -52,11 +52,7 @@ def test_a_splat_that_cannot_fit_at_all_is_refused_naming_the_fixes():
 
 @pytest.fixture(scope="module")
 def scene():
-    scene = make_scene(SceneOptions(num_frames=9, width=128, height=96))
-    train, _ = split_views(len(scene), 8)
-    xyz = np.concatenate([scene.frame_points(i).reshape(-1, 3) for i in train])
-    rgb = np.concatenate([scene.images[i].reshape(-1, 3) for i in train]).astype(np.float32) / 255.0
-    return scene, xyz, rgb
+    return seeded_scene(128, 96)
 
 
 def test_the_stage_trains_at_the_planned_factor_with_scaled_cameras(scene, tmp_path, monkeypatch):

@@ -22,19 +22,14 @@ from ffrecon.splat.stage import (
     resolve_device,
     run_splat,
     run_splat_from_prediction,
-    split_views,
 )
-from ffrecon.synthetic import SceneOptions, make_scene
 from ffrecon.types import ModelFamily, ModelInfo, Prediction
+from tests.splat.conftest import seeded_scene
 
 
 @pytest.fixture(scope="module")
 def tiny():
-    scene = make_scene(SceneOptions(num_frames=9, width=64, height=48))
-    train, _ = split_views(len(scene), 8)
-    xyz = np.concatenate([scene.frame_points(i).reshape(-1, 3) for i in train])
-    rgb = np.concatenate([scene.images[i].reshape(-1, 3) for i in train]).astype(np.float32) / 255.0
-    return scene, xyz, rgb
+    return seeded_scene(64, 48)
 
 
 def test_run_splat_writes_everything(tiny, tmp_path):
