@@ -335,10 +335,11 @@ def _refined_final_cameras(capture: Capture, colmap, refine: RefineResult, evide
     take COLMAP's pose, moved into the refined frame by a Sim(3) fit over the frames both hold, and its lens."""
     poses, cameras = refine.cam_from_world.copy(), list(refine.cameras)
     distortion = list(refine.distortion or [NO_DISTORTION] * len(poses))
+    per_image = evidence.per_image if isinstance(evidence, EvidenceResult) else ()
     colmap_only = [
         k
-        for k, e in enumerate(evidence.per_image if isinstance(evidence, EvidenceResult) else ())
-        if e.status is CameraStatus.COLMAP_ONLY
+        for k, e in enumerate(per_image)
+        if e.status in (CameraStatus.COLMAP_ONLY, CameraStatus.CORRECTED) and not refine.registered[k]
     ]
     if colmap_only:
         both = refine.registered & colmap.registered
@@ -351,9 +352,13 @@ def _refined_final_cameras(capture: Capture, colmap, refine: RefineResult, evide
         log.info(
             "%d frames not refined take COLMAP's poses: %s", len(colmap_only), [capture.names[k] for k in colmap_only]
         )
-    lens = tuple(distortion) if any(d != NO_DISTORTION for d in distortion) else None
-    every = tuple(range(len(capture.frames)))
-    return FinalCameras(every, capture.names, poses, tuple(cameras), "refined", lens)
+    kept = [k for k in range(len(poses)) if not per_image or per_image[k].status.kept]
+    if len(kept) < len(poses):
+        left_out = [capture.names[k] for k in range(len(poses)) if k not in kept]
+        log.info("frames left out, contradicted by the evidence: %s", left_out)
+    lens = tuple(distortion[k] for k in kept) if any(d != NO_DISTORTION for d in distortion) else None
+    names = tuple(capture.names[k] for k in kept)
+    return FinalCameras(tuple(kept), names, poses[kept], tuple(cameras[k] for k in kept), "refined", lens)
 
 
 def splat_stage(capture, ff, colmap, final, verdicts: tuple, options: RunOptions, work, stages, inputs) -> tuple:

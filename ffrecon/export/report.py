@@ -20,7 +20,7 @@ from ffrecon import __version__
 from ffrecon.export.report_html import render_html
 from ffrecon.results import QUICK_STATEMENT, RunMode, RunResults, Skipped
 from ffrecon.sfm.colmap_io import is_model_dir
-from ffrecon.sfm.evidence import CameraStatus, EvidenceResult
+from ffrecon.sfm.evidence import CameraStatus, EvidenceResult, FrameVerdict
 from ffrecon.sfm.refine import RefineResult, RefineStatus
 
 
@@ -58,10 +58,11 @@ def _verdict(results: RunResults) -> dict:
 def _evidence(evidence: EvidenceResult) -> dict:
     return {
         "gates": [v.to_report() for v in evidence.gates.verdicts],
-        "per_image": [{"name": e.name, "status": e.status.value, "why": e.why} for e in evidence.per_image],
+        "per_image": [e.to_report() for e in evidence.per_image],
         "model_unsuited": evidence.model_unsuited,
         "unsuited_reason": evidence.unsuited_reason,
         "counts": {s.value: evidence.count(s) for s in CameraStatus},
+        "verdicts": {v.value: list(evidence.of(v)) for v in FrameVerdict},
     }
 
 

@@ -297,8 +297,13 @@ def _evidence(report: dict, run_dir: Path) -> tuple[list[dict], str]:
     if "skipped" in data:
         return [], ""
     rows = _gate_rows(data["gates"], "no: the run goes on from COLMAP's cameras")
-    per_image = [{"frame": e["name"], "cameras": e["status"], "why": e["why"]} for e in data["per_image"]]
-    counts = ", ".join(f"{k}: {v}" for k, v in data["counts"].items() if v)
+    per_image = [
+        {"frame": e["name"], "verdict": e.get("verdict", ""), "evidence": e["status"], "why": e["why"]}
+        for e in data["per_image"]
+    ]
+    counts = ", ".join(f"{k}: {len(v)}" for k, v in data.get("verdicts", {}).items() if v) or ", ".join(
+        f"{k}: {v}" for k, v in data["counts"].items() if v
+    )
     body = f"<p>Per image ({html.escape(counts)}):</p>" + _table(per_image)
     if data["model_unsuited"]:
         body = f"<div class='banner warn'>{html.escape(data['unsuited_reason'])}</div>" + body
@@ -374,6 +379,17 @@ _SECTIONS = (
 )
 
 
+def _frame_verdicts(evidence: dict) -> str:
+    """``confirmed: 6, contradicted: 1 (frame_005.png), unchecked: 1 (frame_007.png)``: the others are named."""
+    parts = []
+    for verdict, names in evidence.get("verdicts", {}).items():
+        if names:
+            listed = ", ".join(names[:4]) + (", ..." if len(names) > 4 else "")
+            shown = "" if verdict == "confirmed" else f" ({listed})"
+            parts.append(f"{verdict}: {len(names)}{shown}")
+    return ", ".join(parts)
+
+
 def summary_rows(report: dict) -> list[tuple[str, str]]:
     """``(item, value)`` lines of the run's summary, for the page and the terminal."""
     ff = report["feedforward"]
@@ -428,7 +444,7 @@ def summary_rows(report: dict) -> list[tuple[str, str]]:
             rows.append(("splat held-out PSNR", value))
     evidence = report["evidence"]
     if "skipped" not in evidence:
-        rows.append(("final cameras", ", ".join(f"{k}: {v}" for k, v in evidence["counts"].items() if v)))
+        rows.append(("final cameras", _frame_verdicts(evidence)))
     reused = [stage for stage, t in report["timings"].items() if t["reused"]]
     if reused:
         rows.append(("reused from an earlier run", ", ".join(reused)))

@@ -30,6 +30,9 @@ class BundleOptions:
     coarse_error_deg: float = 5.0  # feed-forward pose error to tolerate in the first (coarse) pass
     max_reproj_error_px: float = 4.0  # COLMAP's filter threshold, used in the fine pass
     min_tri_angle_deg: float = 1.5
+    # COLMAP's default: a point seen in two images only is not triangulated (more robust, fewer points).
+    # The refinement allows them where dense evidence was added: its correspondences are mostly pairwise.
+    ignore_two_view_tracks: bool = True
     refine_focal_length: bool = True
     refine_principal_point: bool = False
     # Run the fine pass also with the radial term of SIMPLE_RADIAL cameras free (never the coarse pass, where
@@ -166,8 +169,9 @@ class _Adjuster:
         return bool(self.last.is_solution_usable())
 
 
-def _tri_options(angle_deg: float, reproj_px: float) -> pycolmap.IncrementalTriangulatorOptions:
+def _tri_options(angle_deg: float, reproj_px: float, options: BundleOptions) -> pycolmap.IncrementalTriangulatorOptions:
     tri = pycolmap.IncrementalTriangulatorOptions()
+    tri.ignore_two_view_tracks = options.ignore_two_view_tracks
     tri.create_max_angle_error = max(angle_deg, tri.create_max_angle_error)
     tri.continue_max_angle_error = max(angle_deg, tri.continue_max_angle_error)
     tri.re_max_angle_error = max(angle_deg, tri.re_max_angle_error)
@@ -240,7 +244,7 @@ def _pass(
     rec.delete_all_points2D_and_points3D()
     mapper = pycolmap.IncrementalMapper(cache)
     mapper.begin_reconstruction(rec)
-    tri = _tri_options(angle_deg, reproj_px)
+    tri = _tri_options(angle_deg, reproj_px, options)
     mapper_options = _mapper_options(reproj_px, options)
     for image_id in sorted(rec.reg_image_ids()):
         mapper.triangulate_image(tri, image_id)

@@ -8,9 +8,23 @@ does not stop a run. What decides is the evidence on the **final** cameras:
 - the mean reprojection error and the mean track length of the refined model,
 - agreement with COLMAP on the images both registered (when COLMAP registered a few).
 
-Each image is labelled: confirmed by COLMAP, resting on the model plus bundle adjustment only,
-disagreeing with COLMAP, or rejected. A model whose cameras disagree with a healthy COLMAP model on
-most images is called unsuited: the run goes on from COLMAP's cameras instead of failing.
+Each frame gets one of three verdicts (issue 21), and a status saying which evidence decided it:
+
+- **confirmed**: independent evidence places the frame where the model did (within
+  ``max_correction_deg``): COLMAP registered it there, or the bundle adjustment on its image matches
+  (SIFT, and the model-guided dense correspondences of :mod:`ffrecon.sfm.dense` where SIFT is short)
+  refined it there;
+- **contradicted**: the evidence disagrees. Where the evidence has a pose of its own (refined, or
+  COLMAP's) that pose replaces the model's (status "corrected"); where it only disagrees (COLMAP's
+  pose against the refined one, or the relative rotations of the frame's verified pairs against its
+  model pose) the frame is kept out of the splat and the final model;
+- **unchecked**: no evidence either way (too few matches). The frame keeps the model's camera and is
+  marked so. Lack of matches is never a contradiction.
+
+The gates block a run on contradiction (the refined model does not fit its matches, COLMAP disagrees
+on most shared frames, most frames contradicted), never on missing evidence: frames left unchecked
+give a warning. A model whose cameras disagree with a healthy COLMAP model on most images is called
+unsuited: the run goes on from COLMAP's cameras instead of failing.
 """
 
 from __future__ import annotations
@@ -18,22 +32,44 @@ from __future__ import annotations
 import enum
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
 from ffrecon.checks import check_number
+from ffrecon.geometry.rotations import rotation_angle_deg
 from ffrecon.sfm.compare import DisagreementOptions, compare_poses
 from ffrecon.sfm.crosscheck import ColmapResult
 from ffrecon.sfm.gates import GatesResult, GateStatus, GateVerdict
 from ffrecon.sfm.refine import RefineResult
+from ffrecon.sfm.verified_pairs import relative_rotations
+
+
+class FrameVerdict(enum.Enum):
+    CONFIRMED = "confirmed"  # independent evidence agrees with the model's camera
+    CONTRADICTED = "contradicted"  # the evidence disagrees: its own pose replaces the model's, or the frame is left out
+    UNCHECKED = "unchecked"  # no evidence either way: the model's camera, marked as such
 
 
 class CameraStatus(enum.Enum):
     CONFIRMED = "confirmed by COLMAP"  # refined, and COLMAP registered it at an agreeing pose
-    MODEL_ONLY = "model + bundle adjustment only"  # refined; COLMAP did not register it
-    DISAGREES = "disagrees with COLMAP"  # refined, but COLMAP placed it elsewhere
+    REFINED = "refined on image matches"  # bundle-adjusted on its matches; COLMAP did not register it
     COLMAP_ONLY = "COLMAP only"  # not refined, but COLMAP registered it: its pose, moved into the refined frame
-    REJECTED = "rejected"  # not refined and not registered by COLMAP: keeps the feed-forward pose, unverified
+    CORRECTED = "corrected by the evidence"  # refined or COLMAP's pose, far from the model's: it replaces it
+    DISAGREES = "disagrees with COLMAP"  # refined, but COLMAP placed it elsewhere: left out
+    CONTRADICTED = "contradicted by its matches"  # its verified pairs' rotations disagree with its pose: left out
+    UNCHECKED = "unchecked"  # no evidence either way: keeps the model's camera
+
+    @property
+    def verdict(self) -> FrameVerdict:
+        if self in (CameraStatus.CONFIRMED, CameraStatus.REFINED, CameraStatus.COLMAP_ONLY):
+            return FrameVerdict.CONFIRMED
+        return FrameVerdict.UNCHECKED if self is CameraStatus.UNCHECKED else FrameVerdict.CONTRADICTED
+
+    @property
+    def kept(self) -> bool:
+        """Whether the frame is among the final cameras (the splat's, ``sparse/0``, ``transforms.json``)."""
+        return self not in (CameraStatus.DISAGREES, CameraStatus.CONTRADICTED)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -44,14 +80,21 @@ class EvidenceOptions:
     min_colmap_agreement: float = 0.8  # share of the images both registered on which they agree
     min_common_images: int = 3  # fewer images registered by both: agreement is not judged
     unsuited_share: float = 0.5  # a healthy COLMAP model disagreeing with the model on more: unsuited
+    # The evidence moving a frame's rotation further than this from the model's contradicts the model
+    # there (feed-forward errors are a few degrees; a frame off by more is a failure of the model).
+    max_correction_deg: float = 10.0
+    min_pair_inliers: int = 15  # verified matches of a pair whose relative rotation counts as evidence
+    max_contradicted_share: float = 0.5  # more frames contradicted: the model fails on this capture (blocks)
     disagreement: DisagreementOptions = DisagreementOptions()
 
     def __post_init__(self) -> None:
-        for name in ("min_refined_ratio", "min_colmap_agreement", "unsuited_share"):
+        for name in ("min_refined_ratio", "min_colmap_agreement", "unsuited_share", "max_contradicted_share"):
             check_number(f"EvidenceOptions.{name}", getattr(self, name), low=0, high=1)
         check_number("EvidenceOptions.max_reprojection_px", self.max_reprojection_px, low=0, low_open=True)
         check_number("EvidenceOptions.min_track_length", self.min_track_length, low=0)
         check_number("EvidenceOptions.min_common_images", self.min_common_images, low=0, integer=True)
+        check_number("EvidenceOptions.min_pair_inliers", self.min_pair_inliers, low=5, integer=True)
+        check_number("EvidenceOptions.max_correction_deg", self.max_correction_deg, low=0, low_open=True, high=180)
 
 
 @dataclass(frozen=True)
@@ -59,6 +102,22 @@ class CameraEvidence:
     name: str
     status: CameraStatus
     why: str
+    correction_deg: float = float("nan")  # how far the evidence's rotation is from the model's (nan: no pose)
+
+    @property
+    def verdict(self) -> FrameVerdict:
+        return self.status.verdict
+
+    def to_report(self) -> dict:
+        change = self.correction_deg
+        return {
+            "name": self.name,
+            "verdict": self.verdict.value,
+            "status": self.status.value,
+            "kept": self.status.kept,
+            "why": self.why,
+            "correction_deg": round(float(change), 4) if np.isfinite(change) else None,
+        }
 
 
 @dataclass(frozen=True)
@@ -70,8 +129,14 @@ class EvidenceResult:
     model_unsuited: bool  # True: COLMAP's cameras are final, the model's were set aside
     unsuited_reason: str = ""
 
-    def count(self, status: CameraStatus) -> int:
+    def count(self, status: CameraStatus | FrameVerdict) -> int:
+        if isinstance(status, FrameVerdict):
+            return sum(e.verdict is status for e in self.per_image)
         return sum(e.status is status for e in self.per_image)
+
+    def of(self, verdict: FrameVerdict) -> tuple[str, ...]:
+        """The names of the frames with that verdict."""
+        return tuple(e.name for e in self.per_image if e.verdict is verdict)
 
 
 def _verdict(name: str, ok: bool, value: float, threshold: float, reason: str, fix: str) -> GateVerdict:
@@ -86,11 +151,18 @@ def _track_length(refine: RefineResult) -> float:
     return float(np.mean([p.track.length() for p in rec.points3D.values()]))
 
 
-def _per_image(names: Sequence[str], refine: RefineResult, colmap: ColmapResult | None, options: EvidenceOptions):
-    """Per-image labels, and the refined-vs-COLMAP comparison (None when too few images are shared)."""
+def _rotation_change_deg(a: np.ndarray, b: np.ndarray) -> float:
+    """Angle (degrees) between the rotations of two ``[3, 4]`` cam_from_world poses in one world frame."""
+    return float(rotation_angle_deg(a[:3, :3] @ b[:3, :3].T))
+
+
+def _per_image(
+    names: Sequence[str], ff_cam_from_world: np.ndarray, refine: RefineResult, colmap: ColmapResult | None, options
+):
+    """Per-image evidence, and the refined-vs-COLMAP comparison (None when too few images are shared)."""
     flagged = {w.name: w.describe() for w in refine.flagged}
     common = refine.registered & (colmap.registered if colmap is not None else False)
-    comparison = None
+    comparison = model_vs_colmap = None
     if colmap is not None and common.sum() >= options.min_common_images:
         comparison = compare_poses(
             refine.cam_from_world,
@@ -102,25 +174,79 @@ def _per_image(names: Sequence[str], refine: RefineResult, colmap: ColmapResult 
             reference="COLMAP",
             options=options.disagreement,
         )
+        model_vs_colmap = compare_poses(
+            ff_cam_from_world, colmap.cam_from_world, names, None, ref_registered=colmap.registered
+        )
     off = {d.name: d.reason for d in comparison.disagreements} if comparison is not None else {}
+    limit = options.max_correction_deg
     out = []
     for k, name in enumerate(names):
-        if not refine.registered[k] and comparison is not None and colmap.registered[k]:
-            why = f"{flagged.get(name, 'not refined')}; COLMAP registered it, its pose is used"
-            out.append(CameraEvidence(name, CameraStatus.COLMAP_ONLY, why))
-        elif not refine.registered[k]:
-            out.append(CameraEvidence(name, CameraStatus.REJECTED, flagged.get(name, "not refined")))
-        elif colmap is None:
-            out.append(CameraEvidence(name, CameraStatus.MODEL_ONLY, "no COLMAP cross-check ran"))
-        elif not colmap.registered[k]:
-            out.append(CameraEvidence(name, CameraStatus.MODEL_ONLY, "COLMAP did not register it"))
-        elif name in off:
-            out.append(CameraEvidence(name, CameraStatus.DISAGREES, off[name]))
-        elif comparison is None:
-            out.append(CameraEvidence(name, CameraStatus.MODEL_ONLY, "too few images shared with COLMAP to compare"))
+        if refine.registered[k]:
+            change = _rotation_change_deg(refine.cam_from_world[k], ff_cam_from_world[k])
+            if name in off and colmap.registered[k]:
+                out.append(CameraEvidence(name, CameraStatus.DISAGREES, off[name], change))
+            elif change > limit:
+                why = f"refined on its matches {change:.1f} deg from the model (> {limit:g}): the refined pose is used"
+                out.append(CameraEvidence(name, CameraStatus.CORRECTED, why, change))
+            elif comparison is not None and colmap.registered[k]:
+                out.append(CameraEvidence(name, CameraStatus.CONFIRMED, "COLMAP's pose agrees", change))
+            else:
+                n_obs = refine.observations[k] if refine.observations is not None else 0
+                why = f"bundle-adjusted on {n_obs} observations; " + (
+                    "no COLMAP cross-check ran"
+                    if colmap is None
+                    else "COLMAP did not register it"
+                    if not colmap.registered[k]
+                    else "too few images shared with COLMAP to compare"
+                )
+                out.append(CameraEvidence(name, CameraStatus.REFINED, why, change))
+        elif model_vs_colmap is not None and colmap.registered[k]:
+            change = float(model_vs_colmap.per_image_rotation_deg[k])
+            status = CameraStatus.CORRECTED if change > limit else CameraStatus.COLMAP_ONLY
+            flag = flagged.get(name, "not refined")
+            why = f"{flag}; COLMAP registered it {change:.1f} deg from the model: its pose is used"
+            out.append(CameraEvidence(name, status, why, change))
         else:
-            out.append(CameraEvidence(name, CameraStatus.CONFIRMED, "COLMAP's pose agrees"))
+            out.append(None)
+    pending = [names[k] for k, e in enumerate(out) if e is None]
+    pairs = _pair_checks(names, ff_cam_from_world, refine, pending, options)
+    for k, name in enumerate(names):
+        if out[k] is None:
+            out[k] = _pair_verdict(name, flagged.get(name, "not refined"), pairs.get(name, []), options)
     return tuple(out), comparison
+
+
+def _pair_checks(names, ff_cam_from_world, refine: RefineResult, pending: list[str], options) -> dict:
+    """For each frame in ``pending`` (neither refined nor registered by COLMAP): ``[(partner, inliers,
+    discrepancy deg)]`` between the relative rotation of each verified pair with a refined partner and
+    the one its model pose and the partner's refined pose imply."""
+    if not pending or refine.database_path is None or not Path(refine.database_path).is_file():
+        return {}
+    index = {n: k for k, n in enumerate(names)}
+    out: dict[str, list] = {}
+    for pair in relative_rotations(refine.database_path, pending, min_inliers=options.min_pair_inliers):
+        for frame, partner in ((pair.name1, pair.name2), (pair.name2, pair.name1)):
+            if frame not in pending or partner not in index or not refine.registered[index[partner]]:
+                continue
+            pose1 = (ff_cam_from_world if pair.name1 == frame else refine.cam_from_world)[index[pair.name1]]
+            pose2 = (ff_cam_from_world if pair.name2 == frame else refine.cam_from_world)[index[pair.name2]]
+            implied = pose2[:3, :3] @ pose1[:3, :3].T  # cam2_from_cam1
+            gap = float(rotation_angle_deg(pair.cam2_from_cam1.T @ implied))
+            out.setdefault(frame, []).append((partner, pair.num_inliers, gap))
+    return out
+
+
+def _pair_verdict(name: str, flag: str, pairs: list, options: EvidenceOptions) -> CameraEvidence:
+    """A frame not refined: contradicted when its verified pairs' rotations disagree with its model pose."""
+    if not pairs:
+        return CameraEvidence(name, CameraStatus.UNCHECKED, f"{flag}; no other evidence: the model's camera is kept")
+    gap = float(np.median([p[2] for p in pairs]))
+    detail = f"{len(pairs)} verified pair(s) with refined frames, median rotation gap {gap:.1f} deg"
+    if gap > options.max_correction_deg:
+        why = f"{flag}; {detail} (> {options.max_correction_deg:g}): left out"
+        return CameraEvidence(name, CameraStatus.CONTRADICTED, why, gap)
+    why = f"{flag}; {detail}: not contradicted, but too few matches to confirm; the model's camera is kept"
+    return CameraEvidence(name, CameraStatus.UNCHECKED, why, gap)
 
 
 def _unsuited(
@@ -171,7 +297,7 @@ def judge_final_cameras(
             is SKIPPED, saying so.
     """
     unsuited = _unsuited(names, ff_cam_from_world, colmap, witness, options)
-    per_image, comparison = _per_image(names, refine, colmap, options)
+    per_image, comparison = _per_image(names, ff_cam_from_world, refine, colmap, options)
     verdicts = _verdicts(len(names), refine, colmap, per_image, comparison is not None, options)
     if colmap is None:
         why = f"COLMAP cross-check not run: {colmap_skipped}" if colmap_skipped else "COLMAP cross-check not run"
@@ -185,38 +311,67 @@ def judge_final_cameras(
 
 
 def _verdicts(n, refine: RefineResult, colmap, per_image, compared: bool, options: EvidenceOptions) -> list:
-    refined = int(refine.registered.sum())
+    """Verdicts on the final cameras: contradiction blocks (the refined model misfits its matches, most
+    frames contradicted, COLMAP disagreeing); missing evidence (frames unchecked, short tracks) warns."""
+    confirmed = sum(e.verdict is FrameVerdict.CONFIRMED for e in per_image)
+    contradicted = [e for e in per_image if e.verdict is FrameVerdict.CONTRADICTED]
+    unchecked = [e.name for e in per_image if e.verdict is FrameVerdict.UNCHECKED]
+    left_out = sum(not e.status.kept for e in per_image)
     err = refine.mean_reprojection_error_px
     track = _track_length(refine)
+    checked_ok = not unchecked
+    shown = ", ".join(unchecked[:5]) + (", ..." if len(unchecked) > 5 else "")
     verdicts = [
+        GateVerdict(
+            "checked_share",
+            GateStatus.PASS if checked_ok else GateStatus.WARN,
+            (n - len(unchecked)) / max(n, 1),
+            1.0,
+            f"{confirmed} of {n} frames confirmed by independent evidence, {len(contradicted)} contradicted, "
+            f"{len(unchecked)} unchecked" + (f" ({shown}: they keep the model's cameras)" if unchecked else ""),
+            ""
+            if checked_ok
+            else "the unchecked frames share too few matches with the others: photos between "
+            "them would let ffrecon check them (the splat's photometric pose refinement is the only check now)",
+            blocking=False,
+        ),
         _verdict(
-            "refined_share",
-            refined >= options.min_refined_ratio * n,
-            refined / max(n, 1),
-            options.min_refined_ratio,
-            f"{refined} of {n} images refined with enough inlier observations",
-            "the rejected images (see the per-image table) lack features or matches: retake them, or drop them",
+            "contradicted_share",
+            len(contradicted) <= options.max_contradicted_share * n,
+            len(contradicted) / max(n, 1),
+            options.max_contradicted_share,
+            f"{len(contradicted)} of {n} frames contradicted by the evidence ({left_out} left out, "
+            f"{len(contradicted) - left_out} corrected)",
+            "the model's cameras are wrong on most frames: try another model, or run without one",
         ),
         _verdict(
             "reprojection",
-            bool(np.isfinite(err) and err <= options.max_reprojection_px),
+            bool(not np.isfinite(err) or err <= options.max_reprojection_px),
             err,
             options.max_reprojection_px,
-            f"mean reprojection error of the refined model {err:.2f} px",
+            f"mean reprojection error of the refined model {err:.2f} px"
+            if np.isfinite(err)
+            else "no refined model to measure (no frame shares enough matches)",
             "the cameras and points do not fit the matches: check for moving objects or a lens the model misjudged",
         ),
-        _verdict(
+    ]
+    track_ok = bool(not np.isfinite(track) or track >= options.min_track_length)
+    verdicts.append(
+        GateVerdict(
             "track_length",
-            bool(np.isfinite(track) and track >= options.min_track_length),
+            GateStatus.PASS if track_ok else GateStatus.WARN,
             track,
             options.min_track_length,
             f"mean track length {track:.2f} observations per point",
-            "points are seen in too few images: take photos that overlap more",
-        ),
-    ]
+            ""
+            if track_ok
+            else "points are seen in few images (pairwise evidence): photos that overlap more check more",
+            blocking=False,
+        )
+    )
     if compared:
         both = int((refine.registered & colmap.registered).sum())
-        agree = sum(e.status is CameraStatus.CONFIRMED for e in per_image)
+        agree = both - sum(e.status is CameraStatus.DISAGREES for e in per_image)
         verdicts.append(
             _verdict(
                 "colmap_agreement",

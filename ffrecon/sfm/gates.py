@@ -31,6 +31,7 @@ class GateStatus(enum.Enum):
     PASS = "pass"
     FAIL = "fail"
     SKIPPED = "skipped"  # nothing to check (e.g. no COLMAP model, no prediction)
+    WARN = "warn"  # passes, but something is unchecked (the run ends with exit 0 and says so)
 
 
 class FailureCause(enum.Enum):

@@ -10,6 +10,7 @@ The result is expressed in the prediction's world frame (Sim(3)-aligned to its c
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import logging
 import shutil
@@ -33,6 +34,7 @@ from ffrecon.sfm.colmap_io import (
     reconstruction_from_cameras,
     write_reconstruction,
 )
+from ffrecon.sfm.dense import DenseOptions, DenseStats, add_dense_evidence, short_frames
 from ffrecon.sfm.features import (
     CameraModel,
     FeatureStats,
@@ -97,6 +99,7 @@ class RefineOptions:
     sift: SiftOptions = SiftOptions()
     bundle: BundleOptions = BundleOptions()
     guidance: GuidanceOptions = GuidanceOptions()
+    dense: DenseOptions = DenseOptions()  # model-guided correspondences for the frames SIFT leaves short
     reuse_features_from: Path | None = None  # a COLMAP database with SIFT of the same images (the cross-check's)
     single_camera: bool = True  # one shared camera (median feed-forward intrinsics) if all images share a size
     square_pixels: bool = True  # one focal length per camera (fx = fy)
@@ -142,11 +145,14 @@ class RefineResult:
     num_pairs: int  # image pairs matched
     features: FeatureStats
     guidance: GuidanceStats | None  # None without feed-forward guidance of the matching
+    dense: DenseStats | None  # None: no frame was short of SIFT matches (or dense evidence is off)
     bundle: BundleSummary | None
     mean_reprojection_error_px: float
     ff_from_refined: Sim3 = field(repr=False)
     timings: Timings
     model_path: Path | None  # out_dir/sparse/0
+    database_path: Path | None  # the refinement's COLMAP database (SIFT and dense matches), out_dir/refine
+    observations: np.ndarray | None  # [N] int, triangulated observations per frame in the refined model
     reconstruction: pycolmap.Reconstruction | None = field(default=None, repr=False, compare=False)
 
     def to_report(self) -> dict:
@@ -170,6 +176,7 @@ class RefineResult:
             "mean_reprojection_error_px": float(err) if np.isfinite(err) else None,
             "lens_k1": None if self.distortion is None else _median_k1(self.distortion, self.registered),
             "match_guidance": None if self.guidance is None else self.guidance.to_report(),
+            "dense_evidence": None if self.dense is None else self.dense.to_report(),
             "bundle_adjustment": None if self.bundle is None else self.bundle.to_report(),
             "sim3_ff_from_refined_scale": self.ff_from_refined.scale,
             "model_path": None if self.model_path is None else str(self.model_path),
@@ -389,6 +396,12 @@ def run_refine(image_dir: Path, prediction: Prediction, options: RefineOptions, 
         reused = _reuse_matches(db_path, graph, names, copied, options)
         guidance = _match(db_path, prediction, pairs, reused, options, work / "pairs.txt")
     stats = feature_stats(db_path, names)
+    dense = None
+    short = short_frames(names, stats.num_inlier_matches, options.dense) if options.dense.enabled else []
+    if short:
+        with timer.stage("dense_evidence"):
+            dense = add_dense_evidence(db_path, image_dir, prediction, short, graph.score(), options.dense)
+        stats = feature_stats(db_path, names)
     flagged = _weak_by_features(stats, options)
 
     rec = _initial_model(
@@ -396,18 +409,21 @@ def run_refine(image_dir: Path, prediction: Prediction, options: RefineOptions, 
     )
     usable = {n for n in names} - {w.name for w in flagged}
     summary = None
+    bundle = options.bundle if dense is None else dataclasses.replace(options.bundle, ignore_two_view_tracks=False)
     with timer.stage("triangulation_and_bundle_adjustment"), colmap_log_level():
         if len(usable) >= 2:
             rec, summary, weak_obs = refine_tracks(
-                rec, db_path, usable, options.bundle, min_observations=options.min_observations
+                rec, db_path, usable, bundle, min_observations=options.min_observations
             )
             flagged += [WeakFrame(n, WeakReason.FEW_OBSERVATIONS, k, options.min_observations) for n, k in weak_obs]
     refined_names = {img.name for img in rec.images.values() if img.has_pose} if summary is not None else set()
     provenance = dict(
+        database_path=db_path,
         flagged=tuple(flagged),
         num_pairs=len({frozenset(p) for p in pairs + reused}),
         features=stats,
         guidance=guidance,
+        dense=dense,
         bundle=summary,
     )
     if len(refined_names) < 2:
@@ -456,6 +472,7 @@ def _unrefined_result(prediction: Prediction, **provenance) -> RefineResult:
         mean_reprojection_error_px=float("nan"),
         ff_from_refined=Sim3.identity(),
         model_path=None,
+        observations=None,
         reconstruction=None,
         **provenance,
     )
@@ -494,6 +511,7 @@ def _refined_result(
         mean_reprojection_error_px=float(rec.compute_mean_reprojection_error()),
         ff_from_refined=ff_from_refined,
         model_path=model_dir,
+        observations=np.array([by_name[n].num_points3D if n in by_name else 0 for n in names], int),
         reconstruction=rec,
         **provenance,
     )

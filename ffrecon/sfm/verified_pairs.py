@@ -118,9 +118,19 @@ def _tri_angle_deg(db: pycolmap.Database, ids: tuple[int, int], keypoints: dict[
     geometry = db.read_two_view_geometry(*ids)
     if geometry.config not in _USABLE:
         return None
+    calibrated = _relative_pose(db, ids, geometry, keypoints)
+    if calibrated is None or calibrated.tri_angle < 0:
+        return float("nan")
+    return float(np.degrees(calibrated.tri_angle))
+
+
+def _relative_pose(
+    db: pycolmap.Database, ids: tuple[int, int], geometry: pycolmap.TwoViewGeometry, keypoints: dict[int, np.ndarray]
+) -> pycolmap.TwoViewGeometry | None:
+    """The pair's calibrated relative pose (``cam2_from_cam1``, ``tri_angle``) from its verified inliers, or None."""
     matches = np.asarray(geometry.inlier_matches)
     if len(matches) < _MIN_POSE_INLIERS:
-        return float("nan")
+        return None
     for image_id in ids:
         if image_id not in keypoints:
             keypoints[image_id] = np.asarray(db.read_keypoints(image_id))[:, :2].astype(np.float64)
@@ -130,12 +140,50 @@ def _tri_angle_deg(db: pycolmap.Database, ids: tuple[int, int], keypoints: dict[
     ransac.random_seed = 0
     essential = pycolmap.estimate_essential_matrix(points1, points2, cameras[0], cameras[1], ransac)
     if essential is None:
-        return float("nan")
+        return None
     inliers = np.flatnonzero(np.asarray(essential["inlier_mask"], bool)).astype(np.uint32)
     calibrated = pycolmap.TwoViewGeometry()
     calibrated.config = pycolmap.TwoViewGeometryConfiguration.CALIBRATED
     calibrated.E = essential["E"]
     calibrated.inlier_matches = np.stack([inliers, inliers], axis=1)
     if not pycolmap.estimate_two_view_geometry_pose(cameras[0], points1, cameras[1], points2, calibrated):
-        return float("nan")
-    return float(np.degrees(calibrated.tri_angle)) if calibrated.tri_angle >= 0 else float("nan")
+        return None
+    return calibrated
+
+
+@dataclass(frozen=True)
+class RelativeRotation:
+    """What a verified pair says of its two cameras' relative rotation, whatever their poses."""
+
+    name1: str
+    name2: str
+    num_inliers: int  # verified matches the essential matrix kept
+    cam2_from_cam1: np.ndarray = field(repr=False)  # [3, 3] float64 rotation
+
+
+def relative_rotations(db_path: Path, names: Sequence[str], *, min_inliers: int = 15) -> tuple[RelativeRotation, ...]:
+    """The relative rotation of every verified pair that involves one of ``names`` and has at least
+    ``min_inliers`` matches in its essential matrix (COLMAP's database, any matcher's matches)."""
+    db = pycolmap.Database.open(str(db_path))
+    try:
+        id_of = {image.name: image.image_id for image in db.read_all_images()}
+        name_of = {v: k for k, v in id_of.items()}
+        wanted = {id_of[n] for n in names if n in id_of}
+        keypoints: dict[int, np.ndarray] = {}
+        out = []
+        pair_ids, counts = db.read_two_view_geometry_num_inliers()
+        for pair_id, count in zip(pair_ids, counts):
+            ids = tuple(int(x) for x in pycolmap.pair_id_to_image_pair(pair_id))
+            if count < min_inliers or not wanted & set(ids):
+                continue
+            geometry = db.read_two_view_geometry(*ids)
+            if geometry.config not in _USABLE:
+                continue
+            pose = _relative_pose(db, ids, geometry, keypoints)
+            if pose is None or len(pose.inlier_matches) < min_inliers:
+                continue
+            rotation = np.asarray(pose.cam2_from_cam1.rotation.matrix(), np.float64)
+            out.append(RelativeRotation(name_of[ids[0]], name_of[ids[1]], len(pose.inlier_matches), rotation))
+    finally:
+        db.close()
+    return tuple(out)

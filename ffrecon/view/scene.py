@@ -202,8 +202,9 @@ def image_flags(report: dict | None) -> dict[str, list[str]]:
         flags.setdefault(name, []).append("COLMAP did not register it")
     evidence = report.get("evidence") or {}
     for item in evidence.get("per_image", []):
-        if item["status"] in ("disagrees with COLMAP", "rejected", "COLMAP only"):
-            flags.setdefault(item["name"], []).append(f"{item['status']}: {item['why']}")
+        if item.get("verdict", "confirmed") != "confirmed" or item["status"] == "COLMAP only":
+            label = f"{item['verdict']} ({item['status']})" if "verdict" in item else item["status"]
+            flags.setdefault(item["name"], []).append(f"{label}: {item['why']}")
     return flags
 
 
