@@ -59,7 +59,8 @@ def test_flagged_frames_are_those_the_report_flags(scene, full_run):
     report = json.loads((full_run / "report.json").read_text())
     expected = {d["name"] for d in report["pose_errors"]["feedforward_vs_colmap"]["disagreeing"]}
     expected |= set(report["colmap"]["unregistered"])
-    expected |= {e["name"] for e in report["evidence"]["per_image"] if e["status"] != "confirmed by COLMAP"}
+    evidence = report["evidence"]["per_image"]
+    expected |= {e["name"] for e in evidence if e["verdict"] != "confirmed" or e["status"] == "COLMAP only"}
     assert expected, "the synthetic run should flag a frame (the simulated model's noisy one), or nothing is tested"
     assert set(scene.flagged) == expected
     for layer in scene.layers:
@@ -79,14 +80,15 @@ def test_image_flags_reads_every_kind_of_flag():
         "colmap": {"unregistered": ["b"]},
         "evidence": {
             "per_image": [
-                {"name": "c", "status": "rejected", "why": "no inliers"},
-                {"name": "d", "status": "model + bundle adjustment only", "why": "COLMAP did not register it"},
-                {"name": "e", "status": "confirmed by COLMAP", "why": "agrees"},
+                {"name": "c", "verdict": "unchecked", "status": "unchecked", "why": "no inliers"},
+                {"name": "d", "verdict": "confirmed", "status": "refined on image matches", "why": "bundle-adjusted"},
+                {"name": "e", "verdict": "confirmed", "status": "confirmed by COLMAP", "why": "agrees"},
+                {"name": "f", "verdict": "contradicted", "status": "disagrees with COLMAP", "why": "off"},
             ]
         },
     }
     flags = image_flags(report)
-    assert set(flags) == {"a", "b", "c"}
+    assert set(flags) == {"a", "b", "c", "f"}
     assert flags["a"] == ["feed-forward vs COLMAP: off"]
     assert image_flags({"colmap": {"skipped": "quick mode"}, "evidence": {"skipped": "x"}}) == {}
 

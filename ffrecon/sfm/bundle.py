@@ -263,7 +263,9 @@ def _pass(
     )
     added = []
     for image_id in sorted(register):
-        if rec.num_reg_images() >= 2 and mapper.register_next_image(mapper_options, image_id):
+        # An image with no correspondence at all is not in the database cache: nothing to register it on.
+        known = cache.exists_image(image_id) and cache.correspondence_graph.exists_image(image_id)
+        if known and rec.num_reg_images() >= 2 and mapper.register_next_image(mapper_options, image_id):
             mapper.triangulate_image(tri, image_id)
             added.append(image_id)
     if added:
@@ -290,6 +292,7 @@ def refine_tracks(
     object); the summary is None if no adjustment ran.
     """
     cache = _database_cache(db_path)
+    names = {image.image_id: image.name for image in rec.images.values()}
     for image in list(rec.images.values()):
         if image.name not in usable and image.has_pose:
             rec.deregister_frame(image.frame_id)
@@ -297,12 +300,12 @@ def refine_tracks(
     retry = _coarse_pass(cache, rec, adjust, options, min_observations)
     radial = any(camera.model.name == "SIMPLE_RADIAL" for camera in rec.cameras.values())
     trial = pycolmap.Reconstruction(rec) if options.refine_distortion and radial else None
-    weak = _fine_pass(cache, rec, adjust, options, retry, min_observations)
+    weak = _fine_pass(cache, rec, adjust, options, retry, min_observations, names)
     if trial is None:
         return rec, _summary(adjust.last, adjust.count) if adjust.last is not None else None, weak
     adjust_k = copy.copy(adjust)
     adjust_k.refine_distortion = True
-    weak_k = _fine_pass(cache, trial, adjust_k, options, retry, min_observations)
+    weak_k = _fine_pass(cache, trial, adjust_k, options, retry, min_observations, names)
     if _distortion_pays(rec, trial, options):
         rec, adjust, weak = trial, adjust_k, weak_k
     return rec, _summary(adjust.last, adjust.count) if adjust.last is not None else None, weak
@@ -315,6 +318,7 @@ def _fine_pass(
     options: BundleOptions,
     retry: list[int],
     min_observations: int,
+    names: dict[int, str],
 ) -> list[tuple[str, int]]:
     """Fresh tracks from the coarse cameras, COLMAP's tolerances, converged to the end; the weak frames."""
     mapper, added = _pass(
@@ -331,7 +335,7 @@ def _fine_pass(
     )
     if added:
         logger.info("registered %d frames again whose feed-forward pose was far off", len(added))
-    weak = [(rec.image(i).name, 0) for i in retry if i not in added]
+    weak = [(names[i], 0) for i in retry if i not in added]
     weak += _deregister_weak_frames(rec, mapper, min_observations)
     if len(weak) > len(retry) - len(added) and rec.num_reg_images() >= 2:
         adjust(rec, pycolmap.LossFunctionType.TRIVIAL)

@@ -87,6 +87,21 @@ class DenseStats:
     per_frame: dict[str, int]  # verified correspondences per frame
     seconds: float
 
+    def merged(self, other: DenseStats) -> DenseStats:
+        """Two passes as one (the second for frames the first bundle adjustment still left out)."""
+        per_frame = dict(self.per_frame)
+        for name, count in other.per_frame.items():
+            per_frame[name] = per_frame.get(name, 0) + count
+        frames = self.frames + tuple(f for f in other.frames if f not in self.frames)
+        return DenseStats(
+            frames,
+            self.num_pairs + other.num_pairs,
+            self.num_tracked + other.num_tracked,
+            self.num_verified + other.num_verified,
+            per_frame,
+            self.seconds + other.seconds,
+        )
+
     def to_report(self) -> dict:
         return {
             "frames": list(self.frames),

@@ -83,7 +83,7 @@ class EvidenceOptions:
     # The evidence moving a frame's rotation further than this from the model's contradicts the model
     # there (feed-forward errors are a few degrees; a frame off by more is a failure of the model).
     max_correction_deg: float = 10.0
-    min_pair_inliers: int = 15  # verified matches of a pair whose relative rotation counts as evidence
+    min_pair_inliers: int = 10  # verified matches of a pair whose relative rotation counts as evidence
     max_contradicted_share: float = 0.5  # more frames contradicted: the model fails on this capture (blocks)
     disagreement: DisagreementOptions = DisagreementOptions()
 

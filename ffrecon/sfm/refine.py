@@ -396,26 +396,26 @@ def run_refine(image_dir: Path, prediction: Prediction, options: RefineOptions, 
         reused = _reuse_matches(db_path, graph, names, copied, options)
         guidance = _match(db_path, prediction, pairs, reused, options, work / "pairs.txt")
     stats = feature_stats(db_path, names)
+    # Dense evidence, first for the frames SIFT leaves short of matches; then, once, for the frames the
+    # bundle adjustment still left out (too few observations), followed by a second adjustment.
     dense = None
     short = short_frames(names, stats.num_inlier_matches, options.dense) if options.dense.enabled else []
     if short:
         with timer.stage("dense_evidence"):
             dense = add_dense_evidence(db_path, image_dir, prediction, short, graph.score(), options.dense)
         stats = feature_stats(db_path, names)
-    flagged = _weak_by_features(stats, options)
-
-    rec = _initial_model(
-        prediction, image_ids, cameras, colmap_cameras, len({c.camera_id for c in colmap_cameras.values()}) == 1
+    flagged, rec, summary = _adjust(
+        prediction, image_ids, cameras, colmap_cameras, db_path, stats, dense, options, timer
     )
-    usable = {n for n in names} - {w.name for w in flagged}
-    summary = None
-    bundle = options.bundle if dense is None else dataclasses.replace(options.bundle, ignore_two_view_tracks=False)
-    with timer.stage("triangulation_and_bundle_adjustment"), colmap_log_level():
-        if len(usable) >= 2:
-            rec, summary, weak_obs = refine_tracks(
-                rec, db_path, usable, bundle, min_observations=options.min_observations
-            )
-            flagged += [WeakFrame(n, WeakReason.FEW_OBSERVATIONS, k, options.min_observations) for n, k in weak_obs]
+    left_out = [names.index(w.name) for w in flagged if w.name not in set(short)]
+    if options.dense.enabled and left_out:
+        with timer.stage("dense_evidence"):
+            more = add_dense_evidence(db_path, image_dir, prediction, left_out, graph.score(), options.dense)
+        dense = more if dense is None else dense.merged(more)
+        stats = feature_stats(db_path, names)
+        flagged, rec, summary = _adjust(
+            prediction, image_ids, cameras, colmap_cameras, db_path, stats, dense, options, timer
+        )
     refined_names = {img.name for img in rec.images.values() if img.has_pose} if summary is not None else set()
     provenance = dict(
         database_path=db_path,
@@ -442,6 +442,22 @@ def run_refine(image_dir: Path, prediction: Prediction, options: RefineOptions, 
         result.timings.total_s,
     )
     return result
+
+
+def _adjust(prediction, image_ids, cameras, colmap_cameras, db_path, stats, dense, options: RefineOptions, timer):
+    """Triangulate and bundle-adjust the feed-forward cameras on the database's matches: ``(flagged, rec, summary)``
+    (summary None when fewer than two frames were usable)."""
+    flagged = _weak_by_features(stats, options)
+    shared = len({c.camera_id for c in colmap_cameras.values()}) == 1
+    rec = _initial_model(prediction, image_ids, cameras, colmap_cameras, shared)
+    usable = set(prediction.names) - {w.name for w in flagged}
+    summary = None
+    bundle = options.bundle if dense is None else dataclasses.replace(options.bundle, ignore_two_view_tracks=False)
+    with timer.stage("triangulation_and_bundle_adjustment"), colmap_log_level():
+        if len(usable) >= 2:
+            rec, summary, weak = refine_tracks(rec, db_path, usable, bundle, min_observations=options.min_observations)
+            flagged += [WeakFrame(n, WeakReason.FEW_OBSERVATIONS, k, options.min_observations) for n, k in weak]
+    return flagged, rec, summary
 
 
 def _export_in_ff_frame(rec: pycolmap.Reconstruction, prediction: Prediction, image_dir: Path, model_dir: Path) -> Sim3:
