@@ -125,14 +125,15 @@ def test_resume_copies_only_what_ffrecon_wrote(photos, small_demo, tmp_path):
 
 
 def test_a_failed_gate_does_not_replace_earlier_good_results(demo12, small_demo, tmp_path, capsys):
-    """A run whose gate fails (8 photos COLMAP cannot register) into a folder holding a good run (12 photos):
-    the good results stay; the rejected run is kept aside, named, for --force --resume."""
+    """A run whose gate fails (8 photos COLMAP cannot register, and no model to carry them) into a folder
+    holding a good run (12 photos): the good results stay; the rejected run is kept aside, named, for
+    --force --resume."""
     out = tmp_path / "out"
     good = ["run", str(demo12.images), "-o", str(out), "--model", str(demo12.model), "--no-splat", "-q"]
     assert main(good) == 0
     before = _tree(out)
     capsys.readouterr()
-    bad = ["run", str(small_demo.images), "-o", str(out), "--model", str(small_demo.model), "--no-splat"]
+    bad = ["run", str(small_demo.images), "-o", str(out), "--no-splat"]
     assert main([*bad, "--overwrite"]) == 5
     err = capsys.readouterr().err
     assert "Traceback" not in err and "the earlier results in" in err and "--force --resume" in err

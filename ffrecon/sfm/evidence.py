@@ -313,35 +313,18 @@ def judge_final_cameras(
 def _verdicts(n, refine: RefineResult, colmap, per_image, compared: bool, options: EvidenceOptions) -> list:
     """Verdicts on the final cameras: contradiction blocks (the refined model misfits its matches, most
     frames contradicted, COLMAP disagreeing); missing evidence (frames unchecked, short tracks) warns."""
-    confirmed = sum(e.verdict is FrameVerdict.CONFIRMED for e in per_image)
-    contradicted = [e for e in per_image if e.verdict is FrameVerdict.CONTRADICTED]
-    unchecked = [e.name for e in per_image if e.verdict is FrameVerdict.UNCHECKED]
+    contradicted = sum(e.verdict is FrameVerdict.CONTRADICTED for e in per_image)
     left_out = sum(not e.status.kept for e in per_image)
     err = refine.mean_reprojection_error_px
-    track = _track_length(refine)
-    checked_ok = not unchecked
-    shown = ", ".join(unchecked[:5]) + (", ..." if len(unchecked) > 5 else "")
     verdicts = [
-        GateVerdict(
-            "checked_share",
-            GateStatus.PASS if checked_ok else GateStatus.WARN,
-            (n - len(unchecked)) / max(n, 1),
-            1.0,
-            f"{confirmed} of {n} frames confirmed by independent evidence, {len(contradicted)} contradicted, "
-            f"{len(unchecked)} unchecked" + (f" ({shown}: they keep the model's cameras)" if unchecked else ""),
-            ""
-            if checked_ok
-            else "the unchecked frames share too few matches with the others: photos between "
-            "them would let ffrecon check them (the splat's photometric pose refinement is the only check now)",
-            blocking=False,
-        ),
+        _checked_verdict(n, per_image),
         _verdict(
             "contradicted_share",
-            len(contradicted) <= options.max_contradicted_share * n,
-            len(contradicted) / max(n, 1),
+            contradicted <= options.max_contradicted_share * n,
+            contradicted / max(n, 1),
             options.max_contradicted_share,
-            f"{len(contradicted)} of {n} frames contradicted by the evidence ({left_out} left out, "
-            f"{len(contradicted) - left_out} corrected)",
+            f"{contradicted} of {n} frames contradicted by the evidence ({left_out} left out, "
+            f"{contradicted - left_out} corrected)",
             "the model's cameras are wrong on most frames: try another model, or run without one",
         ),
         _verdict(
@@ -354,21 +337,8 @@ def _verdicts(n, refine: RefineResult, colmap, per_image, compared: bool, option
             else "no refined model to measure (no frame shares enough matches)",
             "the cameras and points do not fit the matches: check for moving objects or a lens the model misjudged",
         ),
+        _track_verdict(refine, options),
     ]
-    track_ok = bool(not np.isfinite(track) or track >= options.min_track_length)
-    verdicts.append(
-        GateVerdict(
-            "track_length",
-            GateStatus.PASS if track_ok else GateStatus.WARN,
-            track,
-            options.min_track_length,
-            f"mean track length {track:.2f} observations per point",
-            ""
-            if track_ok
-            else "points are seen in few images (pairwise evidence): photos that overlap more check more",
-            blocking=False,
-        )
-    )
     if compared:
         both = int((refine.registered & colmap.registered).sum())
         agree = both - sum(e.status is CameraStatus.DISAGREES for e in per_image)
@@ -383,3 +353,39 @@ def _verdicts(n, refine: RefineResult, colmap, per_image, compared: bool, option
             )
         )
     return verdicts
+
+
+def _checked_verdict(n: int, per_image) -> GateVerdict:
+    """Warns (never blocks) when frames keep the model's camera with no evidence either way."""
+    confirmed = sum(e.verdict is FrameVerdict.CONFIRMED for e in per_image)
+    contradicted = sum(e.verdict is FrameVerdict.CONTRADICTED for e in per_image)
+    unchecked = [e.name for e in per_image if e.verdict is FrameVerdict.UNCHECKED]
+    shown = ", ".join(unchecked[:5]) + (", ..." if len(unchecked) > 5 else "")
+    return GateVerdict(
+        "checked_share",
+        GateStatus.WARN if unchecked else GateStatus.PASS,
+        (n - len(unchecked)) / max(n, 1),
+        1.0,
+        f"{confirmed} of {n} frames confirmed by independent evidence, {contradicted} contradicted, "
+        f"{len(unchecked)} unchecked" + (f" ({shown}: they keep the model's cameras)" if unchecked else ""),
+        "the unchecked frames share too few matches with the others: photos between "
+        "them would let ffrecon check them (the splat's photometric pose refinement is the only check now)"
+        if unchecked
+        else "",
+        blocking=False,
+    )
+
+
+def _track_verdict(refine: RefineResult, options: EvidenceOptions) -> GateVerdict:
+    """Warns (never blocks) when points are seen in few images: pairwise evidence checks less."""
+    track = _track_length(refine)
+    ok = bool(not np.isfinite(track) or track >= options.min_track_length)
+    return GateVerdict(
+        "track_length",
+        GateStatus.PASS if ok else GateStatus.WARN,
+        track,
+        options.min_track_length,
+        f"mean track length {track:.2f} observations per point",
+        "" if ok else "points are seen in few images (pairwise evidence): photos that overlap more check more",
+        blocking=False,
+    )

@@ -396,26 +396,9 @@ def run_refine(image_dir: Path, prediction: Prediction, options: RefineOptions, 
         reused = _reuse_matches(db_path, graph, names, copied, options)
         guidance = _match(db_path, prediction, pairs, reused, options, work / "pairs.txt")
     stats = feature_stats(db_path, names)
-    # Dense evidence, first for the frames SIFT leaves short of matches; then, once, for the frames the
-    # bundle adjustment still left out (too few observations), followed by a second adjustment.
-    dense = None
-    short = short_frames(names, stats.num_inlier_matches, options.dense) if options.dense.enabled else []
-    if short:
-        with timer.stage("dense_evidence"):
-            dense = add_dense_evidence(db_path, image_dir, prediction, short, graph.score(), options.dense)
-        stats = feature_stats(db_path, names)
-    flagged, rec, summary = _adjust(
-        prediction, image_ids, cameras, colmap_cameras, db_path, stats, dense, options, timer
+    flagged, rec, summary, dense, stats = _adjust_with_dense(
+        image_dir, prediction, graph, image_ids, (cameras, colmap_cameras), db_path, stats, options, timer
     )
-    left_out = [names.index(w.name) for w in flagged if w.name not in set(short)]
-    if options.dense.enabled and left_out:
-        with timer.stage("dense_evidence"):
-            more = add_dense_evidence(db_path, image_dir, prediction, left_out, graph.score(), options.dense)
-        dense = more if dense is None else dense.merged(more)
-        stats = feature_stats(db_path, names)
-        flagged, rec, summary = _adjust(
-            prediction, image_ids, cameras, colmap_cameras, db_path, stats, dense, options, timer
-        )
     refined_names = {img.name for img in rec.images.values() if img.has_pose} if summary is not None else set()
     provenance = dict(
         database_path=db_path,
@@ -442,6 +425,33 @@ def run_refine(image_dir: Path, prediction: Prediction, options: RefineOptions, 
         result.timings.total_s,
     )
     return result
+
+
+def _adjust_with_dense(image_dir, prediction, graph, image_ids, camera_sets, db_path, stats, options, timer):
+    """Bundle adjustment with dense evidence: first for the frames SIFT leaves short of matches; then,
+    once, for the frames the adjustment still left out (too few observations), and a second adjustment.
+    A capture SIFT handles well runs neither. Returns ``(flagged, rec, summary, dense, stats)``."""
+    names = tuple(prediction.names)
+    cameras, colmap_cameras = camera_sets
+    dense = None
+    short = short_frames(names, stats.num_inlier_matches, options.dense) if options.dense.enabled else []
+    if short:
+        with timer.stage("dense_evidence"):
+            dense = add_dense_evidence(db_path, image_dir, prediction, short, graph.score(), options.dense)
+        stats = feature_stats(db_path, names)
+    flagged, rec, summary = _adjust(
+        prediction, image_ids, cameras, colmap_cameras, db_path, stats, dense, options, timer
+    )
+    left_out = [names.index(w.name) for w in flagged if w.name not in set(short)]
+    if options.dense.enabled and left_out:
+        with timer.stage("dense_evidence"):
+            more = add_dense_evidence(db_path, image_dir, prediction, left_out, graph.score(), options.dense)
+        dense = more if dense is None else dense.merged(more)
+        stats = feature_stats(db_path, names)
+        flagged, rec, summary = _adjust(
+            prediction, image_ids, cameras, colmap_cameras, db_path, stats, dense, options, timer
+        )
+    return flagged, rec, summary, dense, stats
 
 
 def _adjust(prediction, image_ids, cameras, colmap_cameras, db_path, stats, dense, options: RefineOptions, timer):
