@@ -31,7 +31,7 @@ from ffrecon.sfm.colmap_io import is_model_dir
 from ffrecon.sfm.compare import compare_poses
 from ffrecon.sfm.comparisons import ComparisonsResult, load_references, run_comparisons
 from ffrecon.sfm.crosscheck import ColmapResult, run_colmap
-from ffrecon.sfm.evidence import CameraStatus, EvidenceResult, judge_final_cameras
+from ffrecon.sfm.evidence import CameraStatus, EvidenceResult, FrameVerdict, judge_final_cameras
 from ffrecon.sfm.gates import GatesResult, run_gates
 from ffrecon.sfm.refine import RefineResult, extract_refine_features, run_refine
 from ffrecon.splat.seed import seed_from_reconstruction
@@ -292,7 +292,8 @@ def final_cameras(capture: Capture, ff, colmap, refine, evidence) -> FinalCamera
         return _refined_final_cameras(capture, colmap, refine, evidence)
     if not unsuited and isinstance(ff, FeedForwardResult):
         pred = ff.prediction
-        return FinalCameras(every, capture.names, pred.cam_from_world, tuple(pred.cameras), "feed-forward")
+        cams = tuple(pred.cameras)
+        return FinalCameras(every, capture.names, pred.cam_from_world, cams, "feed-forward", unconfirmed=every)
     if isinstance(colmap, ColmapResult) and colmap.num_registered >= 2:
         kept = tuple(int(i) for i in np.flatnonzero(colmap.registered))
         names = tuple(capture.names[i] for i in kept)
@@ -358,7 +359,11 @@ def _refined_final_cameras(capture: Capture, colmap, refine: RefineResult, evide
         log.info("frames left out, contradicted by the evidence: %s", left_out)
     lens = tuple(distortion[k] for k in kept) if any(d != NO_DISTORTION for d in distortion) else None
     names = tuple(capture.names[k] for k in kept)
-    return FinalCameras(tuple(kept), names, poses[kept], tuple(cameras[k] for k in kept), "refined", lens)
+    unconfirmed = tuple(
+        p for p, k in enumerate(kept) if per_image and per_image[k].verdict is not FrameVerdict.CONFIRMED
+    )
+    cams = tuple(cameras[k] for k in kept)
+    return FinalCameras(tuple(kept), names, poses[kept], cams, "refined", lens, unconfirmed=unconfirmed)
 
 
 def splat_stage(capture, ff, colmap, final, verdicts: tuple, options: RunOptions, work, stages, inputs) -> tuple:
@@ -374,8 +379,8 @@ def splat_stage(capture, ff, colmap, final, verdicts: tuple, options: RunOptions
             pairs = [undistort_image(im, c, d) for im, c, d in zip(images, cameras, final.distortion)]
             images, cameras = [p[0] for p in pairs], tuple(p[1] for p in pairs)
         if final.source != "COLMAP":
-            args = (ff.prediction, images, final.cam_from_world, cameras, options.splat, work)
-            return run_splat_from_prediction(*args)
+            args = (ff.prediction.subset(final.indices), images, final.cam_from_world, cameras, options.splat, work)
+            return run_splat_from_prediction(*args, unconfirmed=final.unconfirmed)
         xyz, rgb = seed_from_reconstruction(colmap.reconstruction)  # COLMAP's cameras: its points
         args = (images, final.names, final.cam_from_world, cameras, xyz, rgb, options.splat, work)
         return run_splat(*args)

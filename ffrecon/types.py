@@ -7,7 +7,8 @@ image size and follow COLMAP's pixel-centre rule (see :mod:`ffrecon.geometry.pro
 from __future__ import annotations
 
 import enum
-from dataclasses import dataclass, field
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -143,6 +144,18 @@ class Prediction:
 
     def __len__(self) -> int:
         return len(self.names)
+
+    def subset(self, indices: Sequence[int]) -> Prediction:
+        """The frames at ``indices``, in that order (the same world frame)."""
+        idx = [int(i) for i in indices]
+        return replace(
+            self,
+            names=tuple(self.names[i] for i in idx),
+            cam_from_world=self.cam_from_world[idx],
+            cameras=tuple(self.cameras[i] for i in idx),
+            depth=tuple(self.depth[i] for i in idx),
+            depth_conf=tuple(self.depth_conf[i] for i in idx),
+        )
 
     def depth_camera(self, i: int) -> PinholeCamera:
         """Intrinsics of frame i for the grid its depth map is stored on."""

@@ -248,7 +248,37 @@ def _splat(report: dict, run_dir: Path) -> tuple[list[dict], str]:
             (f"{r['view']}: splat, PSNR {m['psnr_cleaned']:.1f} dB", "splat"),
         ):
             thumbs += _thumb(run_dir / r[key], caption, 240)
-    return rows, _flythrough(run_dir / "flythrough.mp4") + curve + _gallery(thumbs, wide=True)
+    poses = _pose_refinement_table(data.get("pose_refinement", []), data.get("depth_prior", False))
+    return rows, _flythrough(run_dir / "flythrough.mp4") + curve + poses + _gallery(thumbs, wide=True)
+
+
+def _pose_refinement_summary(changes: list[dict]) -> str:
+    rotation = float(np.median([c["rotation_deg"] for c in changes]))
+    flagged = [c["name"] for c in changes if c["flagged"]]
+    text = f"{len(changes)} unconfirmed frame(s) refined photometrically, median change {rotation:.2f} deg"
+    return text + (f"; still fitting poorly: {', '.join(flagged)}" if flagged else "")
+
+
+def _pose_refinement_table(changes: list[dict], depth_prior: bool) -> str:
+    """Per frame the splat's photometric pose correction (frames no evidence confirmed) and its fit."""
+    prior = " The model's depth was a prior in the loss (few views)." if depth_prior else ""
+    if not changes:
+        return f"<p class='muted'>{prior.strip()}</p>" if prior else ""
+    rows = [
+        {
+            "frame": c["name"],
+            "rotation change (deg)": c["rotation_deg"],
+            "centre move (% of scene)": 100 * c["translation"],
+            "PSNR of its own photo (dB)": c["psnr"],
+            "fit": "poor: camera may be wrong" if c["flagged"] else "ok",
+        }
+        for c in changes
+    ]
+    caption = (
+        "Cameras no independent evidence confirmed were optimised with the Gaussians (bounded); a frame whose "
+        "render still misses its photo by several dB more than the others is flagged." + prior
+    )
+    return f"<h3>Photometric pose refinement</h3><p class='muted'>{html.escape(caption)}</p>" + _table(rows)
 
 
 def _flythrough(path: Path) -> str:
@@ -442,6 +472,8 @@ def summary_rows(report: dict) -> list[tuple[str, str]]:
                 f"{splat['gaussians']['cleaned']} Gaussians)"
             )
             rows.append(("splat held-out PSNR", value))
+        if changes := splat.get("pose_refinement"):
+            rows.append(("splat pose refinement", _pose_refinement_summary(changes)))
     evidence = report["evidence"]
     if "skipped" not in evidence:
         rows.append(("final cameras", _frame_verdicts(evidence)))

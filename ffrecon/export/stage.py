@@ -44,6 +44,9 @@ class FinalCameras:
     # Per camera OpenCV (k1, k2, p1, p2) of the original photos (None: pinhole). The splat trains on
     # undistorted copies; transforms.json carries them (OPENCV) for the original images.
     distortion: tuple[tuple[float, float, float, float], ...] | None = None
+    # Positions (into these lists) of the cameras no independent evidence confirmed: unchecked or corrected
+    # (the splat may refine their poses photometrically). The model's cameras unrefined: all of them.
+    unconfirmed: tuple[int, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -60,11 +63,16 @@ class ExportsResult:
 
 
 def fuse_with_final_cameras(
-    prediction: Prediction, final: FinalCameras, read_images: Callable[[], list[np.ndarray]], fuse: FuseOptions
+    prediction: Prediction,
+    final: FinalCameras,
+    read_images: Callable[[list[int]], list[np.ndarray]],
+    fuse: FuseOptions,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The depth maps fused again with the final (refined) cameras, so points.ply agrees with sparse/0."""
-    moved = dataclasses.replace(prediction, cam_from_world=final.cam_from_world, cameras=final.cameras)
-    return fuse_prediction(moved, read_images(), fuse)
+    """The depth maps of the final cameras' frames (frames left out, contradicted, stay out) fused again with
+    those cameras, so points.ply agrees with sparse/0. ``read_images(indices)`` reads the capture's photos."""
+    kept = prediction.subset(final.indices)
+    moved = dataclasses.replace(kept, cam_from_world=final.cam_from_world, cameras=final.cameras)
+    return fuse_prediction(moved, read_images(list(final.indices)), fuse)
 
 
 def run_exports(

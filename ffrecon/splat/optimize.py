@@ -17,7 +17,6 @@ from dataclasses import dataclass, field, fields, replace
 import numpy as np
 import torch
 import torch.nn.functional as F
-from kornia.geometry.liegroup import So3
 from tqdm import tqdm
 
 from ffrecon.checks import check_number
@@ -27,6 +26,7 @@ from ffrecon.splat.appearance import appearance_penalty, apply_color_transform, 
 from ffrecon.splat.budget import StepClock
 from ffrecon.splat.densify import Densifier, DensifyOptions, replace_rows
 from ffrecon.splat.gaussians import Gaussians
+from ffrecon.splat.poses import bound_poses, depth_levels, depth_loss, pose_views_of, refined_pose
 from ffrecon.splat.render import RasterOptions, interrupts_deferred, render, warm_up
 from ffrecon.splat.ssim import ssim_mean
 
@@ -74,9 +74,16 @@ class OptimizeOptions:
     sh_band_every: int = 250  # switch on one more SH band every this many iterations
     densify: DensifyOptions | None = field(default_factory=DensifyOptions)
     max_gaussians: int = 100_000
-    refine_poses: bool = False
+    refine_poses: bool = False  # every training view's pose but the first's (``optimize(pose_views=...)``: some)
     lr_pose_rotation: float = 1e-4  # radians per step (the first training view stays fixed: gauge)
     lr_pose_translation: float = 1e-4  # times the scene scale
+    # Bounds on each view's total correction: a camera further off than a few degrees is the evidence's
+    # job (sfm.evidence), not the photometric loss's, which a wrong start drags into a wrong minimum.
+    max_pose_rotation_deg: float = 5.0
+    max_pose_translation: float = 0.05  # times the scene scale
+    # The model's depth as a prior: loss += depth_weight * mean |rendered depth / prior depth - 1| over the
+    # pixels where both are known (``optimize(depths=...)``; the splat stage passes them for few views).
+    depth_weight: float = 0.2
     appearance: bool = True  # per-training-image affine colour transform (exposure, white balance)
     lr_appearance: float = 1e-3  # Adam rate of the colour transforms' entries (brief keeps it)
     appearance_weight: float = 1e-3  # pull of each transform towards [I | 0]
@@ -96,7 +103,8 @@ class OptimizeOptions:
         check_number("OptimizeOptions.max_gaussians", self.max_gaussians, low=1, integer=True)
         check_number("OptimizeOptions.threads", self.threads, low=1, integer=True, allow_none=True)
         rates = [f.name for f in fields(self) if f.name.startswith("lr_")]  # 0 keeps that tensor as it is
-        for name in (*rates, "plateau_tolerance", "appearance_weight"):
+        bounds = ("max_pose_rotation_deg", "max_pose_translation", "depth_weight")
+        for name in (*rates, *bounds, "plateau_tolerance", "appearance_weight"):
             check_number(f"OptimizeOptions.{name}", getattr(self, name), low=0)
         for name in ("plateau_after", "ssim_weight"):
             check_number(f"OptimizeOptions.{name}", getattr(self, name), low=0, high=1)
@@ -125,6 +133,11 @@ class OptimizeOptions:
 
         Measured on the demo scene (60k Gaussians, 300 iterations, no densification): held-out
         PSNR 22.6 dB with only positions x10, 26.2 dB with this preset (26.7 dB with densification).
+
+        Pose corrections at 5e-3 (rotation in radians, translation times the scene scale) per step, 50x
+        3DGS-era rates: a few hundred steps must move a camera by the model's 2-3 deg. On the wide-baseline
+        scene (tools/bench_sparse_splat.py, 20 s, 8 views) 3e-3 moved the cameras 0.3-1.0 deg and 1e-2 up
+        to 3.8 deg (overshooting); the bounds (max_pose_*) cap the total either way.
         """
         base = OptimizeOptions()
         schedule = {
@@ -141,6 +154,8 @@ class OptimizeOptions:
             "lr_sh_rest": base.lr_sh_rest * 3,
             "lr_quats": base.lr_quats * 3,
             "lr_opacity": base.lr_opacity * 2,
+            "lr_pose_rotation": 5e-3,
+            "lr_pose_translation": 5e-3,
         }
         return replace(base, **{**schedule, **rates, **overrides})
 
@@ -154,6 +169,7 @@ class OptimizeResult:
     seconds: float  # optimisation time, callbacks excluded
     history: tuple[tuple[int, float, float], ...]  # (iteration, seconds, loss) every 10 iterations
     stop_reason: str = ""  # "plateau", "iterations" or "time budget"
+    pose_views: tuple[int, ...] = ()  # the views whose poses were optimised
 
 
 def scene_scale(cam_from_world: np.ndarray, points: np.ndarray) -> float:
@@ -175,12 +191,6 @@ def photometric_loss(rendered: torch.Tensor, target: torch.Tensor, ssim_weight: 
         return l1
     ssim = ssim_mean(rendered.permute(2, 0, 1), target.permute(2, 0, 1))
     return (1 - ssim_weight) * l1 + ssim_weight * (1 - ssim)
-
-
-def refined_pose(cam_from_world: torch.Tensor, rotation: torch.Tensor, translation: torch.Tensor) -> torch.Tensor:
-    """``[3, 4]``: a left-multiplied correction ``[exp(rotation) | translation] * cam_from_world``."""
-    delta = So3.exp(rotation).matrix()
-    return torch.cat([delta @ cam_from_world[:, :3], (delta @ cam_from_world[:, 3:]) + translation[:, None]], dim=1)
 
 
 def cpu_threads(requested: int | None = None) -> int:
@@ -224,6 +234,8 @@ def optimize(
     scale: float,
     callback: Callable[[int, float, Gaussians, np.ndarray], None] | None = None,
     callback_every: int = 0,
+    pose_views: Sequence[int] | None = None,
+    depths: Sequence[np.ndarray | None] | None = None,
 ) -> OptimizeResult:
     """Optimise ``gaussians`` on the training views (torch threads set by ``options.threads``).
 
@@ -235,6 +247,12 @@ def optimize(
         scale: scene scale (see :func:`scene_scale`) for the position and pose learning rates.
         callback: called as ``callback(iteration, seconds, gaussians, cam_from_world)`` every
             ``callback_every`` iterations (its time is not counted in the budget).
+        pose_views: training views whose poses are optimised with the Gaussians (jointly, as InstantSplat and
+            nerfstudio's camera optimiser do), each correction bounded by ``max_pose_rotation_deg`` and
+            ``max_pose_translation``; when they are all the training views the first stays fixed (gauge).
+            None: every training view but the first with ``options.refine_poses``, none without.
+        depths: per view ``[h, w]`` z-depth priors in the poses' scale (0 where unknown; None: no prior for
+            that view), resized to each training resolution; used when ``options.depth_weight > 0``.
     """
     threads = torch_threads(cpu_threads(options.threads)) if options.device == "cpu" else contextlib.nullcontext()
     with threads:
@@ -248,6 +266,8 @@ def optimize(
             scale=scale,
             callback=callback,
             callback_every=callback_every,
+            pose_views=pose_views,
+            depths=depths,
         )
 
 
@@ -264,9 +284,15 @@ class _TrainingViews:
     render: Callable  # ffrecon's CPU renderer, or gsplat's on CUDA (same signature)
     # Per downscale factor of the resolution schedule (1 included): the images and their intrinsics.
     levels: dict[int, tuple[list[torch.Tensor], torch.Tensor]] = field(default_factory=dict)
+    scale: float = 1.0  # the scene scale (pose translation bounds)
+    pose_views: tuple[int, ...] = ()  # views whose poses carry a correction
+    # Per downscale factor: per view the depth prior at that level's image size (None: no prior).
+    depth_levels: dict[int, list[torch.Tensor | None]] = field(default_factory=dict)
 
 
-def _training_views(images, cam_from_world, Ks, train: list[int], options: OptimizeOptions) -> _TrainingViews:
+def _training_views(
+    images, cam_from_world, Ks, train: list[int], options: OptimizeOptions, pose_views=None, depths=None, scale=1.0
+) -> _TrainingViews:
     dev = torch.device(options.device)
     render_fn = render
     if dev.type == "cuda":
@@ -274,6 +300,7 @@ def _training_views(images, cam_from_world, Ks, train: list[int], options: Optim
     images = [im.to(dev) for im in images]
     k_mats = torch.as_tensor(np.asarray(Ks, np.float32), device=dev)
     factors = {factor for _, factor in options.resolution_schedule} | {1}
+    levels = {f: downscaled(images, k_mats, f, train) for f in sorted(factors)}
     return _TrainingViews(
         images=images,
         poses=torch.as_tensor(np.asarray(cam_from_world, np.float32), device=dev),
@@ -282,7 +309,10 @@ def _training_views(images, cam_from_world, Ks, train: list[int], options: Optim
         cam_from_world=np.asarray(cam_from_world, np.float64),
         train=train,
         render=render_fn,
-        levels={f: downscaled(images, k_mats, f, train) for f in sorted(factors)},
+        levels=levels,
+        scale=float(scale),
+        pose_views=pose_views_of(train, pose_views, options.refine_poses),
+        depth_levels=depth_levels(depths, levels, dev) if options.depth_weight > 0 else {},
     )
 
 
@@ -317,13 +347,13 @@ def resolution_factor(options: OptimizeOptions, fraction: float) -> int:
 
 
 def _trainable(
-    gaussians: Gaussians, options: OptimizeOptions, scale: float, num_views: int
+    gaussians: Gaussians, options: OptimizeOptions, scale: float, num_views: int, refine_poses: bool
 ) -> tuple[dict[str, torch.Tensor], torch.optim.Adam]:
     """Leaf tensors by name and their Adam, one param group (and learning rate) per name.
 
     The SH coefficients are split into ``sh_dc [N, 1, 3]`` and ``sh_rest [N, B - 1, 3]``, which
-    3DGS trains at different rates. With ``refine_poses``, ``pose_rotation`` and ``pose_translation``
-    (``[num_views, 3]``, zero) hold a correction per view (see :func:`refined_pose`). With
+    3DGS trains at different rates. With ``refine_poses`` (some view's pose optimised), ``pose_rotation``
+    and ``pose_translation`` (``[num_views, 3]``, zero) hold a correction per view (see :func:`refined_pose`). With
     ``appearance``, ``color_deltas`` (``[num_views, 3, 4]``, zero) holds a colour transform per view
     (see :func:`_color_transform`). A tensor whose rate is 0 stays exactly as it is: Adam's update is then
     ``-0 * m / (sqrt(v) + eps)``.
@@ -342,7 +372,7 @@ def _trainable(
         "sh_dc": o.lr_sh_dc,
         "sh_rest": o.lr_sh_rest,
     }
-    if o.refine_poses:
+    if refine_poses:
         params["pose_rotation"] = torch.zeros(num_views, 3, device=dev, requires_grad=True)
         params["pose_translation"] = torch.zeros(num_views, 3, device=dev, requires_grad=True)
         lrs.update(pose_rotation=o.lr_pose_rotation, pose_translation=o.lr_pose_translation * scale)
@@ -374,9 +404,9 @@ def _as_gaussians(params: dict[str, torch.Tensor]) -> Gaussians:
 
 
 def _view_pose(params: dict[str, torch.Tensor], views: _TrainingViews, view: int) -> torch.Tensor:
-    """``[3, 4]`` cam_from_world of ``view`` with its correction (the first training view has none: gauge)."""
+    """``[3, 4]`` cam_from_world of ``view`` with its correction (only the views in ``views.pose_views`` have one)."""
     pose = views.poses[view]
-    if "pose_rotation" in params and view != views.train[0]:
+    if "pose_rotation" in params and view in views.pose_views:
         pose = refined_pose(pose, params["pose_rotation"][view], params["pose_translation"][view])
     return pose
 
@@ -406,7 +436,7 @@ def _current_poses(params: dict[str, torch.Tensor], views: _TrainingViews) -> np
         return views.cam_from_world
     with torch.no_grad():
         out = views.cam_from_world.copy()
-        for i in views.train[1:]:
+        for i in views.pose_views:
             out[i] = _view_pose(params, views, i).cpu().numpy()
         return out
 
@@ -429,6 +459,7 @@ def _train_step(
     images, k_mats = views.levels.get(factor, (views.images, views.k_mats))
     target = images[view]
     height, width = target.shape[:2]
+    prior = views.depth_levels[factor][view] if views.depth_levels else None
     g = _as_gaussians(params)
     out = views.render(
         g.means,
@@ -442,7 +473,7 @@ def _train_step(
         height,
         background=views.background,
         sh_degree=sh_degree,
-        with_depth=False,
+        with_depth=prior is not None,
         options=options.raster,
     )
     out.means2d.retain_grad()
@@ -453,11 +484,14 @@ def _train_step(
     loss = photometric_loss(rgb, target, options.ssim_weight)
     if "color_deltas" in params:
         loss = loss + options.appearance_weight * appearance_penalty(transform)
+    if prior is not None:
+        loss = loss + options.depth_weight * depth_loss(out, prior)
     loss.backward()
     if densifier is not None and out.means2d.grad is not None:
         densifier.accumulate(out.means2d.grad, out.visible, width, height)
     optimizer.step()
     optimizer.zero_grad()
+    bound_poses(params, options.max_pose_rotation_deg, options.max_pose_translation * views.scale)
     return loss.detach()
 
 
@@ -509,12 +543,12 @@ def _pixels(views: _TrainingViews, view: int, factor: int) -> int:
     return int(image.shape[0] * image.shape[1])
 
 
-def _prepare(gaussians, images, cam_from_world, Ks, train, o: OptimizeOptions, scale):
+def _prepare(gaussians, images, cam_from_world, Ks, train, o: OptimizeOptions, scale, pose_views, depths):
     """``(views, params, adam, densifier)``: the optimisation's state before its first step."""
-    views = _training_views(images, cam_from_world, Ks, train, o)
+    views = _training_views(images, cam_from_world, Ks, train, o, pose_views, depths, scale)
     if o.device == "cpu" and (seconds := warm_up()) > 1.0:  # not counted in the budget
         logger.info("readied the CPU renderer in %.1f s (compiled on first use, then cached)", seconds)
-    params, adam = _trainable(gaussians, o, scale, len(views.poses))
+    params, adam = _trainable(gaussians, o, scale, len(views.poses), bool(views.pose_views))
     densifier = None
     if o.densify is not None:
         densifier = Densifier(len(params["means"]), o.densify, scale, o.max_gaussians, o.seed, o.device)
@@ -522,7 +556,18 @@ def _prepare(gaussians, images, cam_from_world, Ks, train, o: OptimizeOptions, s
 
 
 def _optimize(
-    gaussians, images, cam_from_world, Ks, train, options: OptimizeOptions, *, scale, callback, callback_every
+    gaussians,
+    images,
+    cam_from_world,
+    Ks,
+    train,
+    options: OptimizeOptions,
+    *,
+    scale,
+    callback,
+    callback_every,
+    pose_views,
+    depths,
 ) -> OptimizeResult:
     """The loop: visit the training views in shuffled rounds until the plan's iterations, the time budget
     or a plateau of the training loss ends it; learning rate, resolution, SH degree and densification
@@ -533,7 +578,9 @@ def _optimize(
         raise ValueError("optimize: no training views")
     torch.manual_seed(o.seed)
     rng = np.random.default_rng(o.seed)
-    views, params, adam, densifier = _prepare(gaussians, images, cam_from_world, Ks, train, o, scale)
+    views, params, adam, densifier = _prepare(
+        gaussians, images, cam_from_world, Ks, train, o, scale, pose_views, depths
+    )
     history: list[tuple[int, float, float]] = []
     plateau = _Plateau(o)
     order: list[int] = []
@@ -579,4 +626,5 @@ def _optimize(
         seconds=elapsed,
         history=tuple(history),
         stop_reason=reason,
+        pose_views=views.pose_views,
     )

@@ -8,6 +8,7 @@ depth with 2.5 deg / 3 % errors, and in some tests one frame 25 deg off.
 
 import json
 import shutil
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -136,3 +137,29 @@ def test_the_wide_scene_runs_end_to_end(wide, wide_dir, tmp_path_factory, quick)
     by_name = {im.name: im for im in rec.images.values()}
     poses = np.stack([by_name[n].cam_from_world().matrix() for n in wide.names])
     assert np.median(_rotation_errors(poses, wide)) <= 1.0
+
+
+def test_a_contradicted_frame_is_left_out_and_the_others_make_the_splat(wide, wide_dir, tmp_path):
+    """Frames 2 and 5 25 deg off (--quick): frame 2 contradicted, so it is in none of sparse/0,
+    transforms.json and the splat's training views; frame 5 corrected by the evidence, so the splat refines
+    its pose photometrically and says so. The run ends with exit 0 and a splat of the other seven."""
+    bad = SimulationOptions(seed=3, bad_frames=(2, 5), bad_rotation_deg=25.0)
+    build_simulated_vggt(wide, tmp_path / "sim.onnx", bad)
+    images = tmp_path / "images"
+    shutil.copytree(wide_dir, images, ignore=shutil.ignore_patterns("*.json", "*.npz"))
+    out = tmp_path / "out"
+    args = ["run", str(images), "--model", str(tmp_path / "sim.onnx"), "-o", str(out), "--quick", "-q"]
+    assert main([*args, "--splat-seconds", "4"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    statuses = {e["name"]: e["status"] for e in report["evidence"]["per_image"]}
+    verdicts = {e["name"]: e["verdict"] for e in report["evidence"]["per_image"]}
+    assert verdicts.pop("frame_002.png") == "contradicted" and verdicts.pop("frame_005.png") == "contradicted"
+    assert statuses["frame_005.png"] == CameraStatus.CORRECTED.value and set(verdicts.values()) == {"confirmed"}
+    kept = sorted([*verdicts, "frame_005.png"])
+    rec = pycolmap.Reconstruction(str(out / "sparse" / "0"))
+    assert sorted(im.name for im in rec.images.values()) == kept
+    frames = json.loads((out / "transforms.json").read_text())["frames"]
+    assert sorted(Path(f["file_path"]).name for f in frames) == kept
+    assert (out / "splat.ply").is_file() and report["splat"]["depth_prior"]
+    assert [c["name"] for c in report["splat"]["pose_refinement"]] == ["frame_005.png"]
+    assert "Photometric pose refinement" in (out / "report.html").read_text()

@@ -39,7 +39,7 @@ def test_densification_leaves_the_colour_transforms_and_their_adam_state_alone()
     rng = np.random.default_rng(0)
     g = Gaussians.from_points(rng.normal(size=(50, 3)), rng.uniform(size=(50, 3)), np.full(50, -3.0), opacity=0.5)
     options = OptimizeOptions(sh_degree=0, densify=DensifyOptions(grad_threshold=0.0))
-    params, adam = _trainable(g, options, scale=1.0, num_views=4)
+    params, adam = _trainable(g, options, scale=1.0, num_views=4, refine_poses=options.refine_poses)
     for p in params.values():
         p.grad = torch.ones_like(p)
     adam.step()
