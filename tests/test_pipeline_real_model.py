@@ -10,6 +10,7 @@ The photos are used at their full size (1024 x 768): at 640 px lund's reconstruc
 determined for a 0.2 deg comparison (docs/pipeline.md, "Known limit").
 """
 
+import dataclasses
 import json
 import shutil
 from pathlib import Path
@@ -19,7 +20,7 @@ import onnx
 import pytest
 
 from ffrecon.pipeline import RunOptions, run
-from ffrecon.sfm.evidence import CameraStatus
+from ffrecon.sfm.evidence import CameraStatus, FrameVerdict
 from ffrecon.splat.stage import SplatOptions
 from ffrecon.synthetic.real_scene import real_scene_from_colmap
 from ffrecon.synthetic.simulated_model import SimulationOptions, build_simulated_vggt
@@ -83,3 +84,34 @@ def test_lund_refined_cameras_agree_with_the_reference(lund_runs):
     # The frames the refinement left out (after the turn) take COLMAP's poses, and the exports say where
     # every camera came from: no frame is exported at an unverified feed-forward pose.
     assert result.evidence.count(CameraStatus.CONFIRMED) + result.evidence.count(CameraStatus.COLMAP_ONLY) == len(scene)
+
+
+def test_lund_thinned_to_every_4th_photo_confirms_only_what_agrees(lund_runs, tmp_path):
+    """Every 4th photo (8 of 29: a sparse forward walk, about 4 steps between photos) with the model
+    simulated from them: whatever the run calls confirmed is within 5 deg of the reference (issue 21),
+    and every frame carries a verdict."""
+    _, scene, _, _, _ = lund_runs
+    keep = list(range(0, len(scene), 4))
+    thin = dataclasses.replace(
+        scene,
+        names=tuple(scene.names[k] for k in keep),
+        images=scene.images[keep],
+        cam_from_world=scene.cam_from_world[keep],
+        depth=scene.depth[keep],
+    )
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for name in thin.names:
+        shutil.copy(LUND / name, photos / name)
+    build_simulated_vggt(thin, tmp_path / "thin.onnx", NOISE)
+    ref_model = Path(thin.options.reconstruction)
+    options = RunOptions(splat=SplatOptions(enabled=False), reference=ref_model)
+    result = run(photos, tmp_path / "out", tmp_path / "thin.onnx", options)
+    assert result.exit_code == 0
+    errors = result.comparisons.by_label("refined", "reference model").per_image_rotation_deg
+    per_image = result.evidence.per_image
+    confirmed = [k for k, e in enumerate(per_image) if e.verdict is FrameVerdict.CONFIRMED]
+    refined = [k for k in confirmed if result.refine.registered[k]]  # the others hold COLMAP's pose
+    assert len(per_image) == len(thin) and len(refined) >= len(thin) // 2
+    assert np.max(np.asarray(errors)[refined]) < 5.0, errors
+    print("lund every 4th:", [(e.name, e.status.value, round(float(r), 2)) for e, r in zip(per_image, errors)])
