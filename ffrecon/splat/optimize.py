@@ -266,8 +266,7 @@ def optimize(
             scale=scale,
             callback=callback,
             callback_every=callback_every,
-            pose_views=pose_views,
-            depths=depths,
+            priors=(pose_views, depths),
         )
 
 
@@ -556,31 +555,19 @@ def _prepare(gaussians, images, cam_from_world, Ks, train, o: OptimizeOptions, s
 
 
 def _optimize(
-    gaussians,
-    images,
-    cam_from_world,
-    Ks,
-    train,
-    options: OptimizeOptions,
-    *,
-    scale,
-    callback,
-    callback_every,
-    pose_views,
-    depths,
+    gaussians, images, cam_from_world, Ks, train, options: OptimizeOptions, *, scale, callback, callback_every, priors
 ) -> OptimizeResult:
     """The loop: visit the training views in shuffled rounds until the plan's iterations, the time budget
     or a plateau of the training loss ends it; learning rate, resolution, SH degree and densification
-    follow the fraction of the plan done (iterations or time, whichever is further on)."""
+    follow the fraction of the plan done (iterations or time, whichever is further on). ``priors``: the
+    ``(pose_views, depths)`` of :func:`optimize`."""
     o = options
     train = list(train)
     if not train:
         raise ValueError("optimize: no training views")
     torch.manual_seed(o.seed)
     rng = np.random.default_rng(o.seed)
-    views, params, adam, densifier = _prepare(
-        gaussians, images, cam_from_world, Ks, train, o, scale, pose_views, depths
-    )
+    views, params, adam, densifier = _prepare(gaussians, images, cam_from_world, Ks, train, o, scale, *priors)
     history: list[tuple[int, float, float]] = []
     plateau = _Plateau(o)
     order: list[int] = []

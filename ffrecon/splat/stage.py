@@ -439,8 +439,7 @@ def _splat(
     """Both entries' implementation, from the seed cloud and the ``(train, heldout)`` split on.
 
     ``timer`` holds what the entry already measured and receives the rest of the steps."""
-    _validate_views(images, names, cam_from_world, cameras)
-    _validate_seed(seed_xyz, seed_rgb)
+    _validate_views(images, names, cam_from_world, cameras, seed=(seed_xyz, seed_rgb))
     train, heldout = split
     out_dir = Path(out_dir)
     device = resolve_device(options.device)
@@ -454,7 +453,6 @@ def _splat(
     poses = result.cam_from_world
     with timer.stage("pose_check"):
         changes = _pose_changes(names, images, cam_from_world, cameras, result, split, options)
-
     splats = {"seed": seed, "optimized": result.gaussians, "cleaned": cleaned}
     with timer.stage("evaluate"):
         metrics, render_paths = _evaluate_heldout(heldout, names, images, poses, cameras, splats, options, out_dir)
@@ -586,7 +584,11 @@ def _pose_changes(
     return tuple(changes)
 
 
-def _validate_views(images, names, cam_from_world, cameras) -> None:
+def _validate_views(images, names, cam_from_world, cameras, seed=None) -> None:
+    """Raise :class:`InputError` unless there is one name, pose and camera per image (and, given ``seed``
+    ``(xyz, rgb)``, a finite seed cloud with one colour per point)."""
+    if seed is not None:
+        _validate_seed(*seed)
     n = len(images)
     if not (len(names) == n == len(cameras) == len(cam_from_world)):
         raise InputError(
