@@ -437,7 +437,7 @@ def _adjust_with_dense(image_dir, prediction, graph, image_ids, camera_sets, db_
     short = short_frames(names, stats.num_inlier_matches, options.dense) if options.dense.enabled else []
     if short:
         with timer.stage("dense_evidence"):
-            dense = add_dense_evidence(db_path, image_dir, prediction, short, graph.score(), options.dense)
+            dense = add_dense_evidence(db_path, image_dir, prediction, short, graph.reach(), options.dense)
         stats = feature_stats(db_path, names)
     flagged, rec, summary = _adjust(
         prediction, image_ids, cameras, colmap_cameras, db_path, stats, dense, options, timer
@@ -445,7 +445,7 @@ def _adjust_with_dense(image_dir, prediction, graph, image_ids, camera_sets, db_
     left_out = [names.index(w.name) for w in flagged if w.name not in set(short)]
     if options.dense.enabled and left_out:
         with timer.stage("dense_evidence"):
-            more = add_dense_evidence(db_path, image_dir, prediction, left_out, graph.score(), options.dense)
+            more = add_dense_evidence(db_path, image_dir, prediction, left_out, graph.reach(), options.dense)
         dense = more if dense is None else dense.merged(more)
         stats = feature_stats(db_path, names)
         flagged, rec, summary = _adjust(
