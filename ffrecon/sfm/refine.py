@@ -462,7 +462,10 @@ def _adjust(prediction, image_ids, cameras, colmap_cameras, db_path, stats, dens
     rec = _initial_model(prediction, image_ids, cameras, colmap_cameras, shared)
     usable = set(prediction.names) - {w.name for w in flagged}
     summary = None
-    bundle = options.bundle if dense is None else dataclasses.replace(options.bundle, ignore_two_view_tracks=False)
+    # Two-view tracks count where they are all there is: dense evidence added, or a pair of photos (every
+    # track of two frames is a two-view one; the Middlebury pair triangulated nothing without this).
+    pairwise = dense is not None or len(usable) < 3
+    bundle = dataclasses.replace(options.bundle, ignore_two_view_tracks=False) if pairwise else options.bundle
     with timer.stage("triangulation_and_bundle_adjustment"), colmap_log_level():
         if len(usable) >= 2:
             rec, summary, weak = refine_tracks(rec, db_path, usable, bundle, min_observations=options.min_observations)
