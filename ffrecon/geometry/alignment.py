@@ -74,3 +74,40 @@ def umeyama(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None)
     var_s = float(w @ (s0**2).sum(1))
     scale = float(np.trace(np.diag(sing) @ fix) / max(var_s, 1e-300))
     return Sim3(scale, rot, mu_d - scale * rot @ mu_s)
+
+
+def collinear(points: np.ndarray, ratio: float = 0.05) -> bool:
+    """Whether ``[N, 3]`` points lie near one line (or one point): the second singular value of the centred
+    points is under ``ratio`` of the first. A Sim(3) fitted to such points leaves the rotation about that line
+    free (camera centres of a straight walk).
+
+    >>> collinear(np.array([[0, 0, 0], [1, 0.01, 0], [2, 0, 0.01], [3, 0, 0]], float))
+    True
+    """
+    centred = np.asarray(points, np.float64) - np.mean(points, axis=0)
+    sing = np.linalg.svd(centred, compute_uv=False)
+    return bool(len(points) < 3 or sing[1] < ratio * max(sing[0], 1e-300))
+
+
+def sim3_from_cameras(src_cam_from_world: np.ndarray, dst_cam_from_world: np.ndarray) -> Sim3:
+    """``dst_from_src`` for two sets of the same ``[N, 3, 4]`` cameras: the rotation from their orientations
+    (the chordal mean of each camera's ``R_dst^T R_src``, projected on SO(3) by SVD), then scale and
+    translation from their centres by least squares. Unlike :func:`umeyama` on the centres alone, this is
+    determined when the centres are collinear.
+
+    >>> rot = np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]])
+    >>> src = np.stack([np.concatenate([np.eye(3), [[-x], [0], [0]]], axis=1) for x in range(3)])
+    >>> dst = Sim3(2.0, rot, np.ones(3)).transform_cam_from_world(src)
+    >>> fit = sim3_from_cameras(src, dst)
+    >>> bool(np.allclose(fit.rotation, rot)), round(fit.scale, 6), bool(np.allclose(fit.translation, 1))
+    (True, 2.0, True)
+    """
+    src_rot, dst_rot = src_cam_from_world[:, :, :3], dst_cam_from_world[:, :, :3]
+    u, _, vt = np.linalg.svd(np.einsum("nji,njk->ik", dst_rot, src_rot))  # sum of R_dst^T R_src
+    fix = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt)) or 1.0])
+    rot = u @ fix @ vt
+    src_c = -np.einsum("nji,nj->ni", src_rot, src_cam_from_world[:, :, 3])
+    dst_c = -np.einsum("nji,nj->ni", dst_rot, dst_cam_from_world[:, :, 3])
+    turned = (src_c - src_c.mean(0)) @ rot.T
+    scale = float(np.sum(turned * (dst_c - dst_c.mean(0))) / max(float(np.sum(turned**2)), 1e-300))
+    return Sim3(scale, rot, dst_c.mean(0) - scale * rot @ src_c.mean(0))

@@ -17,7 +17,7 @@ import numpy as np
 import pycolmap
 
 from ffrecon.checks import check_number
-from ffrecon.geometry.alignment import Sim3, umeyama
+from ffrecon.geometry.alignment import Sim3, collinear, sim3_from_cameras, umeyama
 from ffrecon.geometry.poses import camera_centers
 from ffrecon.geometry.rotations import matrix_to_quat_xyzw
 from ffrecon.sfm.colmap_io import cam_from_world_by_name
@@ -461,18 +461,23 @@ def sim3_to_ff_frame(rec: pycolmap.Reconstruction, names: Sequence[str], ff_cam_
 
     Umeyama fit of refined to feed-forward camera centres over the refined frames, refitted once
     without the frames whose residual exceeds three times the median (a badly predicted frame must
-    not tilt the whole model).
+    not tilt the whole model). Centres on one line (a straight walk) leave the rotation about it free:
+    then the rotation comes from the cameras' orientations (:func:`sim3_from_cameras`); on lund's every
+    4th photo the centre fit had turned the whole refined model 99 degrees about the walk.
     """
     cam_from_world, registered = cam_from_world_by_name(rec, names)
     src = camera_centers(cam_from_world[registered])
     dst = camera_centers(ff_cam_from_world[registered])
-    if len(src) < 3:
+    if len(src) < 2:
         return Sim3.identity()
-    sim = umeyama(src, dst)
-    residual = np.linalg.norm(sim.apply(src) - dst, axis=1)
-    keep = residual <= 3 * np.median(residual) + 1e-12
-    if 3 <= keep.sum() < len(keep):
-        sim = umeyama(src[keep], dst[keep])
+    if len(src) < 3 or collinear(src) or collinear(dst):
+        sim = sim3_from_cameras(cam_from_world[registered], ff_cam_from_world[registered])
+    else:
+        sim = umeyama(src, dst)
+        residual = np.linalg.norm(sim.apply(src) - dst, axis=1)
+        keep = residual <= 3 * np.median(residual) + 1e-12
+        if 3 <= keep.sum() < len(keep):
+            sim = umeyama(src[keep], dst[keep])
     quat = matrix_to_quat_xyzw(sim.rotation)
     rec.transform(pycolmap.Sim3d(sim.scale, pycolmap.Rotation3d(quat), sim.translation))
     return sim
