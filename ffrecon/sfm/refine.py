@@ -24,6 +24,7 @@ import pycolmap
 from ffrecon.checks import check_number
 from ffrecon.errors import InputError
 from ffrecon.geometry.alignment import Sim3
+from ffrecon.geometry.metrics import aligned_rotation_errors_deg
 from ffrecon.geometry.undistort import NO_DISTORTION, opencv_coefficients
 from ffrecon.models.validate import validate_prediction
 from ffrecon.sfm.bundle import BundleOptions, BundleSummary, refine_tracks, sim3_to_ff_frame
@@ -52,6 +53,7 @@ from ffrecon.sfm.features import (
 )
 from ffrecon.sfm.guided import GuidanceOptions, GuidanceStats, MatchGuidance, filter_matches, guided_matches
 from ffrecon.sfm.overlap import OverlapGraph, OverlapOptions, overlap_graph
+from ffrecon.sfm.relocalize import Relocalized, RelocalizeOptions, reach_matrix, relocalize, with_poses
 from ffrecon.timing import StageTimer, Timings
 from ffrecon.types import PinholeCamera, Prediction
 
@@ -100,6 +102,8 @@ class RefineOptions:
     bundle: BundleOptions = BundleOptions()
     guidance: GuidanceOptions = GuidanceOptions()
     dense: DenseOptions = DenseOptions()  # model-guided correspondences for the frames SIFT leaves short
+    # Frames the first adjustment leaves out placed again from their neighbours' renderings (with dense evidence)
+    relocalize: RelocalizeOptions = RelocalizeOptions()
     reuse_features_from: Path | None = None  # a COLMAP database with SIFT of the same images (the cross-check's)
     single_camera: bool = True  # one shared camera (median feed-forward intrinsics) if all images share a size
     square_pixels: bool = True  # one focal length per camera (fx = fy)
@@ -146,6 +150,7 @@ class RefineResult:
     features: FeatureStats
     guidance: GuidanceStats | None  # None without feed-forward guidance of the matching
     dense: DenseStats | None  # None: no frame was short of SIFT matches (or dense evidence is off)
+    relocalized: tuple[Relocalized, ...]  # frames placed again from their neighbours' renderings
     bundle: BundleSummary | None
     mean_reprojection_error_px: float
     ff_from_refined: Sim3 = field(repr=False)
@@ -177,6 +182,7 @@ class RefineResult:
             "lens_k1": None if self.distortion is None else _median_k1(self.distortion, self.registered),
             "match_guidance": None if self.guidance is None else self.guidance.to_report(),
             "dense_evidence": None if self.dense is None else self.dense.to_report(),
+            "relocalized": [r.to_report(self.names) for r in self.relocalized],
             "bundle_adjustment": None if self.bundle is None else self.bundle.to_report(),
             "sim3_ff_from_refined_scale": self.ff_from_refined.scale,
             "model_path": None if self.model_path is None else str(self.model_path),
@@ -396,7 +402,7 @@ def run_refine(image_dir: Path, prediction: Prediction, options: RefineOptions, 
         reused = _reuse_matches(db_path, graph, names, copied, options)
         guidance = _match(db_path, prediction, pairs, reused, options, work / "pairs.txt")
     stats = feature_stats(db_path, names)
-    flagged, rec, summary, dense, stats = _adjust_with_dense(
+    flagged, rec, summary, dense, relocalized, stats = _adjust_with_dense(
         image_dir, prediction, graph, image_ids, (cameras, colmap_cameras), db_path, stats, options, timer
     )
     refined_names = {img.name for img in rec.images.values() if img.has_pose} if summary is not None else set()
@@ -407,6 +413,7 @@ def run_refine(image_dir: Path, prediction: Prediction, options: RefineOptions, 
         features=stats,
         guidance=guidance,
         dense=dense,
+        relocalized=relocalized,
         bundle=summary,
     )
     if len(refined_names) < 2:
@@ -429,8 +436,10 @@ def run_refine(image_dir: Path, prediction: Prediction, options: RefineOptions, 
 
 def _adjust_with_dense(image_dir, prediction, graph, image_ids, camera_sets, db_path, stats, options, timer):
     """Bundle adjustment with dense evidence: first for the frames SIFT leaves short of matches; then,
-    once, for the frames the adjustment still left out (too few observations), and a second adjustment.
-    A capture SIFT handles well runs neither. Returns ``(flagged, rec, summary, dense, stats)``."""
+    once, for the frames the adjustment still left out (too few observations): those placed again
+    from their neighbours' renderings get dense evidence from that pose, the others (not short the
+    first time) from the model's, and a second adjustment starts from those poses. A capture SIFT
+    handles well runs neither. Returns ``(flagged, rec, summary, dense, relocalized, stats)``."""
     names = tuple(prediction.names)
     cameras, colmap_cameras = camera_sets
     dense = None
@@ -442,16 +451,52 @@ def _adjust_with_dense(image_dir, prediction, graph, image_ids, camera_sets, db_
     flagged, rec, summary = _adjust(
         prediction, image_ids, cameras, colmap_cameras, db_path, stats, dense, options, timer
     )
-    left_out = [names.index(w.name) for w in flagged if w.name not in set(short)]
-    if options.dense.enabled and left_out:
-        with timer.stage("dense_evidence"):
-            more = add_dense_evidence(db_path, image_dir, prediction, left_out, graph.reach(), options.dense)
-        dense = more if dense is None else dense.merged(more)
-        stats = feature_stats(db_path, names)
-        flagged, rec, summary = _adjust(
-            prediction, image_ids, cameras, colmap_cameras, db_path, stats, dense, options, timer
-        )
-    return flagged, rec, summary, dense, stats
+    if not (options.dense.enabled and flagged):
+        return flagged, rec, summary, dense, (), stats
+    with timer.stage("dense_evidence"):
+        start, more, found = _second_chance(image_dir, prediction, graph, rec, db_path, flagged, short, options)
+    if more is None:
+        return flagged, rec, summary, dense, found, stats
+    dense = more if dense is None else dense.merged(more)
+    stats = feature_stats(db_path, names)
+    flagged, rec, summary = _adjust(start, image_ids, cameras, colmap_cameras, db_path, stats, dense, options, timer)
+    return flagged, rec, summary, dense, found, stats
+
+
+def _second_chance(image_dir, prediction, graph, rec, db_path, flagged, short, options: RefineOptions):
+    """Dense evidence for the frames the first adjustment left out: ``(prediction to start the second
+    adjustment from, DenseStats or None when nothing was added, relocalised frames)``."""
+    names = tuple(prediction.names)
+    left = [names.index(w.name) for w in flagged]
+    placed = _model_poses_kept(rec, prediction, options.relocalize.max_source_change_deg)
+    found = tuple(relocalize(image_dir, prediction, left, placed, options.relocalize))
+    moved = {r.index for r in found}
+    retry = [k for k in left if k not in set(short) and k not in moved]
+    passes = []
+    if retry:
+        passes.append(add_dense_evidence(db_path, image_dir, prediction, retry, graph.reach(), options.dense))
+    start = with_poses(prediction, found)
+    if found:
+        reach = reach_matrix(len(names), found)
+        passes.append(add_dense_evidence(db_path, image_dir, start, sorted(moved), reach, options.dense))
+    if not passes:
+        return start, None, found
+    more = passes[0] if len(passes) == 1 else passes[0].merged(passes[1])
+    return start, more, found
+
+
+def _model_poses_kept(rec: pycolmap.Reconstruction, prediction: Prediction, max_change_deg: float) -> list[int]:
+    """Indices of the frames the adjustment registered within ``max_change_deg`` of the model's rotation
+    (after the best common world rotation): their model pose and depth can be rendered from. A frame
+    registered again far from its model pose (a correction) would render the model's error."""
+    names = tuple(prediction.names)
+    index = sorted(names.index(im.name) for im in rec.images.values() if im.has_pose)
+    if len(index) < 2:
+        return []
+    by_name = {im.name: im for im in rec.images.values()}
+    refined = np.stack([by_name[names[k]].cam_from_world().matrix()[:, :3] for k in index])
+    change = aligned_rotation_errors_deg(refined, prediction.cam_from_world[index, :, :3])
+    return [k for k, c in zip(index, change) if c <= max_change_deg]
 
 
 def _adjust(prediction, image_ids, cameras, colmap_cameras, db_path, stats, dense, options: RefineOptions, timer):

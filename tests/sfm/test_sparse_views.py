@@ -140,10 +140,11 @@ def test_the_wide_scene_runs_end_to_end(wide, wide_dir, tmp_path_factory, quick)
 
 
 def test_a_contradicted_frame_is_left_out_and_the_others_make_the_splat(wide, wide_dir, tmp_path):
-    """Frames 2 and 5 25 deg off (--quick): frame 2 contradicted, so it is in none of sparse/0,
-    transforms.json and the splat's training views; frame 5 corrected by the evidence, so the splat refines
-    its pose photometrically and says so. The run ends with exit 0 and a splat of the other seven."""
-    bad = SimulationOptions(seed=3, bad_frames=(2, 5), bad_rotation_deg=25.0)
+    """Frames 2 and 7 25 deg off (--quick): frame 7 contradicted, so it is in none of sparse/0,
+    transforms.json and the splat's training views; frame 2 corrected by the evidence (placed again from
+    its neighbours' renderings), so the splat refines its pose photometrically and says so. The run ends
+    with exit 0 and a splat of the other seven."""
+    bad = SimulationOptions(seed=3, bad_frames=(2, 7), bad_rotation_deg=25.0)
     build_simulated_vggt(wide, tmp_path / "sim.onnx", bad)
     images = tmp_path / "images"
     shutil.copytree(wide_dir, images, ignore=shutil.ignore_patterns("*.json", "*.npz"))
@@ -153,13 +154,13 @@ def test_a_contradicted_frame_is_left_out_and_the_others_make_the_splat(wide, wi
     report = json.loads((out / "report.json").read_text())
     statuses = {e["name"]: e["status"] for e in report["evidence"]["per_image"]}
     verdicts = {e["name"]: e["verdict"] for e in report["evidence"]["per_image"]}
-    assert verdicts.pop("frame_002.png") == "contradicted" and verdicts.pop("frame_005.png") == "contradicted"
-    assert statuses["frame_005.png"] == CameraStatus.CORRECTED.value and set(verdicts.values()) == {"confirmed"}
-    kept = sorted([*verdicts, "frame_005.png"])
+    assert verdicts.pop("frame_002.png") == "contradicted" and verdicts.pop("frame_007.png") == "contradicted"
+    assert statuses["frame_002.png"] == CameraStatus.CORRECTED.value and set(verdicts.values()) == {"confirmed"}
+    kept = sorted([*verdicts, "frame_002.png"])
     rec = pycolmap.Reconstruction(str(out / "sparse" / "0"))
     assert sorted(im.name for im in rec.images.values()) == kept
     frames = json.loads((out / "transforms.json").read_text())["frames"]
     assert sorted(Path(f["file_path"]).name for f in frames) == kept
     assert (out / "splat.ply").is_file() and report["splat"]["depth_prior"]
-    assert [c["name"] for c in report["splat"]["pose_refinement"]] == ["frame_005.png"]
+    assert [c["name"] for c in report["splat"]["pose_refinement"]] == ["frame_002.png"]
     assert "Photometric pose refinement" in (out / "report.html").read_text()
