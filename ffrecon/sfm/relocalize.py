@@ -132,7 +132,7 @@ def render_into(
     pose_j = prediction.cam_from_world[j]
     world = ((rays * depth[..., None] - pose_j[:, 3]) @ pose_j[:, :3]).reshape(-1, 3)
     pc = world @ cam_from_world_i[:, :3].T + cam_from_world_i[:, 3]
-    ok = ((depth > 0) & (conf >= min_conf)).ravel() & (pc[:, 2] > 1e-9)
+    ok = ((depth > 0) & (conf >= min_conf)).ravel() & (pc[:, 2] > 1e-9) & np.isfinite(pc).all(axis=1)
     source, world, pc = np.flatnonzero(ok), world[ok], pc[ok]
     x = camera_i.fx * pc[:, 0] / pc[:, 2] + camera_i.cx - 0.5  # COLMAP's rule -> OpenCV's pixel indices
     y = camera_i.fy * pc[:, 1] / pc[:, 2] + camera_i.cy - 0.5
@@ -148,7 +148,8 @@ def render_into(
     target, index = target[keep], index[keep]
     first = np.lexsort((pc[index, 2], target))  # by pixel, nearest first
     target, index = target[first], index[first]
-    winner = np.r_[True, target[1:] != target[:-1]]
+    winner = np.ones(len(target), bool)
+    winner[1:] = target[1:] != target[:-1]
     image = np.zeros(hi * wi, np.uint8)
     points = np.full((hi * wi, 3), np.nan)
     image[target[winner]] = gray_j.ravel()[source[index[winner]]]

@@ -44,6 +44,17 @@ def test_a_neighbour_rendered_at_the_true_pose_looks_like_the_photo(scene):
     assert (filled > 0).mean() >= landed.mean() and (filled[landed] == image[landed]).all()
 
 
+def test_a_neighbour_entirely_behind_the_view_renders_nothing(scene):
+    """Nothing lands (frame 1 seen from its own pose turned 180 deg): an empty rendering, no error."""
+    pred = _prediction(scene, EXACT)
+    gray = cv2.cvtColor(scene.images[1], cv2.COLOR_RGB2GRAY)
+    turned = pred.cam_from_world[1].copy()
+    turned[:, :3] = np.diag([-1.0, 1.0, -1.0]) @ turned[:, :3]
+    turned[:, 3] = np.diag([-1.0, 1.0, -1.0]) @ turned[:, 3]
+    image, world = render_into(gray, pred, 1, turned, pred.cameras[1], 1.0)
+    assert not image.any() and np.isnan(world).all()
+
+
 def test_a_frame_25_deg_off_is_placed_again(scene, tmp_path):
     """Frame 0 25 deg off: rendered from the other frames' model poses, it lands within 5 deg of the truth."""
     pred = _prediction(scene, FRAME_0_OFF)
