@@ -138,24 +138,33 @@ def dense_pairs(score: np.ndarray, frames: Sequence[int], options: DenseOptions)
     return sorted(out)
 
 
+def world_at_size(
+    prediction: Prediction, i: int, size_wh: tuple[int, int], min_conf: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Frame i's depth (resized to ``size_wh``) as world points: ``(world [H, W, 3] float64, ok [H, W] bool)``,
+    ``ok`` where the depth is known with confidence >= ``min_conf``."""
+    w, h = size_wh
+    depth = cv2.resize(prediction.depth[i], (w, h), interpolation=cv2.INTER_LINEAR).astype(np.float64)
+    conf = cv2.resize(prediction.depth_conf[i], (w, h), interpolation=cv2.INTER_NEAREST)
+    full = prediction.cameras[i]
+    cam = full.scaled(w / full.width, h / full.height)
+    uv = pixel_centers(h, w)
+    rays = np.stack([(uv[..., 0] - cam.cx) / cam.fx, (uv[..., 1] - cam.cy) / cam.fy, np.ones((h, w))], -1)
+    pose = prediction.cam_from_world[i]
+    return (rays * depth[..., None] - pose[:, 3]) @ pose[:, :3], (depth > 0) & (conf >= min_conf)
+
+
 def predicted_map(prediction: Prediction, i: int, j: int, size_wh: tuple[int, int], min_conf: float) -> np.ndarray:
     """``[H, W, 2]`` float32: where each pixel of frame i (``size_wh``) lands in frame j, COLMAP's pixel rule.
 
     Frame i's depth is resized to the image; pixels without confident depth, behind camera j or
     outside it are ``-1``.
     """
-    w, h = size_wh
-    depth = cv2.resize(prediction.depth[i], (w, h), interpolation=cv2.INTER_LINEAR).astype(np.float64)
-    conf = cv2.resize(prediction.depth_conf[i], (w, h), interpolation=cv2.INTER_NEAREST)
-    full_i, cam_j = prediction.cameras[i], prediction.cameras[j]
-    cam_i = full_i.scaled(w / full_i.width, h / full_i.height)
-    uv = pixel_centers(h, w)
-    rays = np.stack([(uv[..., 0] - cam_i.cx) / cam_i.fx, (uv[..., 1] - cam_i.cy) / cam_i.fy, np.ones((h, w))], -1)
-    pose_i, pose_j = prediction.cam_from_world[i], prediction.cam_from_world[j]
-    world = (rays * depth[..., None] - pose_i[:, 3]) @ pose_i[:, :3]
+    world, ok = world_at_size(prediction, i, size_wh, min_conf)
+    cam_j, pose_j = prediction.cameras[j], prediction.cam_from_world[j]
     pc = world @ pose_j[:, :3].T + pose_j[:, 3]
     z = pc[..., 2]
-    ok = (depth > 0) & (conf >= min_conf) & (z > 1e-9)
+    ok &= z > 1e-9
     safe = np.where(ok, z, 1.0)
     xy = np.stack([cam_j.fx * pc[..., 0] / safe + cam_j.cx, cam_j.fy * pc[..., 1] / safe + cam_j.cy], -1)
     ok &= (xy[..., 0] >= 0) & (xy[..., 0] <= cam_j.width) & (xy[..., 1] >= 0) & (xy[..., 1] <= cam_j.height)

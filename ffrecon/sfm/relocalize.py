@@ -35,8 +35,8 @@ import pycolmap
 
 from ffrecon.checks import check_number
 from ffrecon.geometry.poses import camera_centers
-from ffrecon.geometry.projection import pixel_centers
 from ffrecon.geometry.rotations import rotation_angle_deg
+from ffrecon.sfm.dense import world_at_size
 from ffrecon.sfm.overlap import OverlapOptions, overlap_matrix
 from ffrecon.types import PinholeCamera, Prediction
 
@@ -122,17 +122,10 @@ def render_into(
     Each pixel of j (its depth resized to ``gray_j``) is splatted onto the 2 x 2 pixels around where it
     lands (fewer holes where i is closer), the nearest surface winning.
     """
-    h, w = gray_j.shape
-    depth = cv2.resize(prediction.depth[j], (w, h), interpolation=cv2.INTER_LINEAR).astype(np.float64)
-    conf = cv2.resize(prediction.depth_conf[j], (w, h), interpolation=cv2.INTER_NEAREST)
-    full = prediction.cameras[j]
-    cam_j = full.scaled(w / full.width, h / full.height)
-    uv = pixel_centers(h, w)
-    rays = np.stack([(uv[..., 0] - cam_j.cx) / cam_j.fx, (uv[..., 1] - cam_j.cy) / cam_j.fy, np.ones((h, w))], -1)
-    pose_j = prediction.cam_from_world[j]
-    world = ((rays * depth[..., None] - pose_j[:, 3]) @ pose_j[:, :3]).reshape(-1, 3)
+    world, known = world_at_size(prediction, j, (gray_j.shape[1], gray_j.shape[0]), min_conf)
+    world = world.reshape(-1, 3)
     pc = world @ cam_from_world_i[:, :3].T + cam_from_world_i[:, 3]
-    ok = ((depth > 0) & (conf >= min_conf)).ravel() & (pc[:, 2] > 1e-9) & np.isfinite(pc).all(axis=1)
+    ok = known.ravel() & (pc[:, 2] > 1e-9) & np.isfinite(pc).all(axis=1)
     source, world, pc = np.flatnonzero(ok), world[ok], pc[ok]
     x = camera_i.fx * pc[:, 0] / pc[:, 2] + camera_i.cx - 0.5  # COLMAP's rule -> OpenCV's pixel indices
     y = camera_i.fy * pc[:, 1] / pc[:, 2] + camera_i.cy - 0.5
