@@ -101,6 +101,17 @@ def rotation_angle_deg(rot: np.ndarray) -> np.ndarray:
     return np.degrees(2 * np.arctan2(vec, np.abs(q[..., 3])))
 
 
+def chordal_mean(rotations: np.ndarray) -> np.ndarray:
+    """The chordal L2 mean of ``[N, 3, 3]`` rotations: their sum projected onto SO(3) by SVD.
+
+    >>> turn = axis_angle_to_matrix(np.array([0.0, 0.0, 0.2]))
+    >>> round(float(rotation_angle_deg(chordal_mean(np.stack([turn, turn.T])))), 9)
+    0.0
+    """
+    u, _, vt = np.linalg.svd(np.sum(rotations, axis=0))
+    return u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt)) or 1.0]) @ vt
+
+
 def random_rotation(rng: np.random.Generator, size: int | None = None) -> np.ndarray:
     """Uniformly random rotations ``[size, 3, 3]`` (or ``[3, 3]``) from normalised Gaussians."""
     q = rng.normal(size=(1 if size is None else size, 4))

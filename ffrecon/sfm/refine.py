@@ -54,6 +54,7 @@ from ffrecon.sfm.features import (
 from ffrecon.sfm.guided import GuidanceOptions, GuidanceStats, MatchGuidance, filter_matches, guided_matches
 from ffrecon.sfm.overlap import OverlapGraph, OverlapOptions, overlap_graph
 from ffrecon.sfm.relocalize import Relocalized, RelocalizeOptions, reach_matrix, relocalize, with_poses
+from ffrecon.sfm.screen import ScreenOptions, Suspect, reseeded, screen_rotations
 from ffrecon.timing import StageTimer, Timings
 from ffrecon.types import PinholeCamera, Prediction
 
@@ -104,6 +105,8 @@ class RefineOptions:
     dense: DenseOptions = DenseOptions()  # model-guided correspondences for the frames SIFT leaves short
     # Frames the first adjustment leaves out placed again from their neighbours' renderings (with dense evidence)
     relocalize: RelocalizeOptions = RelocalizeOptions()
+    # Frames whose verified pairs agree on a rotation far from the model's start the adjustment from it
+    screen: ScreenOptions = ScreenOptions()
     reuse_features_from: Path | None = None  # a COLMAP database with SIFT of the same images (the cross-check's)
     single_camera: bool = True  # one shared camera (median feed-forward intrinsics) if all images share a size
     square_pixels: bool = True  # one focal length per camera (fx = fy)
@@ -149,6 +152,7 @@ class RefineResult:
     num_pairs: int  # image pairs matched
     features: FeatureStats
     guidance: GuidanceStats | None  # None without feed-forward guidance of the matching
+    screened: tuple[Suspect, ...]  # frames whose verified pairs put them far from the model's rotation
     dense: DenseStats | None  # None: no frame was short of SIFT matches (or dense evidence is off)
     relocalized: tuple[Relocalized, ...]  # frames placed again from their neighbours' renderings
     bundle: BundleSummary | None
@@ -181,6 +185,7 @@ class RefineResult:
             "mean_reprojection_error_px": float(err) if np.isfinite(err) else None,
             "lens_k1": None if self.distortion is None else _median_k1(self.distortion, self.registered),
             "match_guidance": None if self.guidance is None else self.guidance.to_report(),
+            "screened": [s.to_report(self.names) for s in self.screened],
             "dense_evidence": None if self.dense is None else self.dense.to_report(),
             "relocalized": [r.to_report(self.names) for r in self.relocalized],
             "bundle_adjustment": None if self.bundle is None else self.bundle.to_report(),
@@ -328,26 +333,36 @@ def _reuse_matches(
     return reused
 
 
-def _match(
+def _match_unguided(
+    db_path: Path, pairs: list[tuple[str, str]], reused: list[tuple[str, str]], options: RefineOptions, pairs_path: Path
+) -> list[tuple[str, str]]:
+    """COLMAP's matching and verification of ``pairs`` not among ``reused`` (verified already); none when
+    the matching is to be guided from the start. Returns the pairs verified."""
+    if options.guidance.mode is MatchGuidance.GUIDED:
+        return []
+    done = {frozenset(p) for p in reused}
+    fresh = [p for p in pairs if frozenset(p) not in done]
+    if fresh:
+        match_pairs(db_path, fresh, options.sift, pairs_path)
+    return list(reused) + fresh
+
+
+def _guide(
     db_path: Path,
     prediction: Prediction,
     pairs: list[tuple[str, str]],
-    reused: list[tuple[str, str]],
+    verified: list[tuple[str, str]],
     options: RefineOptions,
     pairs_path: Path,
 ) -> GuidanceStats | None:
-    """Match and verify ``pairs`` (those in ``reused`` are verified already), guided by the prediction
-    as ``options.guidance.mode`` says; guided matching redoes ``pairs`` only."""
+    """Check the ``verified`` matches against the prediction, or match ``pairs`` again guided by it, as
+    ``options.guidance.mode`` says."""
     mode = options.guidance.mode
+    if mode is MatchGuidance.NONE:
+        return None
     if mode is not MatchGuidance.GUIDED:
-        done = {frozenset(p) for p in reused}
-        fresh = [p for p in pairs if frozenset(p) not in done]
-        if fresh:
-            match_pairs(db_path, fresh, options.sift, pairs_path)
-        pairs = list(reused) + fresh
-        if mode is MatchGuidance.NONE:
-            return None
-        stats = filter_matches(db_path, prediction, pairs, options.guidance, min_inliers=options.sift.min_num_inliers)
+        least = options.sift.min_num_inliers
+        stats = filter_matches(db_path, prediction, verified, options.guidance, min_inliers=least)
         if mode is MatchGuidance.FILTER or stats.rejected_share <= options.guidance.auto_max_rejected:
             return stats
         logger.warning(
@@ -358,6 +373,24 @@ def _match(
     stats = guided_matches(db_path, prediction, pairs, options.guidance)
     verify_pairs(db_path, write_pairs(pairs_path, pairs), options.sift)
     return stats
+
+
+def _screen(db_path: Path, prediction: Prediction, verified: list, options: RefineOptions) -> tuple[Suspect, ...]:
+    """The frames whose COLMAP-verified pairs (before any filtering by the model) contradict their model
+    rotation; nothing to screen when the matching is guided from the start."""
+    if not verified:
+        return ()
+    suspects, _ = screen_rotations(db_path, prediction, options.screen)
+    for s in suspects:
+        logger.warning(
+            "%s: %d of its %d verified pairs put it %.1f deg from the model's rotation; starting the "
+            "adjustment from their rotation",
+            prediction.names[s.index],
+            s.num_agreeing,
+            s.num_pairs,
+            s.gap_deg,
+        )
+    return suspects
 
 
 def extract_refine_features(
@@ -400,10 +433,15 @@ def run_refine(image_dir: Path, prediction: Prediction, options: RefineOptions, 
     pairs = [(names[i], names[j]) for i, j in graph.pairs]
     with timer.stage("matching"):
         reused = _reuse_matches(db_path, graph, names, copied, options)
-        guidance = _match(db_path, prediction, pairs, reused, options, work / "pairs.txt")
+        verified = _match_unguided(db_path, pairs, reused, options, work / "pairs.txt")
+    with timer.stage("screening"):
+        screened = _screen(db_path, prediction, verified, options)
+        start = reseeded(prediction, screened)
+    with timer.stage("matching"):
+        guidance = _guide(db_path, start, pairs, verified, options, work / "pairs.txt")
     stats = feature_stats(db_path, names)
     flagged, rec, summary, dense, relocalized, stats = _adjust_with_dense(
-        image_dir, prediction, graph, image_ids, (cameras, colmap_cameras), db_path, stats, options, timer
+        image_dir, start, graph, image_ids, (cameras, colmap_cameras), db_path, stats, options, timer
     )
     refined_names = {img.name for img in rec.images.values() if img.has_pose} if summary is not None else set()
     provenance = dict(
@@ -412,6 +450,7 @@ def run_refine(image_dir: Path, prediction: Prediction, options: RefineOptions, 
         num_pairs=len({frozenset(p) for p in pairs + reused}),
         features=stats,
         guidance=guidance,
+        screened=screened,
         dense=dense,
         relocalized=relocalized,
         bundle=summary,

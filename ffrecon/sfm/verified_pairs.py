@@ -153,12 +153,15 @@ def _relative_pose(
 
 @dataclass(frozen=True)
 class RelativeRotation:
-    """What a verified pair says of its two cameras' relative rotation, whatever their poses."""
+    """What a verified pair says of its two cameras' relative pose, whatever their poses: the rotation,
+    and the direction of the baseline (an essential matrix has no scale)."""
 
     name1: str
     name2: str
     num_inliers: int  # verified matches the essential matrix kept
     cam2_from_cam1: np.ndarray = field(repr=False)  # [3, 3] float64 rotation
+    # [3] float64 unit vector: camera 1's centre as seen from camera 2 (cam2_from_cam1's translation, unit length)
+    cam1_centre_in_cam2: np.ndarray = field(repr=False)
 
 
 def relative_rotations(db_path: Path, names: Sequence[str], *, min_inliers: int = 15) -> tuple[RelativeRotation, ...]:
@@ -183,7 +186,9 @@ def relative_rotations(db_path: Path, names: Sequence[str], *, min_inliers: int 
             if pose is None or len(pose.inlier_matches) < min_inliers:
                 continue
             rotation = np.asarray(pose.cam2_from_cam1.rotation.matrix(), np.float64)
-            out.append(RelativeRotation(name_of[ids[0]], name_of[ids[1]], len(pose.inlier_matches), rotation))
+            baseline = np.asarray(pose.cam2_from_cam1.translation, np.float64)
+            baseline = baseline / max(float(np.linalg.norm(baseline)), 1e-300)
+            out.append(RelativeRotation(name_of[ids[0]], name_of[ids[1]], len(pose.inlier_matches), rotation, baseline))
     finally:
         db.close()
     return tuple(out)
