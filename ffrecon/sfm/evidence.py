@@ -19,7 +19,9 @@ Each frame gets one of three verdicts (issue 21), and a status saying which evid
   pose against the refined one, or the relative rotations of the frame's verified pairs against its
   model pose) the frame is kept out of the splat and the final model;
 - **unchecked**: no evidence either way (too few matches). The frame keeps the model's camera and is
-  marked so. Lack of matches is never a contradiction.
+  marked so. Lack of matches is never a contradiction. A frame refined on one pair whose matches lie
+  on a plane is unchecked too (its pose is ambiguous, :mod:`ffrecon.sfm.support`): it keeps its
+  refined pose, marked unconfirmed.
 
 The gates block a run on contradiction (the refined model does not fit its matches, COLMAP disagrees
 on most shared frames, most frames contradicted), never on missing evidence: frames left unchecked
@@ -42,6 +44,7 @@ from ffrecon.sfm.compare import DisagreementOptions, compare_poses
 from ffrecon.sfm.crosscheck import ColmapResult
 from ffrecon.sfm.gates import GatesResult, GateStatus, GateVerdict
 from ffrecon.sfm.refine import RefineResult
+from ffrecon.sfm.support import PairSupport, planar_single_pair
 from ffrecon.sfm.verified_pairs import relative_rotations
 
 
@@ -59,12 +62,14 @@ class CameraStatus(enum.Enum):
     DISAGREES = "disagrees with COLMAP"  # refined, but COLMAP placed it elsewhere: left out
     CONTRADICTED = "contradicted by its matches"  # its verified pairs' rotations disagree with its pose: left out
     UNCHECKED = "unchecked"  # no evidence either way: keeps the model's camera
+    PLANAR_PAIR = "refined on one planar pair"  # placed by one pair whose matches lie on a plane: ambiguous
 
     @property
     def verdict(self) -> FrameVerdict:
         if self in (CameraStatus.CONFIRMED, CameraStatus.REFINED, CameraStatus.COLMAP_ONLY):
             return FrameVerdict.CONFIRMED
-        return FrameVerdict.UNCHECKED if self is CameraStatus.UNCHECKED else FrameVerdict.CONTRADICTED
+        unchecked = self in (CameraStatus.UNCHECKED, CameraStatus.PLANAR_PAIR)
+        return FrameVerdict.UNCHECKED if unchecked else FrameVerdict.CONTRADICTED
 
     @property
     def kept(self) -> bool:
@@ -84,6 +89,9 @@ class EvidenceOptions:
     # there (feed-forward errors are a few degrees; a frame off by more is a failure of the model).
     max_correction_deg: float = 10.0
     min_pair_inliers: int = 10  # verified matches of a pair whose relative rotation counts as evidence
+    # A refined frame with fewer observations in tracks beyond its main partner hangs on that one pair;
+    # if the pair's matches are planar it is unchecked, not confirmed (sfm/support.py)
+    min_independent_observations: int = 40
     max_contradicted_share: float = 0.5  # more frames contradicted: the model fails on this capture (blocks)
     disagreement: DisagreementOptions = DisagreementOptions()
 
@@ -92,7 +100,8 @@ class EvidenceOptions:
             check_number(f"EvidenceOptions.{name}", getattr(self, name), low=0, high=1)
         check_number("EvidenceOptions.max_reprojection_px", self.max_reprojection_px, low=0, low_open=True)
         check_number("EvidenceOptions.min_track_length", self.min_track_length, low=0)
-        check_number("EvidenceOptions.min_common_images", self.min_common_images, low=0, integer=True)
+        for name in ("min_common_images", "min_independent_observations"):
+            check_number(f"EvidenceOptions.{name}", getattr(self, name), low=0, integer=True)
         check_number("EvidenceOptions.min_pair_inliers", self.min_pair_inliers, low=5, integer=True)
         check_number("EvidenceOptions.max_correction_deg", self.max_correction_deg, low=0, low_open=True, high=180)
 
@@ -190,6 +199,9 @@ def _per_image(
                 out.append(CameraEvidence(name, CameraStatus.CORRECTED, why, change))
             elif comparison is not None and colmap.registered[k]:
                 out.append(CameraEvidence(name, CameraStatus.CONFIRMED, "COLMAP's pose agrees", change))
+            elif (single := _planar_pair(refine, name, options)) is not None:
+                why = single.describe() + "; its refined pose is kept, unconfirmed"
+                out.append(CameraEvidence(name, CameraStatus.PLANAR_PAIR, why, change))
             else:
                 n_obs = refine.observations[k] if refine.observations is not None else 0
                 why = f"bundle-adjusted on {n_obs} observations; " + (
@@ -214,6 +226,14 @@ def _per_image(
         if out[k] is None:
             out[k] = _pair_verdict(name, flagged.get(name, "not refined"), pairs.get(name, []), options)
     return tuple(out), comparison
+
+
+def _planar_pair(refine: RefineResult, name: str, options: EvidenceOptions) -> PairSupport | None:
+    rec = refine.reconstruction
+    image = None if rec is None else next((im for im in rec.images.values() if im.name == name), None)
+    if image is None or not image.has_pose:
+        return None
+    return planar_single_pair(rec, image.image_id, options.min_independent_observations)
 
 
 def _pair_checks(names, ff_cam_from_world, refine: RefineResult, pending: list[str], options) -> dict:
