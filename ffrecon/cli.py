@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import logging
 import os
@@ -435,7 +436,7 @@ def _parse_with_imports(argv: list[str] | None) -> argparse.Namespace:
     has always imported them: with pycolmap's bundled libraries loaded first, Pillow's PNG writer aborts in
     zlib's deflateEnd ("double free", reproduced with `ffrecon demo`).
     """
-    with interrupts_deferred():
+    with interrupts_deferred(), _blocked_in_the_kernel():
         import cv2  # noqa: F401
         import numpy  # noqa: F401
         import PIL.Image  # noqa: F401
@@ -446,6 +447,27 @@ def _parse_with_imports(argv: list[str] | None) -> argparse.Namespace:
         if args.command in ("run", "demo"):
             import ffrecon.pipeline  # noqa: F401
     return args
+
+
+@contextlib.contextmanager
+def _blocked_in_the_kernel():
+    """SIGINT and SIGTERM blocked by the kernel (left pending) while glog may own them: pycolmap's import
+    installs glog's native handler part-way through its initialisation, and a signal arriving after that
+    was handled by glog (a stack dump, the process killed: reproduced by SIGTERM 0.25 s after start on a
+    loaded machine). Blocked before numpy and OpenCV load, because the threads they start (OpenBLAS's)
+    inherit the mask: a signal that reached such a thread went to glog's handler too (seen once in 40
+    tries). At the end Python's handlers are put back over glog's, then the main thread unblocks, so a
+    pending signal reaches the Python handler in force (held by :func:`interrupts_deferred`)."""
+    held = {signal.SIGINT, signal.SIGTERM}
+    before = signal.pthread_sigmask(signal.SIG_BLOCK, held)
+    try:
+        yield
+    finally:
+        for sig in held:
+            handler = signal.getsignal(sig)
+            if handler is not None:
+                signal.signal(sig, handler)
+        signal.pthread_sigmask(signal.SIG_SETMASK, before)
 
 
 def _terminate(signum, frame) -> None:
