@@ -125,9 +125,14 @@ def _tri_angle_deg(db: pycolmap.Database, ids: tuple[int, int], keypoints: dict[
 
 
 def _relative_pose(
-    db: pycolmap.Database, ids: tuple[int, int], geometry: pycolmap.TwoViewGeometry, keypoints: dict[int, np.ndarray]
+    db: pycolmap.Database,
+    ids: tuple[int, int],
+    geometry: pycolmap.TwoViewGeometry,
+    keypoints: dict[int, np.ndarray],
+    min_trials: int | None = None,
 ) -> pycolmap.TwoViewGeometry | None:
-    """The pair's calibrated relative pose (``cam2_from_cam1``, ``tri_angle``) from its verified inliers, or None."""
+    """The pair's calibrated relative pose (``cam2_from_cam1``, ``tri_angle``) from its verified inliers, or
+    None. ``min_trials``: RANSAC's minimum number of trials (None: pycolmap's 1000)."""
     matches = np.asarray(geometry.inlier_matches)
     if len(matches) < _MIN_POSE_INLIERS:
         return None
@@ -138,6 +143,8 @@ def _relative_pose(
     points1, points2 = keypoints[ids[0]][matches[:, 0]], keypoints[ids[1]][matches[:, 1]]
     ransac = pycolmap.RANSACOptions()
     ransac.random_seed = 0
+    if min_trials is not None:
+        ransac.min_num_trials = min_trials
     essential = pycolmap.estimate_essential_matrix(points1, points2, cameras[0], cameras[1], ransac)
     if essential is None:
         return None
@@ -166,7 +173,11 @@ class RelativeRotation:
 
 def relative_rotations(db_path: Path, names: Sequence[str], *, min_inliers: int = 15) -> tuple[RelativeRotation, ...]:
     """The relative rotation of every verified pair that involves one of ``names`` and has at least
-    ``min_inliers`` matches in its essential matrix (COLMAP's database, any matcher's matches)."""
+    ``min_inliers`` matches in its essential matrix (COLMAP's database, any matcher's matches).
+
+    The matches were verified already, so nearly all are inliers and RANSAC's confidence is reached in
+    a few dozen trials: its minimum is lowered from pycolmap's 1000 to 50 (the trials stay adaptive).
+    On the demo's 109 pairs this took the time from 2.0 s to 0.2 s."""
     db = pycolmap.Database.open(str(db_path))
     try:
         id_of = {image.name: image.image_id for image in db.read_all_images()}
@@ -182,7 +193,7 @@ def relative_rotations(db_path: Path, names: Sequence[str], *, min_inliers: int 
             geometry = db.read_two_view_geometry(*ids)
             if geometry.config not in _USABLE:
                 continue
-            pose = _relative_pose(db, ids, geometry, keypoints)
+            pose = _relative_pose(db, ids, geometry, keypoints, min_trials=50)
             if pose is None or len(pose.inlier_matches) < min_inliers:
                 continue
             rotation = np.asarray(pose.cam2_from_cam1.rotation.matrix(), np.float64)
