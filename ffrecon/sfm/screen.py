@@ -53,6 +53,7 @@ class ScreenOptions:
         check_number("ScreenOptions.min_inliers", self.min_inliers, low=8, integer=True)
         check_number("ScreenOptions.min_share", self.min_share, low=0, high=1)
         check_number("ScreenOptions.min_agreeing", self.min_agreeing, low=1, integer=True)
+        check_number("ScreenOptions.min_ray_angle_deg", self.min_ray_angle_deg, low=0, high=180)
 
 
 @dataclass(frozen=True)
