@@ -230,7 +230,7 @@ def _per_image(
 
 def _planar_pair(refine: RefineResult, name: str, options: EvidenceOptions) -> PairSupport | None:
     rec = refine.reconstruction
-    image = None if rec is None else next((im for im in rec.images.values() if im.name == name), None)
+    image = None if rec is None else rec.find_image_with_name(name)
     if image is None or not image.has_pose:
         return None
     return planar_single_pair(rec, image.image_id, options.min_independent_observations)

@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from ffrecon.checks import check_number
+from ffrecon.geometry.poses import camera_centers
 from ffrecon.geometry.rotations import chordal_mean, rotation_angle_deg
 from ffrecon.sfm.verified_pairs import relative_rotations
 from ffrecon.types import Prediction
@@ -169,10 +170,10 @@ def _meeting_point(frame: int, pairs: list[PairGap], rotation: np.ndarray, cam_f
             partner, direction = g.index2, cam_from_world[g.index2, :, :3].T @ g.cam1_centre_in_cam2
         else:  # the partner is camera 1, seen from the frame: the frame lies the opposite way from it
             partner, direction = g.index1, -rotation.T @ g.cam1_centre_in_cam2
-        origins.append(-cam_from_world[partner, :, :3].T @ cam_from_world[partner, :, 3])
+        origins.append(camera_centers(cam_from_world[partner]))
         directions.append(direction / np.linalg.norm(direction))
     origins, directions = np.stack(origins), np.stack(directions)
-    spread = rotation_angle_deg_between(directions)
+    spread = _widest_angle_deg(directions)
     if spread < options.min_ray_angle_deg:
         return None
     across = np.eye(3)[None] - directions[:, :, None] * directions[:, None, :]  # [P, 3, 3] off-ray projections
@@ -181,7 +182,7 @@ def _meeting_point(frame: int, pairs: list[PairGap], rotation: np.ndarray, cam_f
     return centre if np.all(ahead > 0) else None
 
 
-def rotation_angle_deg_between(directions: np.ndarray) -> float:
+def _widest_angle_deg(directions: np.ndarray) -> float:
     """The largest angle (deg) between any two of ``[P, 3]`` unit vectors."""
     cosines = np.clip(directions @ directions.T, -1.0, 1.0)
     return float(np.degrees(np.arccos(cosines.min())))
@@ -202,7 +203,6 @@ def reseeded(prediction: Prediction, suspects: tuple[Suspect, ...]) -> Predictio
         return prediction
     cam_from_world = prediction.cam_from_world.copy()
     for s in suspects:
-        rot, trans = cam_from_world[s.index, :, :3], cam_from_world[s.index, :, 3]
-        centre = -rot.T @ trans if s.centre is None else s.centre
+        centre = camera_centers(cam_from_world[s.index]) if s.centre is None else s.centre
         cam_from_world[s.index] = np.concatenate([s.rotation, (-s.rotation @ centre)[:, None]], axis=1)
     return dataclasses.replace(prediction, cam_from_world=cam_from_world)
