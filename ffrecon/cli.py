@@ -239,6 +239,12 @@ def _add_export_arguments(export: argparse.ArgumentParser) -> None:
         "--fp16", action="store_true", help="fp16 weights and compute, float32 inputs/outputs (GPU; half the size)"
     )
     export.add_argument(
+        "--fused-attention",
+        action="store_true",
+        help="attention as onnxruntime's MultiHeadAttention op: on CUDA, flash/memory-efficient kernels whose "
+        "memory grows linearly with the frames (GPU; the CPU provider runs it too)",
+    )
+    export.add_argument(
         "--frames",
         type=int,
         default=2,
@@ -279,6 +285,7 @@ def _export(args: argparse.Namespace) -> None:
         size_hw=(args.height, args.width) if args.height else None,
         photos=args.photos,
         fp16=args.fp16,
+        fused_attention=args.fused_attention,
         random_init=args.random_init,
         tiny=args.tiny,
         keep_untrained_heads=args.keep_untrained_heads,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import subprocess
 from pathlib import Path
 
 
@@ -15,3 +16,29 @@ def available_memory_bytes() -> int:
     except OSError:
         pass
     return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+
+
+def cuda_free_memory_bytes() -> int | None:
+    """Free memory on the first CUDA device now, or None when there is none to ask.
+
+    Through torch when its build has CUDA (gsplat's machines), else ``nvidia-smi`` (present wherever
+    NVIDIA's driver is, e.g. onnxruntime-gpu beside a CPU build of torch).
+    """
+    try:
+        import torch
+
+        if torch.cuda.is_available():
+            return int(torch.cuda.mem_get_info()[0])
+    except Exception:  # a broken CUDA install must not stop the run: the caller falls back to host memory
+        pass
+    try:
+        out = subprocess.run(
+            ["nvidia-smi", "--query-gpu=memory.free", "--format=csv,noheader,nounits", "--id=0"],
+            capture_output=True,
+            text=True,
+            timeout=10,
+            check=True,
+        ).stdout
+        return int(float(out.split()[0]) * 2**20)
+    except (OSError, ValueError, IndexError, subprocess.SubprocessError):
+        return None

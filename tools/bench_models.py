@@ -21,15 +21,34 @@ import sys
 from pathlib import Path
 
 CHILD = r"""
-import json, resource, sys, time
+import json, resource, sys, threading, time
 from pathlib import Path
-limit = int(float(sys.argv[4]) * 2**30)
-resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
+import onnxruntime as ort
+on_gpu = "CUDAExecutionProvider" in ort.get_available_providers()
+if not on_gpu:  # CUDA reserves address space far beyond what it uses: the limit is for the CPU provider
+    limit = int(float(sys.argv[4]) * 2**30)
+    resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
 import numpy as np
 from PIL import Image
 from ffrecon.models.adapters import PreprocessMode, adapter_for
 from ffrecon.models.runner import OnnxModel
-model_path, photos, frames = Path(sys.argv[1]), Path(sys.argv[2]), int(sys.argv[3])
+model_path, photos, frames, repeats = Path(sys.argv[1]), Path(sys.argv[2]), int(sys.argv[3]), int(sys.argv[5])
+gpu_used, gpu_peak = None, [0]
+try:  # the whole device's memory in use (NVML), polled while the model runs: onnxruntime has no peak counter
+    import pynvml
+    pynvml.nvmlInit()
+    handle = pynvml.nvmlDeviceGetHandleByIndex(0)
+    gpu_used = lambda: pynvml.nvmlDeviceGetMemoryInfo(handle).used
+except Exception:
+    pass
+done = threading.Event()
+def poll():
+    while not done.is_set():
+        gpu_peak[0] = max(gpu_peak[0], gpu_used())
+        time.sleep(0.005)
+gpu_base = gpu_used() if gpu_used else 0
+if gpu_used:
+    threading.Thread(target=poll, daemon=True).start()
 files = sorted(p for p in photos.iterdir() if p.suffix.lower() in (".jpg", ".jpeg", ".png"))
 images = [np.asarray(Image.open(files[k % len(files)]).convert("RGB")) for k in range(frames)]
 t0 = time.perf_counter()
@@ -38,22 +57,28 @@ load = time.perf_counter() - t0
 adapter = adapter_for(model.family)
 batch, _ = adapter.preprocess(images, PreprocessMode.CROP)
 rss_loaded = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
-t0 = time.perf_counter()
+times = []
 try:
-    model.run({adapter.input_name: batch})
+    for _ in range(1 + repeats):  # the first call also grows the arena and picks cuDNN's algorithms
+        t0 = time.perf_counter()
+        model.run({adapter.input_name: batch})
+        times.append(time.perf_counter() - t0)
     status = "ok"
 except Exception as exc:
     status = "does not fit: " + str(exc).splitlines()[0][:120]
-run = time.perf_counter() - t0
+done.set()
+run = times[0] if times else float("nan")
+warm = float(np.median(times[1:])) if len(times) > 1 else run
 peak_gb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
-print(json.dumps({"frames": frames, "status": status, "load_s": load, "run_s": run, "peak_gb": peak_gb,
+print(json.dumps({"frames": frames, "status": status, "load_s": load, "run_s": run, "warm_s": warm,
+                  "peak_gb": peak_gb, "gpu_peak_gb": (gpu_peak[0] - gpu_base) / 2**30 if gpu_used else None,
                   "loaded_gb": rss_loaded, "input_hw": list(batch.shape[2:]), "providers": list(model.providers)}))
 """
 
 
-def measure(model: Path, photos: Path, frames: int, limit_gb: float) -> dict:
+def measure(model: Path, photos: Path, frames: int, limit_gb: float, repeats: int = 0) -> dict:
     proc = subprocess.run(
-        [sys.executable, "-c", CHILD, str(model), str(photos), str(frames), str(limit_gb)],
+        [sys.executable, "-c", CHILD, str(model), str(photos), str(frames), str(limit_gb), str(repeats)],
         capture_output=True,
         text=True,
     )
@@ -75,32 +100,38 @@ def main() -> int:
         "--memory-limit-gb", type=float, default=20.0, help="address-space limit per run (default %(default)s)"
     )
     parser.add_argument(
+        "--repeats", type=int, default=0, help="timed calls after the first (their median is 'warm s'; GPU: use 3)"
+    )
+    parser.add_argument(
         "--fit", action="store_true", help="fit peak memory = a + b S + c S^2 over the runs that fitted"
     )
     args = parser.parse_args()
     size = sum(p.stat().st_size for p in args.model.parent.glob(args.model.name + "*")) / 2**30
     print(f"{args.model.name}: {size:.2f} GB on disk")
-    print("| frames | status | load s | inference s | s / frame | peak memory GB |")
-    print("|---|---|---|---|---|---|")
+    print("| frames | status | load s | first call s | warm call s | warm ms / frame | peak host GB | peak GPU GB |")
+    print("|---|---|---|---|---|---|---|---|")
     rows = []
     for frames in args.frames:
-        r = measure(args.model, args.photos, frames, args.memory_limit_gb)
+        r = measure(args.model, args.photos, frames, args.memory_limit_gb, args.repeats)
         rows.append(r)
         if r["status"] == "ok":
+            gpu = "-" if r.get("gpu_peak_gb") is None else f"{r['gpu_peak_gb']:.2f}"
             print(
-                f"| {frames} | ok | {r['load_s']:.1f} | {r['run_s']:.1f} | {r['run_s'] / frames:.2f} "
-                f"| {r['peak_gb']:.2f} |",
+                f"| {frames} | ok ({r['providers'][0].replace('ExecutionProvider', '')}) | {r['load_s']:.1f} "
+                f"| {r['run_s']:.2f} | {r['warm_s']:.3f} | {1000 * r['warm_s'] / frames:.1f} | {r['peak_gb']:.2f} "
+                f"| {gpu} |",
                 flush=True,
             )
         else:
-            print(f"| {frames} | {r['status']} | | | | |", flush=True)
+            print(f"| {frames} | {r['status']} | | | | | | |", flush=True)
     ok = [r for r in rows if r["status"] == "ok"]
     if args.fit and len(ok) >= 3:
         import numpy as np
 
         s = np.array([r["frames"] for r in ok], dtype=float)
         design = np.stack([np.ones_like(s), s, s**2], axis=1)
-        coef, *_ = np.linalg.lstsq(design, np.array([r["peak_gb"] for r in ok]), rcond=None)
+        key = "gpu_peak_gb" if ok[0].get("gpu_peak_gb") is not None else "peak_gb"
+        coef, *_ = np.linalg.lstsq(design, np.array([r[key] for r in ok]), rcond=None)
         print(f"peak GB ~ {coef[0]:.3f} + {coef[1]:.4f} S + {coef[2]:.5f} S^2")
     return 0
 

@@ -38,6 +38,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -63,6 +64,14 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--out", type=Path, default=None, help="work folder (default: a temporary one)")
     parser.add_argument("--keep", action="store_true", help="keep the runs' output folders")
     parser.add_argument("--json", type=Path, default=None, help="also save the results here")
+    parser.add_argument(
+        "--models",
+        type=Path,
+        nargs="+",
+        default=None,
+        help="exported .onnx files to run instead of the simulated model (rows labelled by file name)",
+    )
+    parser.add_argument("--no-colmap-alone", action="store_true", help="skip the COLMAP-alone row (no xCOLMAP)")
     parser.add_argument("--colmap-only", nargs=2, type=Path, metavar=("IMAGES", "OUT"), help=argparse.SUPPRESS)
     parser.add_argument("--truth", type=Path, default=None, help=argparse.SUPPRESS)  # scene folder, for the child
     return parser
@@ -97,19 +106,52 @@ def quick_available() -> bool:
     return "--quick" in subprocess.run(cmd, capture_output=True, text=True, check=True).stdout
 
 
-def measured(cmd: list[str], log_path: Path) -> tuple[int, float, float]:
-    """Run ``cmd`` (output to ``log_path``): ``(exit code, wall seconds, peak resident memory GB)``.
+class GpuPeak:
+    """The first GPU's memory in use, polled (NVML) while a child runs, above what was in use before it;
+    ``peak_gb`` is None without NVML (no NVIDIA driver, or no ``nvidia-ml-py``)."""
+
+    def __init__(self) -> None:
+        self.peak_gb: float | None = None
+        try:
+            import pynvml
+
+            pynvml.nvmlInit()
+            handle = pynvml.nvmlDeviceGetHandleByIndex(0)
+            self._used = lambda: pynvml.nvmlDeviceGetMemoryInfo(handle).used
+        except Exception:  # NVML's errors are its own types; any of them means "not measurable here"
+            self._used = None
+
+    def __enter__(self) -> GpuPeak:
+        if self._used is not None:
+            self._base, self._peak, self._done = self._used(), 0, threading.Event()
+            self._thread = threading.Thread(target=self._poll, daemon=True)
+            self._thread.start()
+        return self
+
+    def _poll(self) -> None:
+        while not self._done.wait(0.02):
+            self._peak = max(self._peak, self._used())
+
+    def __exit__(self, *exc: object) -> None:
+        if self._used is not None:
+            self._done.set()
+            self._thread.join()
+            self.peak_gb = max(self._peak - self._base, 0) / GIB
+
+
+def measured(cmd: list[str], log_path: Path) -> tuple[int, float, float, float | None]:
+    """Run ``cmd`` (output to ``log_path``): ``(exit code, wall seconds, peak resident GB, peak GPU GB or None)``.
 
     The peak is the kernel's high-water mark of the child (and of its own waited-for children), from
     ``os.wait4``: ``ru_maxrss`` of RUSAGE_CHILDREN would be the largest of all children so far.
     """
-    with open(log_path, "w") as log:
+    with open(log_path, "w") as log, GpuPeak() as gpu:
         start = time.perf_counter()
         proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT)
         _, status, usage = os.wait4(proc.pid, 0)
         wall = time.perf_counter() - start
     proc.returncode = os.waitstatus_to_exitcode(status)  # reaped here; tell Popen so it does not wait again
-    return proc.returncode, wall, usage.ru_maxrss * 1024 / GIB  # ru_maxrss is in KiB on Linux
+    return proc.returncode, wall, usage.ru_maxrss * 1024 / GIB, gpu.peak_gb  # ru_maxrss is in KiB on Linux
 
 
 def _tail(path: Path, lines: int = 8) -> str:
@@ -190,7 +232,7 @@ def run_colmap_alone(images: Path, scene_dir: Path, out: Path) -> dict:
     shutil.rmtree(out, ignore_errors=True)
     out.mkdir(parents=True)
     cmd = [sys.executable, str(Path(__file__).resolve()), "--colmap-only", str(images), str(out)]
-    code, wall, peak = measured([*cmd, "--truth", str(scene_dir)], out.parent / "colmap_alone.log")
+    code, wall, peak, _ = measured([*cmd, "--truth", str(scene_dir)], out.parent / "colmap_alone.log")
     row = {"method": "COLMAP alone", "exit": code, "wall_s": wall, "peak_gb": peak}
     if code != 0 or not (out / RESULT_FILE).is_file():
         row["error"] = _tail(out.parent / "colmap_alone.log")
@@ -258,16 +300,29 @@ def report_row(report: dict, wall: float) -> dict:
         "steps": steps,
         "psnr": (splat.get("heldout_mean") or {}).get("psnr_cleaned"),
         "splat_iterations": splat.get("iterations"),
+        "splat_backend": splat.get("backend"),
+        "splat_it_per_s": splat.get("iterations_per_second"),
+        # held-out PSNR (before cleaning) at the last evaluation within 30 and 60 s of training
+        "psnr_at_s": {
+            t: max(
+                ((p["seconds"], p["psnr"]) for p in splat.get("heldout_curve", []) if p["seconds"] <= t),
+                default=(0, None),
+            )[1]
+            for t in (30, 60)
+        },
+        "providers": ((report.get("feedforward") or {}).get("model") or {}).get("providers"),
     }
     row.update(_accuracy(report))
     return row
 
 
-def run_ffrecon(inputs, mode: str, work: Path, reference: Path, args) -> dict:
-    out = work / f"ffrecon_{mode}"
-    log = work / f"ffrecon_{mode}.log"
-    code, wall, peak = measured(ffrecon_command(inputs.images, inputs.model, out, reference, mode, args), log)
-    row = {"method": f"ffrecon {mode}", "exit": code, "wall_s": wall, "peak_gb": peak}
+def run_ffrecon(inputs, mode: str, work: Path, reference: Path, args, model: Path | None = None) -> dict:
+    label = mode if model is None else f"{mode} {model.stem}"
+    out = work / f"ffrecon_{label.replace(' ', '_')}"
+    log = work / f"ffrecon_{label.replace(' ', '_')}.log"
+    cmd = ffrecon_command(inputs.images, model or inputs.model, out, reference, mode, args)
+    code, wall, peak, gpu_peak = measured(cmd, log)
+    row = {"method": f"ffrecon {label}", "exit": code, "wall_s": wall, "peak_gb": peak, "gpu_peak_gb": gpu_peak}
     if not (out / "report.json").is_file():
         row["error"] = _tail(log)
         return row
@@ -283,9 +338,10 @@ def bench_frames(frames: int, args, root: Path) -> list[dict]:
     work = root / f"n{frames}"
     work.mkdir(parents=True, exist_ok=True)
     reference = write_reference(inputs.scene_dir, work / "ground_truth_model")
-    rows = [run_colmap_alone(inputs.images, inputs.scene_dir, work / "colmap_alone")]
-    rows += [run_ffrecon(inputs, mode, work, reference, args) for mode in args.modes]
-    colmap_wall = rows[0]["wall_s"] if "error" not in rows[0] else float("nan")
+    rows = [] if args.no_colmap_alone else [run_colmap_alone(inputs.images, inputs.scene_dir, work / "colmap_alone")]
+    for model in args.models or [None]:
+        rows += [run_ffrecon(inputs, mode, work, reference, args, model) for mode in args.modes]
+    colmap_wall = rows[0]["wall_s"] if rows[0]["method"] == "COLMAP alone" and "error" not in rows[0] else float("nan")
     for row in rows:
         row.update(frames=frames, ratio=row["wall_s"] / colmap_wall)
     if not args.keep:
@@ -318,6 +374,13 @@ def print_table(rows: list[dict]) -> None:
             f"{_num(r.get('med_rot'), '.3f', 8)}{_num(r.get('psnr'), '.1f', 6)}"
         )
     for r in rows:
+        if r.get("splat_backend"):
+            at = ", ".join(f"{t} s {_num(p, '.2f', 0)} dB" for t, p in (r.get("psnr_at_s") or {}).items())
+            gpu = "" if r.get("gpu_peak_gb") is None else f"; peak GPU {r['gpu_peak_gb']:.1f} GB"
+            print(
+                f"  {r['method']}: model on {', '.join(r.get('providers') or ['-'])}{gpu}; splat {r['splat_backend']} "
+                f"{_num(r.get('splat_it_per_s'), '.1f', 0)} it/s, held-out PSNR at {at}"
+            )
         if r.get("steps"):
             print(f"  {r['method']} steps: " + ", ".join(f"{k} {v:.2f}" for k, v in r["steps"].items()))
         others = {e: a for e, a in r.get("accuracy", {}).items() if e != r.get("scored")}

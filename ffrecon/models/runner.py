@@ -53,6 +53,25 @@ class TensorSpec:
         return f"{self.name} [{dims}] {self.dtype}"
 
 
+# The arena grows by what a call asks for instead of to the next power of two (a 20 GB call of a large
+# model would otherwise reserve 32 GB of the GPU).
+CUDA_PROVIDER_OPTIONS = {"arena_extend_strategy": "kSameAsRequested"}
+
+
+def _cuda_offered() -> bool:
+    """Whether this onnxruntime build has the CUDA provider; loads the CUDA/cuDNN libraries of NVIDIA's pip
+    wheels first (``onnxruntime.preload_dlls``, onnxruntime >= 1.21), which the provider does not find itself."""
+    if "CUDAExecutionProvider" not in ort.get_available_providers():
+        return False
+    preload = getattr(ort, "preload_dlls", None)
+    if preload is not None:
+        try:
+            preload(cuda=True, cudnn=True, msvc=False)
+        except Exception as exc:  # libraries found elsewhere (system CUDA) still work: the session decides
+            log.debug("onnxruntime.preload_dlls: %s", exc)
+    return True
+
+
 def cpu_threads(threads: int = 0, *, use_cuda: bool = True) -> int:
     """CPU threads an :class:`OnnxModel` made with these arguments keeps busy: its intra-op threads on the
     CPU (``threads``, 0: all cores), one (the Python side of the stage) when the model runs on CUDA."""
@@ -86,9 +105,10 @@ class OnnxModel:
         options = ort.SessionOptions()
         options.intra_op_num_threads = threads or (os.cpu_count() or 1)
         options.log_severity_level = 3
-        providers = ["CPUExecutionProvider"]
-        if use_cuda and "CUDAExecutionProvider" in ort.get_available_providers():
-            providers.insert(0, "CUDAExecutionProvider")
+        providers: list = ["CPUExecutionProvider"]
+        cuda = use_cuda and _cuda_offered()
+        if cuda:
+            providers.insert(0, ("CUDAExecutionProvider", CUDA_PROVIDER_OPTIONS))
         try:
             self.session = ort.InferenceSession(str(self.path), options, providers=providers)
         except Exception as exc:  # onnxruntime raises several unrelated types for unreadable files
@@ -97,11 +117,23 @@ class OnnxModel:
                 "check that the file is a complete ONNX model (re-export or re-download it)",
             ) from exc
         self.providers = tuple(self.session.get_providers())
+        if cuda and not self.on_cuda:
+            log.warning(
+                "onnxruntime offers CUDA but its provider did not load (CUDA or cuDNN libraries it was built for "
+                "are missing): %s runs on the CPU. Fix: pip install 'onnxruntime-gpu[cuda,cudnn]' or the matching "
+                "CUDA/cuDNN",
+                self.path.name,
+            )
         self.inputs = tuple(TensorSpec(i.name, tuple(i.shape), i.type) for i in self.session.get_inputs())
         self.outputs = tuple(TensorSpec(o.name, tuple(o.shape), o.type) for o in self.session.get_outputs())
         self.metadata = dict(self.session.get_modelmeta().custom_metadata_map)
         self.family = detect_family(self.inputs, self.outputs, self.path, self.metadata)
         log.debug("loaded %s (%s) on %s", self.path.name, self.family.value, self.providers)
+
+    @property
+    def on_cuda(self) -> bool:
+        """Whether the session runs on onnxruntime's CUDA provider (else the CPU)."""
+        return "CUDAExecutionProvider" in self.providers
 
     @property
     def simulated(self) -> bool:

@@ -127,7 +127,7 @@ def predict(model: OnnxModel, capture: Capture, images: list[np.ndarray], option
     mv_options = options.multiview
     if mv_options.chunk_size is None:
         size_hw = tuple(adapter.preprocess(images[:1], mv_options.mode or adapter.modes[0])[0].shape[-2:])
-        chunk = default_chunk_size(model.path, size_hw, model.metadata)
+        chunk = default_chunk_size(model.path, size_hw, model.metadata, on_cuda=model.on_cuda)
         mv_options = dataclasses.replace(
             mv_options, chunk_size=chunk, chunk_overlap=min(mv_options.chunk_overlap, chunk - 1)
         )

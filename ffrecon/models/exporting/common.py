@@ -42,6 +42,7 @@ class ExportOptions:
     size_hw: tuple[int, int] | None = None  # network input size (None: from the photos, else the family's default)
     photos: Path | None = None  # a photo or folder the model will be used on: fixes size_hw
     fp16: bool = False
+    fused_attention: bool = False  # onnxruntime's MultiHeadAttention op (CUDA: memory linear in frames)
     random_init: bool = False  # the real full-size architecture with random weights
     tiny: bool = False  # the same upstream classes at a small configuration (tests)
     variant: str | None = None  # which upstream configuration to build, for families with several (da3, monodepth)
@@ -162,7 +163,7 @@ def export_spec(spec: ExportSpec, options: ExportOptions) -> ExportReport:
         options.opset,
     )
     start = time.perf_counter()
-    model, warm = _trace(spec, example, options.opset, out.parent)
+    model, warm = _trace(spec, example, options, out.parent)
     _declare_output_shapes(model, warm, spec.dynamic_axes)
     if options.fp16:
         try:
@@ -194,7 +195,7 @@ def export_spec(spec: ExportSpec, options: ExportOptions) -> ExportReport:
     )
 
 
-def _trace(spec: ExportSpec, example: tuple[torch.Tensor, ...], opset: int, tmp_parent: Path):
+def _trace(spec: ExportSpec, example: tuple[torch.Tensor, ...], options: ExportOptions, tmp_parent: Path):
     """Trace ``spec.module`` on ``example`` into an ONNX proto; also return PyTorch's outputs on it.
 
     The module runs once before the trace: that fills the size-dependent caches (see ``patches``).
@@ -209,7 +210,7 @@ def _trace(spec: ExportSpec, example: tuple[torch.Tensor, ...], opset: int, tmp_
         with torch.no_grad(), context:
             warm = torch_outputs(spec, tuple(x.numpy() for x in example))
             try:
-                with export_rewrites():
+                with export_rewrites(fused_attention=options.fused_attention):
                     torch.onnx.export(
                         spec.module,
                         example,
@@ -217,7 +218,8 @@ def _trace(spec: ExportSpec, example: tuple[torch.Tensor, ...], opset: int, tmp_
                         input_names=list(spec.input_names),
                         output_names=list(spec.output_names),
                         dynamic_axes=spec.dynamic_axes,
-                        opset_version=opset,
+                        opset_version=options.opset,
+                        custom_opsets={"com.microsoft": 1} if options.fused_attention else None,
                         dynamo=False,
                     )
             except Exception as exc:  # the exporter raises many types; all mean "this graph did not export"
@@ -240,6 +242,8 @@ def _metadata(spec: ExportSpec, options: ExportOptions, params: int) -> dict[str
         "ffrecon.weights": options.weights,
         "ffrecon.notes": " | ".join(spec.notes),
         "ffrecon.torch": torch.__version__,
+        # For ffrecon.models.memory: "fused" (onnxruntime's MultiHeadAttention) holds no score matrix on CUDA.
+        "ffrecon.attention": "fused" if options.fused_attention else "math",
         # For ffrecon.models.memory: the widest attention's head count sizes the frames-squared score matrices.
         "ffrecon.attention_heads": str(
             max((int(getattr(m, "num_heads", 0) or 0) for m in spec.module.modules()), default=0)

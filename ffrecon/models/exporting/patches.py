@@ -15,6 +15,9 @@ untouched, so the verification compares the export against the original code):
 
 - ``F.scaled_dot_product_attention`` (fused attention) is written out as MatMul-Softmax-MatMul with a
   constant scale (code that imported the function by name keeps the fused op, which exports too).
+  With ``fused=True`` it becomes onnxruntime's ``com.microsoft.MultiHeadAttention`` contrib op instead:
+  on the CUDA provider that runs flash or memory-efficient kernels, so no ``[heads, N, N]`` score
+  matrix is held and memory grows linearly with the frames (the CPU provider computes it as before).
 
 Family-specific rewrites live with their family's exporter.
 """
@@ -77,13 +80,62 @@ def _attention(
     return torch.matmul(torch.softmax(scores, dim=-1), value)
 
 
+class _MultiHeadAttention(torch.autograd.Function):
+    """Attention that PyTorch computes as :func:`_attention` and the exporter writes as one contrib op.
+
+    ``MultiHeadAttention`` takes ``[batch, tokens, heads * width]`` queries, keys and values, so the
+    symbolic moves the heads axis in and out around it (two Transposes and Reshapes per tensor).
+    """
+
+    @staticmethod
+    def forward(ctx, query, key, value, scale: float, heads: int, width: int):  # noqa: ANN001, ARG004
+        return _attention(query, key, value, scale=scale)
+
+    @staticmethod
+    def symbolic(g, query, key, value, scale: float, heads: int, width: int):  # noqa: ANN001
+        def tokens(x):  # [B, heads, N, width] -> [B, N, heads * width]
+            x = g.op("Transpose", x, perm_i=[0, 2, 1, 3])
+            return g.op("Reshape", x, g.op("Constant", value_t=torch.tensor([0, 0, -1])))
+
+        out = g.op(
+            "com.microsoft::MultiHeadAttention",
+            tokens(query),
+            tokens(key),
+            tokens(value),
+            num_heads_i=heads,
+            scale_f=scale,
+        )
+        out = g.op("Reshape", out, g.op("Constant", value_t=torch.tensor([0, 0, heads, -1])))
+        out = g.op("Transpose", out, perm_i=[0, 2, 1, 3])
+        out.setType(query.type())
+        return out
+
+
+def _fused_attention(
+    query: torch.Tensor,
+    key: torch.Tensor,
+    value: torch.Tensor,
+    attn_mask: torch.Tensor | None = None,
+    dropout_p: float = 0.0,
+    is_causal: bool = False,
+    scale: float | None = None,
+    **_: object,
+) -> torch.Tensor:
+    """``F.scaled_dot_product_attention`` exported as ``com.microsoft.MultiHeadAttention`` (see the module doc)."""
+    if is_causal or dropout_p or attn_mask is not None or query.dim() != 4:
+        raise RuntimeError("ffrecon's fused attention export covers unmasked 4-D inference attention only")
+    factor = float(scale) if scale is not None else float(query.shape[-1]) ** -0.5
+    heads, width = int(query.shape[1]), int(query.shape[3])  # fixed by the architecture: constants in the graph
+    return _MultiHeadAttention.apply(query, key, value, factor, heads, width)
+
+
 @contextlib.contextmanager
-def export_rewrites() -> Iterator[None]:
+def export_rewrites(*, fused_attention: bool = False) -> Iterator[None]:
     """Apply the rewrites above for the duration of one export."""
     register_symbolics()
     originals = (torch.cartesian_prod, torch.nn.functional.scaled_dot_product_attention)
     torch.cartesian_prod = _cartesian_prod
-    torch.nn.functional.scaled_dot_product_attention = _attention
+    torch.nn.functional.scaled_dot_product_attention = _fused_attention if fused_attention else _attention
     try:
         yield
     finally:

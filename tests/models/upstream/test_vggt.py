@@ -91,6 +91,29 @@ def test_family_and_onnx_equals_pytorch_at_another_frame_count(exported, torch_s
         assert relative_difference(got[name], want[name]) < TOL, name
 
 
+def test_fused_attention_export_equals_pytorch_and_the_math_export(exported, torch_spec, tmp_path):
+    """``--fused-attention`` writes every attention as onnxruntime's MultiHeadAttention (no Softmax left)
+    and computes what PyTorch and the MatMul-Softmax-MatMul export compute (CPU provider here; the CUDA
+    provider's kernels were checked on an H100, docs/benchmarks.md)."""
+    import onnx
+
+    path = _export(tmp_path, (392, 518), "--fused-attention")
+    graph = onnx.load(str(path)).graph
+    ops = [n.op_type for n in graph.node]
+    assert "Softmax" not in ops and ops.count("MultiHeadAttention") >= 8  # 4 frame + 4 global layers, camera trunk
+    model = OnnxModel(path)
+    assert model.metadata["ffrecon.attention"] == "fused"
+    assert OnnxModel(exported[(392, 518)]).metadata["ffrecon.attention"] == "math"
+    spec = torch_spec((392, 518))
+    inputs = spec.make_inputs(4, np.random.default_rng(5))
+    want = torch_outputs(spec, inputs)
+    got = model.run({"input_images": inputs[0]})
+    math = OnnxModel(exported[(392, 518)]).run({"input_images": inputs[0]})
+    for name in spec.output_names:
+        assert relative_difference(got[name], want[name]) < TOL, name
+        assert relative_difference(got[name], math[name]) < TOL, name
+
+
 @pytest.mark.parametrize("orientation", ["landscape", "portrait"])
 @pytest.mark.parametrize("mode", [PreprocessMode.CROP, PreprocessMode.PAD])
 def test_decoded_cameras_equal_upstream_decoding(exported, torch_spec, orientation, mode):
