@@ -159,7 +159,7 @@ def _run_stages(
         capture, ff, colmap, refine, options, stages, [k_capture, k_ff, k_colmap, k_refine]
     )
     final = final_cameras(capture, ff, colmap, refine, evidence)
-    write_final_model(final, ff, colmap, work)
+    write_final_model(final, ff, colmap, refine, work)
     final_keys = [k_capture, k_ff, k_colmap, k_refine, k_evidence]  # the final cameras depend on these
     options = with_curves(options)
     splat, _ = splat_stage(capture, ff, colmap, final, verdicts, options, work, stages, final_keys)

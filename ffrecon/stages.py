@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
+import pycolmap
 
 from ffrecon.capture import Capture
 from ffrecon.concurrency import CoreShare, run_beside
@@ -27,7 +28,7 @@ from ffrecon.models.runner import cpu_threads
 from ffrecon.models.stage import FeedForwardResult, run_feedforward
 from ffrecon.results import QUICK_NO_CROSSCHECK, RunMode, Skipped
 from ffrecon.resume import StageRunner, file_key
-from ffrecon.sfm.colmap_io import is_model_dir
+from ffrecon.sfm.colmap_io import add_posed_images, is_model_dir, write_reconstruction
 from ffrecon.sfm.compare import compare_poses
 from ffrecon.sfm.comparisons import ComparisonsResult, load_references, run_comparisons
 from ffrecon.sfm.crosscheck import ColmapResult, run_colmap
@@ -303,25 +304,37 @@ def final_cameras(capture: Capture, ff, colmap, refine, evidence) -> FinalCamera
     return None
 
 
-def write_final_model(final: FinalCameras | None, ff, colmap, work: Path) -> Path | None:
-    """``work/sparse/0``: the final cameras as a COLMAP model, where downstream tools look (docs/contracts.md,
-    "Output folder"). The refinement writes it; when the final cameras are COLMAP's (a run without a model) or
-    the model's (the refinement failed or was turned off), that model is copied there.
+def write_final_model(final: FinalCameras | None, ff, colmap, refine, work: Path) -> Path | None:
+    """``work/sparse/0``: every final camera as a COLMAP model, where downstream tools look (docs/contracts.md,
+    "Output folder"): the model of the final cameras' source (the refinement's, COLMAP's in a run without a
+    model, the model's when the refinement failed or was turned off), plus, posed and without points, the
+    final frames that model lacks (a frame the refinement left out keeps the model's camera, unchecked).
 
-    Runs every time (a copy of a small model): the refinement's record owns ``sparse`` and removes it
-    whenever it is skipped or runs again. Not done when the refinement wrote ``sparse/0`` but the final
-    cameras are COLMAP's because the model was set aside as unsuited: a reused refinement reads its model
-    back from there. Returns the folder, or None when there is none.
+    Runs every time (a small model): the refinement's record owns ``sparse`` and removes it whenever it is
+    skipped or runs again; the refinement's own model stays in ``refine/model``, which a resumed run reads.
+    Returns the folder, or None when there is none.
     """
+    if final is None:
+        return None
     target = work / "sparse" / "0"
-    if final is None or final.source == "refined" or is_model_dir(target):
-        return target if is_model_dir(target) else None
-    source = {"COLMAP": getattr(colmap, "model_path", None), "feed-forward": getattr(ff, "sparse_dir", None)}
+    source = {
+        "refined": getattr(refine, "model_path", None),
+        "COLMAP": getattr(colmap, "model_path", None),
+        "feed-forward": getattr(ff, "sparse_dir", None),
+    }
     folder = source.get(final.source)
     if folder is None or not is_model_dir(Path(folder)):
         return None
-    shutil.copytree(folder, target, dirs_exist_ok=True)
-    log.info("sparse/0: the final cameras are %s's; copied its model from %s", final.source, folder)
+    rec = pycolmap.Reconstruction(str(folder))
+    added = add_posed_images(rec, final.names, final.cam_from_world, final.cameras, final.distortion)
+    shutil.rmtree(target, ignore_errors=True)
+    write_reconstruction(rec, target)
+    log.info(
+        "sparse/0: the final cameras (%s, from %s)%s",
+        final.source,
+        folder,
+        f", plus {len(added)} frame(s) it lacks, posed without points: {', '.join(added)}" if added else "",
+    )
     return target
 
 

@@ -130,11 +130,10 @@ def _concurrent(results: RunResults) -> list[dict]:
     ]
 
 
-def _copied_final_model(results: RunResults) -> Path | None:
-    """sparse/0 when it holds a copy of the final cameras' model rather than the refinement's."""
+def _final_model(results: RunResults) -> Path | None:
+    """sparse/0: every final camera (docs/contracts.md, "Output folder")."""
     folder = results.out_dir / "sparse" / "0"
-    refined = getattr(results.refine, "model_path", None)
-    return folder if refined is None and is_model_dir(folder) else None
+    return folder if is_model_dir(folder) else None
 
 
 def _outputs(results: RunResults) -> dict[str, str]:
@@ -143,8 +142,8 @@ def _outputs(results: RunResults) -> dict[str, str]:
     ex = results.exports
     ff_sparse = getattr(results.feedforward, "sparse_dir", None)
     candidates = {
-        "refined COLMAP model (use this)": getattr(results.refine, "model_path", None),
-        f"final cameras, {getattr(ex, 'cameras_from', '')}'s (use this)": _copied_final_model(results),
+        f"final cameras, {getattr(ex, 'cameras_from', '')} (use this)": _final_model(results),
+        "refinement's model (refined frames and points)": getattr(results.refine, "model_path", None),
         "COLMAP cross-check model": getattr(results.colmap, "model_path", None),
         "feed-forward COLMAP model": ff_sparse,
         "feed-forward depth maps": None if ff_sparse is None else ff_sparse.parent / "depth",

@@ -83,6 +83,40 @@ def reconstruction_from_cameras(
     return rec
 
 
+def add_posed_images(
+    rec: pycolmap.Reconstruction,
+    names: Sequence[str],
+    cam_from_world: np.ndarray,
+    cameras: Sequence[PinholeCamera],
+    distortion: Sequence[tuple[float, float, float, float]] | None = None,
+) -> list[str]:
+    """Add to ``rec`` the images of ``names`` it lacks, posed by ``cam_from_world [N, 3, 4]`` with their
+    ``cameras`` (OPENCV with ``distortion`` (k1, k2, p1, p2) where it is not zero, else PINHOLE) and no
+    observations: frames the final cameras hold that its bundle adjustment did not (e.g. an unchecked
+    frame's model camera). Returns the names added."""
+    have = {im.name for im in rec.images.values()}
+    image_id = max(rec.images, default=0)
+    camera_id = max(rec.cameras, default=0)
+    added = []
+    lenses = distortion if distortion is not None else [(0.0, 0.0, 0.0, 0.0)] * len(names)
+    for name, pose, cam, lens in zip(names, cam_from_world, cameras, lenses, strict=True):
+        if name in have:
+            continue
+        image_id, camera_id = image_id + 1, camera_id + 1
+        camera = pinhole_to_colmap(cam, camera_id)
+        if any(lens):
+            params = [cam.fx, cam.fy, cam.cx, cam.cy, *lens]
+            camera = pycolmap.Camera(
+                model="OPENCV", width=cam.width, height=cam.height, params=params, camera_id=camera_id
+            )
+        rec.add_camera_with_trivial_rig(camera)
+        rec.add_image_with_trivial_frame(
+            pycolmap.Image(name=name, camera_id=camera_id, image_id=image_id), rigid_from_pose(pose)
+        )
+        added.append(name)
+    return added
+
+
 def is_model_dir(folder: Path) -> bool:
     """Whether ``folder`` holds a COLMAP model (binary or text)."""
     return (Path(folder) / "images.bin").is_file() or (Path(folder) / "images.txt").is_file()

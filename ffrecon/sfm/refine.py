@@ -159,7 +159,7 @@ class RefineResult:
     mean_reprojection_error_px: float
     ff_from_refined: Sim3 = field(repr=False)
     timings: Timings
-    model_path: Path | None  # out_dir/sparse/0
+    model_path: Path | None  # out_dir/refine/model: the refined frames and points (sparse/0 adds the others)
     database_path: Path | None  # the refinement's COLMAP database (SIFT and dense matches), out_dir/refine
     observations: np.ndarray | None  # [N] int, triangulated observations per frame in the refined model
     reconstruction: pycolmap.Reconstruction | None = field(default=None, repr=False, compare=False)
@@ -410,7 +410,8 @@ def extract_refine_features(
 
 
 def run_refine(image_dir: Path, prediction: Prediction, options: RefineOptions, out_dir: Path) -> RefineResult:
-    """Refine the feed-forward cameras; writes ``out_dir/sparse/0`` (work files in ``out_dir/refine``).
+    """Refine the feed-forward cameras; writes the refined model to ``out_dir/refine/model`` (work files beside it;
+    the run's ``sparse/0``, the final cameras, is written from it by the pipeline).
 
     Args:
         image_dir: folder holding the images named in ``prediction.names``.
@@ -458,7 +459,7 @@ def run_refine(image_dir: Path, prediction: Prediction, options: RefineOptions, 
     if len(refined_names) < 2:
         logger.warning("refinement failed: %d usable frames; keeping the feed-forward cameras", len(refined_names))
         return _unrefined_result(prediction, timings=timer.freeze(), **provenance)
-    model_dir = out_dir / "sparse" / "0"
+    model_dir = out_dir / "refine" / "model"
     with timer.stage("export"):
         ff_from_refined = _export_in_ff_frame(rec, prediction, image_dir, model_dir)
     result = _refined_result(rec, prediction, ff_from_refined, model_dir, timings=timer.freeze(), **provenance)

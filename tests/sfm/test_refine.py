@@ -33,7 +33,8 @@ def test_refined_cameras_reach_colmap_accuracy(orbit24, refined24):
 
 def test_written_model_is_the_result_in_the_prediction_frame(orbit24, refined24):
     result, out = refined24
-    rec = pycolmap.Reconstruction(str(out / "sparse" / "0"))
+    assert result.model_path == out / "refine" / "model"  # the run's sparse/0 (every final camera) is the pipeline's
+    rec = pycolmap.Reconstruction(str(result.model_path))
     poses, registered = cam_from_world_by_name(rec, orbit24.scene.names)
     assert registered.all()
     np.testing.assert_allclose(poses, result.cam_from_world, atol=1e-9)
@@ -67,7 +68,7 @@ def test_nearly_textureless_frame_is_flagged_and_the_rest_refined(one_flat_frame
     assert result.registered.tolist() == keep.tolist()
     # The flagged frame keeps its feed-forward pose and is absent from the written model.
     np.testing.assert_allclose(result.cam_from_world[5], capture.prediction.cam_from_world[5])
-    rec = pycolmap.Reconstruction(str(tmp_path / "sparse" / "0"))
+    rec = pycolmap.Reconstruction(str(result.model_path))
     assert rec.num_reg_images() == 23
     errors = pose_errors(result.cam_from_world[keep], capture.scene.cam_from_world[keep])
     assert errors.auc[5] >= 0.98 and errors.median_rotation_deg <= 0.1

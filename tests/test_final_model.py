@@ -1,0 +1,57 @@
+"""``sparse/0`` holds every final camera: the source model's, plus the final frames it lacks (posed, no points)."""
+
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pycolmap
+
+from ffrecon.export.stage import FinalCameras
+from ffrecon.sfm.colmap_io import (
+    cam_from_world_by_name,
+    reconstruction_from_cameras,
+    write_reconstruction,
+)
+from ffrecon.stages import write_final_model
+from ffrecon.types import PinholeCamera
+
+
+def _poses(n: int, rng) -> np.ndarray:
+    poses = []
+    for _ in range(n):
+        q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+        poses.append(np.hstack([q * np.sign(np.linalg.det(q)), rng.normal(size=(3, 1))]))
+    return np.array(poses)
+
+
+def test_frames_the_refinement_left_out_are_added_posed_without_points(tmp_path: Path):
+    rng = np.random.default_rng(0)
+    names = [f"frame_{i:03d}.png" for i in range(4)]
+    poses = _poses(4, rng)
+    cam = PinholeCamera(320, 240, 300.0, 301.0, 160.0, 120.0)
+    refined = reconstruction_from_cameras(names[:3], poses[:3], [cam] * 3, rng.normal(size=(50, 3)))
+    refine_dir = write_reconstruction(refined, tmp_path / "refine" / "model")
+    lens = (0.01, -0.002, 0.0, 0.0)
+    final = FinalCameras(
+        tuple(range(4)), tuple(names), poses, (cam,) * 4, "refined", ((0.0,) * 4,) * 3 + (lens,), unconfirmed=(3,)
+    )
+    target = write_final_model(final, None, None, SimpleNamespace(model_path=refine_dir), tmp_path)
+    assert target == tmp_path / "sparse" / "0"
+    rec = pycolmap.Reconstruction(str(target))
+    got, registered = cam_from_world_by_name(rec, names)
+    assert registered.all()
+    np.testing.assert_allclose(got, poses, atol=1e-9)
+    assert rec.num_points3D() == 50  # the refinement's points, none for the added frame
+    added = rec.cameras[rec.find_image_with_name(names[3]).camera_id]
+    assert added.model.name == "OPENCV" and np.allclose(added.params, [300, 301, 160, 120, *lens])
+    assert pycolmap.Reconstruction(str(refine_dir)).num_images() == 3  # a resumed run reads this back unchanged
+    # Rewritten on every run: a second call gives the same model, not a duplicate frame.
+    rec2 = pycolmap.Reconstruction(
+        str(write_final_model(final, None, None, SimpleNamespace(model_path=refine_dir), tmp_path))
+    )
+    assert rec2.num_images() == 4
+
+
+def test_no_final_cameras_no_model(tmp_path: Path):
+    assert write_final_model(None, None, None, None, tmp_path) is None
+    assert not (tmp_path / "sparse").exists()
