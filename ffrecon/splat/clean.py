@@ -9,7 +9,7 @@ above the typical one (open3d's statistical outlier test).
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -36,6 +36,9 @@ class CleanOptions:
     floater_neighbours: int = 16
     floater_std_ratio: float = 4.0  # statistical outlier threshold (in standard deviations); 0 disables
     max_scale_fraction: float = 0.25  # prune Gaussians larger than this fraction of the box diagonal
+    # With held-out views to judge by: a step is kept only while their mean PSNR stays within this (dB) of
+    # the trained splat's, all steps together. A crop box the user gave is always applied (its cost reported).
+    max_psnr_drop_db: float = 0.1
 
     def __post_init__(self) -> None:
         if self.crop_box is not None:
@@ -48,7 +51,7 @@ class CleanOptions:
                 )
         check_number("CleanOptions.box_percentile", self.box_percentile, low=0, high=50)
         check_number("CleanOptions.min_opacity", self.min_opacity, low=0, high=1)
-        for name in ("box_margin", "floater_std_ratio"):  # floater_std_ratio 0: no floater pruning
+        for name in ("box_margin", "floater_std_ratio", "max_psnr_drop_db"):  # floater_std_ratio 0: no floater pruning
             check_number(f"CleanOptions.{name}", getattr(self, name), low=0)
         for name in ("far_factor", "max_scale_fraction"):
             check_number(f"CleanOptions.{name}", getattr(self, name), low=0, low_open=True)
@@ -56,12 +59,31 @@ class CleanOptions:
 
 
 @dataclass(frozen=True)
+class CleanStep:
+    """One cleaning step: what it would remove and, when judged, the held-out PSNR without and with it."""
+
+    name: str  # outside_crop_box, low_opacity, too_large, far_away, isolated_floater
+    candidates: int  # Gaussians it hits among those still kept
+    applied: bool
+    psnr_before: float | None = None  # mean held-out PSNR (dB) before the step; None: not judged
+    psnr_after: float | None = None  # ... with the step applied
+    reason: str = ""  # why it was applied or skipped
+
+    def to_dict(self) -> dict:
+        out = {"step": self.name, "candidates": self.candidates, "applied": self.applied, "reason": self.reason}
+        if self.psnr_before is not None:
+            out.update(psnr_before=self.psnr_before, psnr_after=self.psnr_after)
+        return out
+
+
+@dataclass(frozen=True)
 class CleanReport:
     count_before: int
     count_after: int
-    removed: dict[str, int]  # reason -> count (each Gaussian counted under the first reason that hits it)
+    removed: dict[str, int]  # reason -> count removed (each Gaussian counted under the first step that took it)
     crop_box: tuple[tuple[float, ...], tuple[float, ...]]
     automatic_box: bool
+    steps: tuple[CleanStep, ...] = ()
 
     def to_dict(self) -> dict:
         return {
@@ -69,6 +91,7 @@ class CleanReport:
             "count_after": self.count_after,
             "removed": dict(self.removed),
             "crop_box": {"lo": list(self.crop_box[0]), "hi": list(self.crop_box[1]), "automatic": self.automatic_box},
+            "steps": [step.to_dict() for step in self.steps],
         }
 
 
@@ -115,17 +138,55 @@ def floater_mask(points: np.ndarray, neighbours: int, std_ratio: float) -> np.nd
     return out
 
 
+class _Steps:
+    """The cleaning's steps in order over one keep mask, each judged on the held-out views when a judge is given."""
+
+    def __init__(self, gaussians: Gaussians, judge: Callable[[Gaussians], float] | None, max_drop_db: float):
+        self.gaussians, self.judge, self.max_drop_db = gaussians, judge, max_drop_db
+        self.keep = np.ones(len(gaussians.means), bool)
+        self.steps: list[CleanStep] = []
+        self.current = judge(gaussians) if judge is not None else None  # held-out PSNR of the splat as it stands
+        # Steps together may cost at most max_drop_db below the trained splat (a given crop box may cost more).
+        self.floor = self.current - max_drop_db if judge is not None else None
+
+    def step(self, name: str, bad: np.ndarray, forced: bool = False) -> None:
+        hit = self.keep & bad
+        if not hit.any():
+            self.steps.append(CleanStep(name, 0, False, self.current, self.current, "nothing to remove"))
+            return
+        if self.judge is None:
+            self.keep[hit] = False
+            self.steps.append(CleanStep(name, int(hit.sum()), True, reason="applied (no held-out views to judge by)"))
+            return
+        after = self.judge(self.gaussians.subset(torch.from_numpy(self.keep & ~hit)))
+        ok = forced or after >= self.floor
+        why = "the crop box you gave" if forced else ("kept" if ok else "skipped")
+        why += f": held-out PSNR {after - self.current:+.2f} dB"
+        self.steps.append(CleanStep(name, int(hit.sum()), ok, self.current, after, why))
+        if ok:
+            self.keep[hit] = False
+            self.current = after
+            self.floor = min(self.floor, after)
+
+
 def clean_gaussians(
     gaussians: Gaussians,
     cam_from_world: np.ndarray,
     cameras: Sequence[PinholeCamera],
     options: CleanOptions = CleanOptions(),
+    *,
+    judge: Callable[[Gaussians], float] | None = None,
 ) -> tuple[Gaussians, CleanReport]:
     """Remove Gaussians outside the crop box, too transparent, too large, far away or isolated.
 
     Args:
         gaussians: the optimised splat (world frame).
         cam_from_world: ``[N, 3, 4]`` the cameras the splat was fitted to; cameras: their intrinsics.
+        judge: the mean held-out PSNR (dB) of a splat. Given, each step is tried in turn and kept only if
+            the splat stays within ``options.max_psnr_drop_db`` of the trained one's (all kept steps
+            together; an explicit crop box is always kept, and what it costs is not counted): the
+            background of a forward-facing or unbounded capture is large, far and faint, which is what
+            the thresholds target. None: every step is applied.
     Returns:
         ``(cleaned Gaussians, CleanReport)``.
     """
@@ -138,31 +199,35 @@ def clean_gaussians(
         )
     else:
         lo, hi = (np.asarray(v, np.float64) for v in options.crop_box)
-    keep = np.ones(len(means), bool)
-    removed: dict[str, int] = {}
-
-    def drop(reason: str, bad: np.ndarray) -> None:
-        hit = keep & bad
-        removed[reason] = int(hit.sum())
-        keep[hit] = False
-
-    drop("outside_crop_box", ~np.all((means >= lo) & (means <= hi), axis=1))
-    drop("low_opacity", opacity < options.min_opacity)
-    drop("too_large", scale > options.max_scale_fraction * float(np.linalg.norm(hi - lo)))
+    run = _Steps(gaussians, judge, options.max_psnr_drop_db)
+    keep, step = run.keep, run.step
+    step("outside_crop_box", ~np.all((means >= lo) & (means <= hi), axis=1), forced=options.crop_box is not None)
+    step("low_opacity", opacity < options.min_opacity)
+    step("too_large", scale > options.max_scale_fraction * float(np.linalg.norm(hi - lo)))
     if keep.sum() > 10:
         center = np.median(means[keep], axis=0)
         dist = np.linalg.norm(means - center, axis=1)
-        drop("far_away", dist > options.far_factor * np.percentile(dist[keep], 95))
+        step("far_away", dist > options.far_factor * np.percentile(dist[keep], 95))
     if keep.sum() > options.floater_neighbours:
         idx = np.flatnonzero(keep)
         bad = np.zeros(len(means), bool)
         bad[idx] = floater_mask(means[idx], options.floater_neighbours, options.floater_std_ratio)
-        drop("isolated_floater", bad)
+        step("isolated_floater", bad)
     out = gaussians.subset(torch.from_numpy(keep))
+    steps = run.steps
+    removed = {s.name: s.candidates if s.applied else 0 for s in steps}
     report = CleanReport(
-        len(means), len(out), removed, (tuple(map(float, lo)), tuple(map(float, hi))), options.crop_box is None
+        len(means),
+        len(out),
+        removed,
+        (tuple(map(float, lo)), tuple(map(float, hi))),
+        options.crop_box is None,
+        tuple(steps),
     )
     logger.info(
-        "clean: %d -> %d Gaussians (%s)", len(means), len(out), ", ".join(f"{k} {v}" for k, v in removed.items())
+        "clean: %d -> %d Gaussians (%s)",
+        len(means),
+        len(out),
+        "; ".join(s.reason and f"{s.name} {s.candidates}, {s.reason}" for s in steps),
     )
     return out, report

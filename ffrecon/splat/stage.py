@@ -19,7 +19,7 @@ from __future__ import annotations
 import dataclasses
 import enum
 import logging
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import ClassVar
@@ -542,8 +542,20 @@ def _fit_and_clean(
 
     poses = result.cam_from_world
     with timer.stage("clean"):
-        cleaned, report = clean_gaussians(result.gaussians, poses[train], [cameras[i] for i in train], options.clean)
+        judge = _heldout_psnr(heldout, poses, cameras, targets, opt) if heldout else None
+        train_cameras = [cameras[i] for i in train]
+        cleaned, report = clean_gaussians(result.gaussians, poses[train], train_cameras, options.clean, judge=judge)
     return seed, result, cleaned, report
+
+
+def _heldout_psnr(heldout, poses, cameras, targets, opt) -> Callable[[Gaussians], float]:
+    """The cleaning's judge: mean PSNR (dB) of plain renders of the held-out views (the figure the report shows)."""
+
+    def judge(g: Gaussians) -> float:
+        views = [render_view(g, poses[i], cameras[i], background=opt.background, raster=opt.raster) for i in heldout]
+        return float(np.mean([image_metrics(v, targets[i])[0] for v, i in zip(views, heldout)]))
+
+    return judge
 
 
 def _pose_changes(

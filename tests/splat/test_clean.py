@@ -52,3 +52,36 @@ def test_given_crop_box():
     assert kept[:, 2].min() >= 0.0 and not report.automatic_box
     expected = np.sum(g.means.numpy()[:6000, 2] >= 0)
     assert abs(len(out) - expected) <= 0
+
+
+def _background_judge(g_full: Gaussians):
+    """A stand-in for held-out PSNR in which the 5 far Gaussians are a background the views need (5 dB)."""
+    far = {tuple(p) for p in g_full.means.numpy()[6000:6005].round(5)}
+
+    def judge(g: Gaussians) -> float:
+        kept = sum(tuple(p) in far for p in g.means.numpy().round(5))
+        return 20.0 + kept  # 25 dB with the whole background, 20 without it
+
+    return judge
+
+
+def test_a_step_that_costs_held_out_psnr_is_skipped_and_reported():
+    g, poses, cams = _scene(np.random.default_rng(0))
+    out, report = clean_gaussians(g, poses, cams, CleanOptions(), judge=_background_judge(g))
+    steps = {s.name: s for s in report.steps}
+    far_step = next(s for s in report.steps if s.candidates and s.name in ("outside_crop_box", "far_away"))
+    assert not far_step.applied and far_step.psnr_after == far_step.psnr_before - 5
+    assert "skipped" in far_step.reason
+    assert steps["low_opacity"].applied and steps["low_opacity"].candidates == 20  # costs nothing: kept
+    assert len(out) == len(g) - 20 - sum(s.candidates for s in report.steps if s.applied and s.name != "low_opacity")
+    assert np.isin(g.means.numpy()[6000:6005], out.means.numpy()).all()  # the background stays
+    assert report.to_dict()["steps"][0]["psnr_before"] == 25.0
+
+
+def test_a_given_crop_box_is_applied_whatever_it_costs():
+    g, poses, cams = _scene(np.random.default_rng(0))
+    box = ((-0.6, -0.6, -0.6), (0.6, 0.6, 0.6))
+    _, report = clean_gaussians(g, poses, cams, CleanOptions(crop_box=box), judge=_background_judge(g))
+    crop = report.steps[0]
+    assert crop.name == "outside_crop_box" and crop.applied and crop.psnr_after == 20.0
+    assert crop.reason.startswith("the crop box you gave")
