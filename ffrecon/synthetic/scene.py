@@ -54,6 +54,9 @@ class CameraPath(enum.Enum):
     # A sparse capture around the objects, looking in: each view turns 30 to 60 degrees (drawn from the
     # seed) from the previous one about the centre, at jittered distance and height (issue 21's scenes).
     WIDE = "wide"
+    # Forward-facing (LLFF-style): cameras on a small grid on one side of the objects, all looking the
+    # same way (+y), towards the objects and, with SceneOptions.backdrop, a far wall beyond them.
+    FACING = "facing"
 
 
 class Texture(enum.Enum):
@@ -75,6 +78,9 @@ class SceneOptions:
     exposure_jitter: float = 0.0  # std of the per-frame log-gain (exposure drift)
     textureless_frames: tuple[int, ...] = ()  # frames rendered with texture contrast ~0
     seed: int = 0
+    # > 0: the room's far wall (y = 3) moves out to y = 3 + backdrop, so the background (that wall and the
+    # floor, ceiling and side walls leading to it) lies far beyond the cameras, as in forward-facing photos.
+    backdrop: float = 0.0
 
     def to_dict(self) -> dict:
         out = asdict(self)
@@ -111,8 +117,9 @@ class SyntheticScene:
         return unproject_depth(self.depth[i], self.camera.K, self.cam_from_world[i])
 
 
-def scene_geometry() -> render.Geometry:
-    """The fixed room, boxes and sphere (the seed changes textures and jitter, not the layout)."""
+def scene_geometry(backdrop: float = 0.0) -> render.Geometry:
+    """The fixed room (its far wall ``backdrop`` further out), boxes and sphere (the seed changes textures
+    and jitter, not the layout)."""
     boxes = (
         render.Box(
             center=np.array([0.15, -0.1, 0.225]), half_size=np.array([0.45, 0.3, 0.225]), yaw_rad=np.radians(20)
@@ -124,7 +131,8 @@ def scene_geometry() -> render.Geometry:
         render.Box(center=np.array([0.2, -0.12, 0.6]), half_size=np.array([0.15, 0.15, 0.15]), yaw_rad=np.radians(55)),
     )
     spheres = (render.Sphere(center=np.array([-0.35, -0.6, 0.22]), radius=0.22),)
-    return render.Geometry(room_lo=ROOM_LO, room_hi=ROOM_HI, boxes=boxes, spheres=spheres)
+    room_hi = ROOM_HI + np.array([0.0, backdrop, 0.0])
+    return render.Geometry(room_lo=ROOM_LO, room_hi=room_hi, boxes=boxes, spheres=spheres)
 
 
 def camera_path(path: CameraPath, num_frames: int, *, seed: int = 0) -> np.ndarray:
@@ -141,6 +149,13 @@ def camera_path(path: CameraPath, num_frames: int, *, seed: int = 0) -> np.ndarr
             [ORBIT_RADIUS * np.cos(angles), ORBIT_RADIUS * np.sin(angles), np.full(num_frames, CAMERA_HEIGHT)], axis=1
         )
         return np.stack([look_at_cam_from_world(c, LOOK_TARGET) for c in centers])
+    if path is CameraPath.FACING:  # a 4-wide grid, 0.2 x 0.08 apart, at y = -2.2, looking along +y
+        cols = 4
+        k = np.arange(num_frames)
+        x = (k % cols - (cols - 1) / 2) * 0.2
+        z = CAMERA_HEIGHT + ((k // cols) - (num_frames - 1) // cols / 2) * 0.08
+        centers = np.stack([x, np.full(num_frames, -2.2), z], axis=1)
+        return np.stack([look_at_cam_from_world(c, c + np.array([0.0, 1.0, -0.25])) for c in centers])
     # Forward: walk along +x beside the objects, heading slightly towards them, with a gentle bob.
     s = np.linspace(0.0, 1.0, num_frames)
     centers = np.stack(
@@ -205,7 +220,7 @@ def make_scene(options: SceneOptions = SceneOptions()) -> SyntheticScene:
         raise ValueError(f"textureless_frames {bad} outside 0..{options.num_frames - 1}")
     start = time.perf_counter()
     rng = np.random.default_rng(options.seed)
-    geometry = scene_geometry()
+    geometry = scene_geometry(options.backdrop)
     surface_textures, densities = _surface_textures(geometry, options.texture, rng)
     gains = np.exp(options.exposure_jitter * rng.standard_normal(options.num_frames))
     camera = make_camera(options)

@@ -149,7 +149,7 @@ def _depth_source(scene: SyntheticScene | RealScene) -> Callable[[int, np.ndarra
     """
     if isinstance(scene, RealScene):
         return lambda i, uv: sample_depth(scene.depth[i], uv)
-    geometry = scene_geometry()
+    geometry = scene_geometry(scene.options.backdrop)
     _check_geometry(scene, geometry)
     return lambda i, uv: render.cast_depth(geometry, scene.cam_from_world[i], scene.camera.K, uv)
 
