@@ -233,7 +233,8 @@ def _splat(report: dict, run_dir: Path) -> tuple[list[dict], str]:
     curve = ""
     if data.get("heldout_curve"):
         caption = (
-            "Mean held-out PSNR and SSIM (views the splat never trained on; plain renders before cleaning) "
+            "Mean held-out PSNR and SSIM (every 8th frame by default, never trained on; plain renders "
+            "before cleaning) "
             "against optimisation seconds, from the seed on."
         )
         curve = _figure(

@@ -17,7 +17,6 @@ from ffrecon.splat.stage import SplatOptions, run_splat, split_views
 from ffrecon.synthetic import CameraPath, SceneOptions, make_scene
 
 
-
 def _psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
     err = ((a.astype(np.float64) - b.astype(np.float64)) / 255.0) ** 2
     return float(-10 * np.log10(err[mask].mean()))
