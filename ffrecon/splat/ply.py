@@ -4,7 +4,8 @@ Binary little-endian, one ``vertex`` element with float32 properties in this ord
 ``x y z nx ny nz f_dc_0..2 f_rest_0..f_rest_{3 * ((d + 1)^2 - 1) - 1} opacity scale_0..2 rot_0..3``.
 Opacity is a logit, scales are logs, ``rot`` is a quaternion wxyz, ``f_rest`` is channel-major
 (all red coefficients, then green, then blue). Normals are written as zeros, as 3DGS does.
-The header is written by hand so that the file is exactly this layout and nothing else.
+The header is written by hand so that the file is exactly this layout and nothing else; reading goes
+through gsply (a dependency already, for SPZ), which also takes other writers' property order and extras.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import logging
 import os
 from pathlib import Path
 
+import gsply
 import numpy as np
 import torch
 
@@ -85,62 +87,33 @@ def write_splat_ply(path: Path, gaussians: Gaussians, *, sh_degree: int | None =
 
 
 def read_splat_ply(path: Path) -> Gaussians:
-    """Read a 3DGS PLY (binary little-endian, float properties, any order, extra properties ignored)."""
+    """Read a 3DGS PLY (SH degree 0-3) with gsply, the PLY reader already among ffrecon's dependencies.
+
+    Values are taken as stored (log-scales, opacity logits, SH coefficients, wxyz quaternions). A file
+    that is not a 3DGS splat PLY raises :class:`InputError`.
+    """
     path = Path(path)
-    with open(path, "rb") as f:
-        if f.readline().strip() != b"ply":
-            raise InputError(f"{path} is not a PLY file", "pass a 3DGS splat .ply")
-        names, count, fmt = [], None, None
-        while True:
-            line = f.readline()
-            if not line:
-                raise InputError(f"{path}: PLY header has no end_header", "the file is truncated or not a PLY")
-            parts = line.decode("ascii", "replace").split()
-            if not parts:
-                continue
-            if parts[0] == "format":
-                fmt = parts[1]
-            elif parts[0] == "element":
-                if parts[1] != "vertex" or count is not None:
-                    raise InputError(
-                        f"{path}: unexpected element '{parts[1]}'", "a 3DGS splat PLY has one vertex element"
-                    )
-                count = int(parts[2])
-            elif parts[0] == "property":
-                if parts[1] not in ("float", "float32"):
-                    raise InputError(
-                        f"{path}: property {parts[-1]} is {parts[1]}, expected float",
-                        "write the splat with float properties",
-                    )
-                names.append(parts[2])
-            elif parts[0] == "end_header":
-                break
-        if fmt != "binary_little_endian" or count is None:
-            raise InputError(
-                f"{path}: format {fmt}, expected binary_little_endian with a vertex element",
-                "re-export the splat in the 3DGS layout",
-            )
-        data = np.frombuffer(f.read(count * len(names) * 4), dtype="<f4").reshape(count, len(names))
-    col = {name: i for i, name in enumerate(names)}
-
-    def take(keys: list[str]) -> torch.Tensor:
-        missing = [k for k in keys if k not in col]
-        if missing:
-            raise InputError(f"{path}: missing properties {missing}", "write the splat in the 3DGS layout")
-        return torch.from_numpy(np.ascontiguousarray(data[:, [col[k] for k in keys]], dtype=np.float32))
-
-    num_rest = sum(1 for name in names if name.startswith("f_rest_"))
-    bases = num_rest // 3 + 1
-    if num_rest % 3 or bases not in (1, 4, 9, 16):
+    if not path.is_file():
+        raise InputError(f"{path} does not exist", "pass the path of a 3DGS splat .ply")
+    try:
+        data = gsply.plyread(path)
+    except Exception as exc:  # gsply raises ValueError, KeyError, struct and numpy errors for malformed files
         raise InputError(
-            f"{path}: {num_rest} f_rest properties do not match an SH degree 0..3", "write 0, 9, 24 or 45 f_rest values"
-        )
-    dc = take(["f_dc_0", "f_dc_1", "f_dc_2"])[:, None, :]
-    rest = take([f"f_rest_{i}" for i in range(num_rest)]).reshape(count, 3, bases - 1).transpose(1, 2)
+            f"{path} is not a readable 3DGS splat PLY ({type(exc).__name__}: {exc})",
+            "pass a binary little-endian PLY in the 3DGS layout (x y z, f_dc_*, f_rest_*, opacity, scale_*, rot_*)",
+        ) from exc
+    if data.is_scales_linear or data.is_opacities_linear or data.is_sh0_rgb:
+        raise InputError(f"{path}: gsply read activated values", "write the splat in the 3DGS layout (raw values)")
+
+    def tensor(array) -> torch.Tensor:
+        return torch.from_numpy(np.ascontiguousarray(np.asarray(array, dtype=np.float32)))
+
+    sh_rest = data.shN if data.shN is not None and np.size(data.shN) else np.zeros((len(data.means), 0, 3))
+    sh = np.concatenate([np.asarray(data.sh0, np.float32)[:, None, :], np.asarray(sh_rest, np.float32)], axis=1)
     return Gaussians(
-        means=take(["x", "y", "z"]),
-        quats_wxyz=take(["rot_0", "rot_1", "rot_2", "rot_3"]),
-        log_scales=take(["scale_0", "scale_1", "scale_2"]),
-        opacity_logits=take(["opacity"])[:, 0].contiguous(),
-        sh=torch.cat([dc, rest], dim=1).contiguous(),
+        means=tensor(data.means),
+        quats_wxyz=tensor(data.quats),
+        log_scales=tensor(data.scales),
+        opacity_logits=tensor(np.asarray(data.opacities).reshape(-1)),
+        sh=tensor(sh),
     )

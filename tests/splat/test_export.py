@@ -7,13 +7,14 @@ import numpy as np
 import pytest
 import torch
 import trimesh
-from plyfile import PlyData
+from plyfile import PlyData, PlyElement
 
+from ffrecon.errors import InputError
 from ffrecon.export.mesh import write_mesh
 from ffrecon.geometry.poses import camera_centers, look_at_cam_from_world
 from ffrecon.geometry.rotations import rotation_angle_deg
 from ffrecon.splat.gaussians import Gaussians, rgb_to_sh_dc
-from ffrecon.splat.ply import read_splat_ply, splat_property_names, write_splat_ply
+from ffrecon.splat.ply import read_splat_ply, splat_property_names, splat_to_array, write_splat_ply
 from ffrecon.splat.render import render
 from ffrecon.splat.video import smooth_camera_path, write_flythrough
 from ffrecon.types import PinholeCamera
@@ -125,3 +126,21 @@ def test_poisson_mesh_of_a_sphere(tmp_path):
     assert len(mesh.faces) > 1000 and np.abs(radius - 1).max() < 0.05
     assert np.abs(mesh.visual.vertex_colors[:, :3].astype(float).mean(0) - [204, 51, 25]).max() < 10
     assert ply.stat().st_size > 0
+
+
+def test_ply_from_another_writer_reads_and_a_bad_file_says_so(tmp_path):
+    """Properties in another order with an extra one (as other tools write them) read back the same; a file
+    that is not a splat PLY is an InputError naming the layout, not a traceback."""
+    g, _ = _splat(np.random.default_rng(3), degree=1)
+    arr, names = splat_to_array(g, 1), splat_property_names(1)
+    order = ["x", "y", "z"] + [n for n in names if n not in ("x", "y", "z")][::-1] + ["extra"]
+    rec = np.zeros(len(g), dtype=[(n, "<f4") for n in order])
+    for i, n in enumerate(names):
+        rec[n] = arr[:, i]
+    PlyData([PlyElement.describe(rec, "vertex")]).write(str(tmp_path / "other.ply"))
+    back = read_splat_ply(tmp_path / "other.ply")
+    for key in ("means", "log_scales", "opacity_logits", "sh"):
+        assert torch.allclose(getattr(back, key), getattr(g, key), atol=1e-6), key
+    (tmp_path / "bad.ply").write_text("not a ply")
+    with pytest.raises(InputError, match="3DGS"):
+        read_splat_ply(tmp_path / "bad.ply")
