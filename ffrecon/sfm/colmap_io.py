@@ -64,16 +64,7 @@ def reconstruction_from_cameras(
     Image ids are 1..N in the order given.
     """
     rec = pycolmap.Reconstruction()
-    camera_ids: dict[PinholeCamera, int] = {}
-    for image_id, (name, pose, cam) in enumerate(zip(names, cam_from_world, cameras, strict=True), start=1):
-        if share_identical_cameras and cam in camera_ids:
-            camera_id = camera_ids[cam]
-        else:
-            camera_id = len(camera_ids) + 1 if share_identical_cameras else image_id
-            camera_ids[cam] = camera_id
-            rec.add_camera_with_trivial_rig(pinhole_to_colmap(cam, camera_id))
-        image = pycolmap.Image(name=name, camera_id=camera_id, image_id=image_id)
-        rec.add_image_with_trivial_frame(image, rigid_from_pose(pose))
+    add_posed_images(rec, names, cam_from_world, cameras, share_identical_cameras=share_identical_cameras)
     if points_xyz is not None:
         rgb = np.zeros((len(points_xyz), 3), np.uint8) if points_rgb is None else np.asarray(points_rgb)
         if rgb.dtype != np.uint8:
@@ -89,30 +80,37 @@ def add_posed_images(
     cam_from_world: np.ndarray,
     cameras: Sequence[PinholeCamera],
     distortion: Sequence[tuple[float, float, float, float]] | None = None,
+    *,
+    share_identical_cameras: bool = False,
 ) -> list[str]:
     """Add to ``rec`` the images of ``names`` it lacks, posed by ``cam_from_world [N, 3, 4]`` with their
     ``cameras`` (OPENCV with ``distortion`` (k1, k2, p1, p2) where it is not zero, else PINHOLE) and no
-    observations: frames the final cameras hold that its bundle adjustment did not (e.g. an unchecked
-    frame's model camera). Returns the names added."""
+    observations, e.g. frames the final cameras hold that a bundle adjustment did not (an unchecked
+    frame's model camera). New image and camera ids follow the largest in ``rec``;
+    ``share_identical_cameras``: one new camera for images with equal intrinsics and lens. Returns the
+    names added."""
     have = {im.name for im in rec.images.values()}
-    image_id = max(rec.images, default=0)
-    camera_id = max(rec.cameras, default=0)
+    image_id, camera_id = max(rec.images, default=0), max(rec.cameras, default=0)
+    shared: dict[tuple, int] = {}
     added = []
     lenses = distortion if distortion is not None else [(0.0, 0.0, 0.0, 0.0)] * len(names)
     for name, pose, cam, lens in zip(names, cam_from_world, cameras, lenses, strict=True):
         if name in have:
             continue
-        image_id, camera_id = image_id + 1, camera_id + 1
-        camera = pinhole_to_colmap(cam, camera_id)
-        if any(lens):
-            params = [cam.fx, cam.fy, cam.cx, cam.cy, *lens]
-            camera = pycolmap.Camera(
-                model="OPENCV", width=cam.width, height=cam.height, params=params, camera_id=camera_id
-            )
-        rec.add_camera_with_trivial_rig(camera)
-        rec.add_image_with_trivial_frame(
-            pycolmap.Image(name=name, camera_id=camera_id, image_id=image_id), rigid_from_pose(pose)
-        )
+        image_id += 1
+        key = (cam, tuple(lens))
+        if not (share_identical_cameras and key in shared):
+            camera_id += 1
+            shared[key] = camera_id
+            camera = pinhole_to_colmap(cam, camera_id)
+            if any(lens):
+                params = [cam.fx, cam.fy, cam.cx, cam.cy, *lens]
+                camera = pycolmap.Camera(
+                    model="OPENCV", width=cam.width, height=cam.height, params=params, camera_id=camera_id
+                )
+            rec.add_camera_with_trivial_rig(camera)
+        image = pycolmap.Image(name=name, camera_id=shared[key], image_id=image_id)
+        rec.add_image_with_trivial_frame(image, rigid_from_pose(pose))
         added.append(name)
     return added
 

@@ -88,11 +88,11 @@ class _MultiHeadAttention(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(ctx, query, key, value, scale: float, heads: int, width: int):  # noqa: ANN001, ARG004
+    def forward(ctx, query, key, value, scale: float, heads: int):  # noqa: ANN001, ARG004
         return _attention(query, key, value, scale=scale)
 
     @staticmethod
-    def symbolic(g, query, key, value, scale: float, heads: int, width: int):  # noqa: ANN001
+    def symbolic(g, query, key, value, scale: float, heads: int):  # noqa: ANN001
         def tokens(x):  # [B, heads, N, width] -> [B, N, heads * width]
             x = g.op("Transpose", x, perm_i=[0, 2, 1, 3])
             return g.op("Reshape", x, g.op("Constant", value_t=torch.tensor([0, 0, -1])))
@@ -125,8 +125,8 @@ def _fused_attention(
     if is_causal or dropout_p or attn_mask is not None or query.dim() != 4:
         raise RuntimeError("ffrecon's fused attention export covers unmasked 4-D inference attention only")
     factor = float(scale) if scale is not None else float(query.shape[-1]) ** -0.5
-    heads, width = int(query.shape[1]), int(query.shape[3])  # fixed by the architecture: constants in the graph
-    return _MultiHeadAttention.apply(query, key, value, factor, heads, width)
+    heads = int(query.shape[1])  # fixed by the architecture: a constant in the graph
+    return _MultiHeadAttention.apply(query, key, value, factor, heads)
 
 
 @contextlib.contextmanager
