@@ -271,13 +271,13 @@ def _add_export_arguments(export: argparse.ArgumentParser) -> None:
 def _export(args: argparse.Namespace) -> None:
     import warnings
 
-    from ffrecon.models.exporting import ExportOptions, export_model
+    from ffrecon.models.exporting import ModelExportOptions, export_model
 
     if (args.height is None) != (args.width is None):
         raise FFReconError(
             "--height and --width go together", "pass both, or neither (then --photos or the family's default decides)"
         )
-    options = ExportOptions(
+    options = ModelExportOptions(
         family=args.family,
         out=args.out,
         checkpoint=args.checkpoint,
@@ -356,8 +356,8 @@ def _run_options(args: argparse.Namespace, ground_truth: Path | None = None):
 
 def _print_summary(results) -> None:
     """The end-of-run summary, from the same report data as report.html."""
-    from ffrecon.export.report import build_report
-    from ffrecon.export.report_html import summary_rows, wall_seconds
+    from ffrecon.report.build import build_report
+    from ffrecon.report.html import summary_rows, wall_seconds
 
     report = build_report(results)
     verdict = report["verdict"]

@@ -15,9 +15,9 @@ from pathlib import Path
 
 from ffrecon.capture import CaptureOptions, run_capture
 from ffrecon.errors import InputError, Interrupted
-from ffrecon.export.report import write_report
 from ffrecon.export.stage import ExportOptions
 from ffrecon.models.stage import FeedForwardOptions
+from ffrecon.report.build import write_report
 from ffrecon.results import RunMode, RunResults, Verdict
 from ffrecon.resume import StageRunner, file_key, rebase_paths
 from ffrecon.sfm.comparisons import check_references

@@ -2,7 +2,7 @@
 
 A stage that did not run holds a :class:`Skipped` naming why, never a missing key. The report
 (``report.json``, ``report.html``) and the command-line summary are built from these results alone
-(:mod:`ffrecon.export.report`).
+(:mod:`ffrecon.report.build`).
 """
 
 from __future__ import annotations
@@ -22,35 +22,7 @@ from ffrecon.sfm.evidence import EvidenceResult
 from ffrecon.sfm.gates import GatesResult
 from ffrecon.sfm.refine import RefineResult
 from ffrecon.splat.stage import SplatResult
-
-
-@dataclass(frozen=True)
-class Skipped:
-    """A stage that did not run, and why (shown in the report and the summary)."""
-
-    stage: str
-    reason: str
-
-
-class RunMode(enum.Enum):
-    """How a run makes its cameras (:attr:`ffrecon.pipeline.RunOptions.mode`)."""
-
-    # The model's cameras (or COLMAP's, without a model), checked against an independent COLMAP
-    # reconstruction of the same photos, then refined by bundle adjustment.
-    FULL = "full"
-    # ``--quick``: no COLMAP reconstruction. The model's cameras refined by bundle adjustment on SIFT
-    # matches of the pairs they say overlap; nothing independent checks them. Needs a model.
-    QUICK = "quick"
-
-
-QUICK_STATEMENT = (
-    "Quick mode: no independent COLMAP cross-check was run; the cameras are the feed-forward ones refined by "
-    "bundle adjustment and are not verified against an independent reconstruction."
-)
-QUICK_NO_CROSSCHECK = (
-    "quick mode (--quick): no independent COLMAP reconstruction; the refinement extracts and matches SIFT "
-    "itself, on the pairs the model's cameras say overlap"
-)
+from ffrecon.types import QUICK_NO_CROSSCHECK, QUICK_STATEMENT, RunMode, Skipped  # noqa: F401 (re-exported)
 
 
 class Verdict(enum.Enum):

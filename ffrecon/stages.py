@@ -17,6 +17,7 @@ import numpy as np
 import pycolmap
 
 from ffrecon.capture import Capture
+from ffrecon.colmap_io import add_posed_images, is_model_dir, write_reconstruction
 from ffrecon.concurrency import CoreShare, run_beside
 from ffrecon.errors import InputError
 from ffrecon.export.stage import OUTPUTS as EXPORT_OUTPUTS
@@ -28,7 +29,6 @@ from ffrecon.models.runner import cpu_threads
 from ffrecon.models.stage import FeedForwardResult, run_feedforward
 from ffrecon.results import QUICK_NO_CROSSCHECK, RunMode, Skipped
 from ffrecon.resume import StageRunner, file_key
-from ffrecon.sfm.colmap_io import add_posed_images, is_model_dir, write_reconstruction
 from ffrecon.sfm.compare import compare_poses
 from ffrecon.sfm.comparisons import ComparisonsResult, load_references, run_comparisons
 from ffrecon.sfm.crosscheck import ColmapResult, run_colmap

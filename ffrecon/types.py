@@ -170,3 +170,35 @@ class Prediction:
     def valid_mask(self, i: int, min_conf: float = 1.0) -> np.ndarray:
         """``[H_i, W_i]`` bool: depth known, positive and with confidence >= ``min_conf``."""
         return (self.depth[i] > 0) & (self.depth_conf[i] >= min_conf)
+
+
+# -- what every stage returns when it does not run, and the run's mode ---------------------------------
+
+
+@dataclass(frozen=True)
+class Skipped:
+    """A stage that did not run, and why (shown in the report and the summary)."""
+
+    stage: str
+    reason: str
+
+
+class RunMode(enum.Enum):
+    """How a run makes its cameras (:attr:`ffrecon.pipeline.RunOptions.mode`)."""
+
+    # The model's cameras (or COLMAP's, without a model), checked against an independent COLMAP
+    # reconstruction of the same photos, then refined by bundle adjustment.
+    FULL = "full"
+    # ``--quick``: no COLMAP reconstruction. The model's cameras refined by bundle adjustment on SIFT
+    # matches of the pairs they say overlap; nothing independent checks them. Needs a model.
+    QUICK = "quick"
+
+
+QUICK_STATEMENT = (
+    "Quick mode: no independent COLMAP cross-check was run; the cameras are the feed-forward ones refined by "
+    "bundle adjustment and are not verified against an independent reconstruction."
+)
+QUICK_NO_CROSSCHECK = (
+    "quick mode (--quick): no independent COLMAP reconstruction; the refinement extracts and matches SIFT "
+    "itself, on the pairs the model's cameras say overlap"
+)

@@ -9,7 +9,7 @@ import pycolmap
 import pytest
 from PIL import Image
 
-from ffrecon.export.nerfstudio import write_transforms
+from ffrecon.formats.nerfstudio import write_transforms
 from ffrecon.geometry.metrics import pose_errors
 from ffrecon.geometry.undistort import opencv_coefficients, undistort_image
 from ffrecon.pipeline import RunOptions, run

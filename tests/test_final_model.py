@@ -6,12 +6,12 @@ from types import SimpleNamespace
 import numpy as np
 import pycolmap
 
-from ffrecon.export.stage import FinalCameras
-from ffrecon.sfm.colmap_io import (
+from ffrecon.colmap_io import (
     cam_from_world_by_name,
     reconstruction_from_cameras,
     write_reconstruction,
 )
+from ffrecon.export.stage import FinalCameras
 from ffrecon.stages import write_final_model
 from ffrecon.types import PinholeCamera
 

@@ -216,7 +216,7 @@ def prepare(frames: int, width: int, height: int, seed: int):
 
 def write_reference(scene_dir: Path, out: Path) -> Path:
     """The ground truth of ``scene_dir`` as a COLMAP model (cameras and poses, no points), for ``--reference``."""
-    from ffrecon.sfm.colmap_io import reconstruction_from_cameras, write_reconstruction
+    from ffrecon.colmap_io import reconstruction_from_cameras, write_reconstruction
     from ffrecon.types import PinholeCamera
 
     truth = json.loads((scene_dir / "ground_truth.json").read_text())

@@ -20,8 +20,8 @@ import cv2
 import numpy as np
 import pycolmap
 
+from ffrecon.formats.splat_ply import read_splat_ply
 from ffrecon.splat.optimize import OptimizeOptions
-from ffrecon.splat.ply import read_splat_ply
 from ffrecon.splat.render import render_view
 from ffrecon.types import PinholeCamera
 

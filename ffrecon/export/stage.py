@@ -3,7 +3,7 @@
 ``run_exports`` writes ``points.ply`` (the depth maps fused with the final cameras, or COLMAP's
 sparse points when no model was given), the nerfstudio
 ``transforms.json`` and, on request, a Poisson mesh (``mesh.ply``, ``mesh.glb``). The COLMAP models
-are written by the stages that make them; the report by :mod:`ffrecon.export.report`.
+are written by the stages that make them; the report by :mod:`ffrecon.report.build`.
 """
 
 from __future__ import annotations
@@ -16,9 +16,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ffrecon.export.mesh import MeshOptions, write_mesh
-from ffrecon.export.nerfstudio import write_transforms
-from ffrecon.export.pointcloud import FuseOptions, fuse_prediction, write_point_cloud
+from ffrecon.formats.mesh import MeshOptions, write_mesh
+from ffrecon.formats.nerfstudio import write_transforms
+from ffrecon.formats.pointcloud import FuseOptions, fuse_prediction, write_point_cloud
 from ffrecon.geometry.poses import camera_centers
 from ffrecon.types import PinholeCamera, Prediction
 

@@ -55,3 +55,14 @@ def look_at_cam_from_world(
     y = np.cross(z, x)
     rot = np.stack([x, y, z])  # rows: camera axes in the world frame
     return np.concatenate([rot, (-rot @ center)[:, None]], axis=1)
+
+
+def up_from_cameras(cam_from_world: np.ndarray) -> np.ndarray:
+    """``[3]`` unit world direction of the mean image-up axis (-y of OpenCV cameras).
+
+    >>> (up_from_cameras(np.eye(3, 4)[None]) + 0.0).tolist()  # identity camera: image-up is world -y
+    [0.0, -1.0, 0.0]
+    """
+    up = -cam_from_world[:, 1, :3].sum(axis=0)  # row 1 of R is the camera y axis in world coordinates
+    norm = np.linalg.norm(up)
+    return up / norm if norm > 1e-9 else np.array([0.0, 0.0, 1.0])

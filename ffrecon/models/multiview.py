@@ -19,8 +19,8 @@ from ffrecon.checks import check_number
 from ffrecon.errors import InputError, ModelError
 from ffrecon.geometry.alignment import Sim3, umeyama
 from ffrecon.models.adapters import MultiviewAdapter, PreprocessMode
-from ffrecon.models.validate import validate_prediction
 from ffrecon.types import ModelInfo, Prediction
+from ffrecon.validate import validate_prediction
 
 log = logging.getLogger("ffrecon.models")
 

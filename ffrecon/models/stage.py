@@ -14,16 +14,16 @@ import numpy as np
 
 from ffrecon.capture import Capture
 from ffrecon.checks import check_number
+from ffrecon.colmap_io import reconstruction_from_cameras, write_reconstruction
 from ffrecon.errors import InputError, ModelError
-from ffrecon.export.pointcloud import FuseOptions, fuse_prediction, write_depth_maps
+from ffrecon.formats.pointcloud import FuseOptions, fuse_prediction, write_depth_maps
 from ffrecon.models.adapters import adapter_for
 from ffrecon.models.memory import default_chunk_size
 from ffrecon.models.multiview import MultiviewOptions, predict_multiview
 from ffrecon.models.pairwise import PairwiseOptions
 from ffrecon.models.runner import OnnxModel
-from ffrecon.models.validate import validate_prediction
-from ffrecon.sfm.colmap_io import reconstruction_from_cameras, write_reconstruction
 from ffrecon.types import ModelFamily, ModelInfo, Prediction
+from ffrecon.validate import validate_prediction
 
 log = logging.getLogger("ffrecon.models")
 

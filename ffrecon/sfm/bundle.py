@@ -17,10 +17,10 @@ import numpy as np
 import pycolmap
 
 from ffrecon.checks import check_number
+from ffrecon.colmap_io import cam_from_world_by_name
 from ffrecon.geometry.alignment import Sim3, collinear, sim3_from_cameras, umeyama
 from ffrecon.geometry.poses import camera_centers
 from ffrecon.geometry.rotations import matrix_to_quat_xyzw
-from ffrecon.sfm.colmap_io import cam_from_world_by_name
 
 logger = logging.getLogger("ffrecon.sfm")
 

@@ -15,9 +15,9 @@ import numpy as np
 import pycolmap
 
 from ffrecon.checks import check_number
+from ffrecon.colmap_io import cam_from_world_by_name
 from ffrecon.geometry.metrics import PoseErrors, pose_errors
 from ffrecon.geometry.poses import camera_centers
-from ffrecon.sfm.colmap_io import cam_from_world_by_name
 
 logger = logging.getLogger("ffrecon.sfm")
 

@@ -14,9 +14,10 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from ffrecon.colmap_io import cam_from_world_by_name, is_model_dir
 from ffrecon.errors import InputError
-from ffrecon.export.plots import up_from_cameras
-from ffrecon.sfm.colmap_io import cam_from_world_by_name, is_model_dir
+from ffrecon.formats.ground_truth import ground_truth_poses
+from ffrecon.geometry.poses import up_from_cameras
 from ffrecon.sfm.compare import PoseComparison, compare_poses
 
 # Reference poses by label: (cam_from_world [N, 3, 4], has a pose [N] bool), over the run's names.
@@ -68,12 +69,10 @@ def load_references(ground_truth: Path | None, reference: Path | None, names: Se
     """Ground truth of a synthetic scene folder and/or a reference COLMAP model, over ``names``."""
     refs: References = {}
     if ground_truth is not None:
-        from ffrecon.synthetic import load_scene
-
-        scene = load_scene(Path(ground_truth))
-        index = {n: k for k, n in enumerate(scene.names)}
+        truth_names, truth_poses = ground_truth_poses(Path(ground_truth))
+        index = {n: k for k, n in enumerate(truth_names)}
         have = np.array([n in index for n in names])
-        poses = np.stack([scene.cam_from_world[index[n]] if n in index else np.eye(3, 4) for n in names])
+        poses = np.stack([truth_poses[index[n]] if n in index else np.eye(3, 4) for n in names])
         refs["ground truth"] = (poses, have)
     if reference is not None:
         refs["reference model"] = cam_from_world_by_name(pycolmap.Reconstruction(str(reference)), list(names))

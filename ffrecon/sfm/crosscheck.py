@@ -29,13 +29,11 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from ffrecon.checks import check_number
+from ffrecon.colmap_io import cam_from_world_by_name, cameras_by_name, write_reconstruction
 from ffrecon.errors import InputError
-from ffrecon.sfm.colmap_io import cam_from_world_by_name, cameras_by_name, write_reconstruction
+from ffrecon.sfm.colmap_options import CameraSharing, ColmapOptions, MapperKind, PairingMode
 from ffrecon.sfm.features import (
-    CameraModel,
     FeatureStats,
-    SiftOptions,
     colmap_log_level,
     create_database,
     extract_sift,
@@ -45,8 +43,7 @@ from ffrecon.sfm.features import (
     matching_options,
     threads_at_most,
 )
-from ffrecon.sfm.mapping import MapperKind, MapperRun, map_images, two_view_run
-from ffrecon.sfm.two_view import TwoViewOptions
+from ffrecon.sfm.mapping import MapperRun, map_images, two_view_run
 from ffrecon.timing import StageTimer, Timings
 from ffrecon.types import PinholeCamera
 
@@ -56,55 +53,9 @@ logger = logging.getLogger("ffrecon.sfm")
 _SAME_FOCAL_RTOL = 1e-3
 
 
-class PairingMode(enum.Enum):
-    AUTO = "auto"  # exhaustive up to ``exhaustive_max_images``, then vocabulary tree if given, else sequential
-    EXHAUSTIVE = "exhaustive"
-    # video order: each frame against its ``sequential_overlap`` successors and successors 2^k apart
-    # (quadratic overlap); with ``vocab_tree_path`` also against similar-looking frames (loop detection)
-    SEQUENTIAL = "sequential"
-    SPATIAL = "spatial"  # nearest GPS positions (needs position priors in the database, e.g. from EXIF)
-    VOCAB_TREE = "vocab_tree"  # image retrieval; needs ``vocab_tree_path``
-
-
-class CameraSharing(enum.Enum):
-    AUTO = "auto"  # one camera when all images have one size and one focal prior (or none is known)
-    SHARED = "shared"  # one camera for all images (they must have one size)
-    PER_IMAGE = "per_image"
-
-
 class ColmapStatus(enum.Enum):
     SUCCESS = "success"
     NO_MODEL = "no_model"  # mapping built no model (nothing registered)
-
-
-@dataclass(frozen=True, kw_only=True)
-class ColmapOptions:
-    enabled: bool = True  # False: the stage is skipped (and the report says so)
-    pairing: PairingMode = PairingMode.AUTO
-    exhaustive_max_images: int = 150
-    sequential_overlap: int = 10
-    vocab_tree_path: Path | None = None  # COLMAP vocabulary tree: retrieval pairing, loop detection
-    mapper: MapperKind = MapperKind.AUTO
-    camera_model: CameraModel = CameraModel.SIMPLE_RADIAL
-    camera_sharing: CameraSharing = CameraSharing.AUTO
-    sift: SiftOptions = SiftOptions()
-    max_mapping_seconds: int = 600  # per mapper; the incremental mapper stops, global bundle adjustment is capped
-    # An image counts as registered when it sees this many model points (COLMAP's incremental mapper
-    # registers an image on 30 2D-3D inliers; the global mapper places every connected image, however weak).
-    min_points_per_image: int = 30
-    num_threads: int = -1  # feature extraction and matching; -1: all cores
-    # Two photos that COLMAP's mappers refuse (forward step, small angles) but that verify many matches:
-    # ffrecon builds their reconstruction itself from the verified geometry and the EXIF focal prior.
-    two_view: TwoViewOptions = TwoViewOptions()
-    mapper_num_threads: int = 1  # 1 makes mapping repeatable (COLMAP's multi-threaded solvers are not); -1: all
-    seed: int = 0
-
-    def __post_init__(self) -> None:
-        for name in ("exhaustive_max_images", "min_points_per_image"):
-            check_number(f"ColmapOptions.{name}", getattr(self, name), low=0, integer=True)
-        check_number("ColmapOptions.sequential_overlap", self.sequential_overlap, low=1, integer=True)
-        # COLMAP takes whole seconds, and 0 there means no bound
-        check_number("ColmapOptions.max_mapping_seconds", self.max_mapping_seconds, low=1)
 
 
 @dataclass(frozen=True)

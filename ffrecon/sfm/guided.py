@@ -25,8 +25,8 @@ import numpy as np
 import pycolmap
 
 from ffrecon.checks import check_number
-from ffrecon.models.validate import validate_prediction
 from ffrecon.types import Prediction
+from ffrecon.validate import validate_prediction
 
 logger = logging.getLogger("ffrecon.sfm")
 

@@ -6,21 +6,17 @@ the weak-image rule, the choice of model, and ffrecon's two-view reconstruction 
 
 from __future__ import annotations
 
-import enum
 import logging
 import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 import pycolmap
 
+from ffrecon.sfm.colmap_options import ColmapOptions, MapperKind
 from ffrecon.sfm.two_view import TwoViewOptions, two_view_reconstruction
-
-if TYPE_CHECKING:
-    from ffrecon.sfm.crosscheck import ColmapOptions
 
 logger = logging.getLogger("ffrecon.sfm")
 
@@ -28,13 +24,6 @@ logger = logging.getLogger("ffrecon.sfm")
 _INCREMENTAL_LOCAL_BA_ITERATIONS = 25
 _INCREMENTAL_GLOBAL_BA_ITERATIONS = 50
 _GLOBAL_BA_ITERATIONS = 200  # per bundle adjustment; the global mapper runs ``ba_num_iterations`` (3) of them
-
-
-class MapperKind(enum.Enum):
-    AUTO = "auto"  # incremental; then the global mapper too when incremental leaves images out
-    INCREMENTAL = "incremental"
-    GLOBAL = "global"  # GLOMAP, merged into COLMAP 4
-    TWO_VIEW = "two_view"  # ffrecon's own, from COLMAP's verified geometry of two photos (sfm/two_view.py)
 
 
 @dataclass(frozen=True)

@@ -22,19 +22,18 @@ import numpy as np
 import pycolmap
 
 from ffrecon.checks import check_number
-from ffrecon.errors import InputError
-from ffrecon.geometry.alignment import Sim3
-from ffrecon.geometry.metrics import aligned_rotation_errors_deg
-from ffrecon.geometry.undistort import NO_DISTORTION, opencv_coefficients
-from ffrecon.models.validate import validate_prediction
-from ffrecon.sfm.bundle import BundleOptions, BundleSummary, refine_tracks, sim3_to_ff_frame
-from ffrecon.sfm.colmap_io import (
+from ffrecon.colmap_io import (
     cam_from_world_by_name,
     cameras_by_name,
     pinhole_to_colmap,
     reconstruction_from_cameras,
     write_reconstruction,
 )
+from ffrecon.errors import InputError
+from ffrecon.geometry.alignment import Sim3
+from ffrecon.geometry.metrics import aligned_rotation_errors_deg
+from ffrecon.geometry.undistort import NO_DISTORTION, opencv_coefficients
+from ffrecon.sfm.bundle import BundleOptions, BundleSummary, refine_tracks, sim3_to_ff_frame
 from ffrecon.sfm.dense import DenseOptions, DenseStats, add_dense_evidence, short_frames
 from ffrecon.sfm.features import (
     CameraModel,
@@ -57,6 +56,7 @@ from ffrecon.sfm.relocalize import Relocalized, RelocalizeOptions, reach_matrix,
 from ffrecon.sfm.screen import ScreenOptions, Suspect, reseeded, screen_rotations
 from ffrecon.timing import StageTimer, Timings
 from ffrecon.types import PinholeCamera, Prediction
+from ffrecon.validate import validate_prediction
 
 logger = logging.getLogger("ffrecon.sfm")
 

@@ -21,7 +21,7 @@ import numpy as np
 import pycolmap
 
 from ffrecon.checks import check_number
-from ffrecon.sfm.colmap_io import rigid_from_pose
+from ffrecon.colmap_io import rigid_from_pose
 
 logger = logging.getLogger("ffrecon.sfm")
 

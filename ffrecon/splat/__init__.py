@@ -7,5 +7,5 @@ Import from the modules, e.g. ``from ffrecon.splat.stage import SplatOptions, ru
 - :mod:`ffrecon.splat.seed`: ``seed_from_prediction``, ``seed_from_reconstruction``
 - :mod:`ffrecon.splat.render`: ``render`` (CPU, differentiable); :mod:`ffrecon.splat.render_gsplat` (CUDA)
 - :mod:`ffrecon.splat.optimize`, :mod:`ffrecon.splat.densify`, :mod:`ffrecon.splat.clean`
-- :mod:`ffrecon.splat.ply`: 3DGS ``splat.ply`` read and write; :mod:`ffrecon.splat.video`: the fly-through
+- :mod:`ffrecon.formats.splat_ply`: 3DGS ``splat.ply`` read and write; :mod:`ffrecon.splat.video`: the fly-through
 """

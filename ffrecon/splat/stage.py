@@ -2,7 +2,7 @@
 
 Two entries share one implementation. :func:`run_splat_from_prediction` (what the pipeline calls)
 seeds from the feed-forward depth maps of the training views; :func:`run_splat` takes an explicit
-seed cloud. Both write, under ``out_dir``: ``splat.ply`` (3DGS layout, see :mod:`ffrecon.splat.ply`),
+seed cloud. Both write, under ``out_dir``: ``splat.ply`` (3DGS layout, see :mod:`ffrecon.formats.splat_ply`),
 ``renders/<view>_{truth,seed,splat}.png`` for a few held-out views and ``flythrough.mp4``.
 
 The held-out views (every ``holdout_every``-th frame, starting with the first) are chosen once, by
@@ -30,7 +30,8 @@ import torch
 
 from ffrecon.checks import check_number, check_shape, require_finite
 from ffrecon.errors import InputError
-from ffrecon.export.web import WebExportError, write_sog, write_splat_spz
+from ffrecon.formats.splat_ply import write_splat_ply
+from ffrecon.formats.web import WebExportError, write_sog, write_splat_spz
 from ffrecon.geometry.poses import camera_centers
 from ffrecon.geometry.rotations import rotation_angle_deg
 from ffrecon.splat.appearance import apply_color_transform, fit_color_transform
@@ -45,7 +46,6 @@ from ffrecon.splat.optimize import (
     scene_scale,
     torch_threads,
 )
-from ffrecon.splat.ply import write_splat_ply
 from ffrecon.splat.render import render_view
 from ffrecon.splat.render_gsplat import gsplat_available
 from ffrecon.splat.seed import initial_gaussians, reduce_points, seed_from_prediction
@@ -77,7 +77,7 @@ class SplatOptions:
     holdout_every: int = 8  # frames 0, k, 2k, ... are held out for evaluation; 0 = none
     max_seed_points: int = 60_000  # the seed is voxel-downsampled to at most this (and optimize.max_gaussians)
     video: bool = True  # flythrough.mp4 along a smooth path through the cameras
-    spz: bool = True  # splat.spz (Niantic's SPZ, ~10x smaller) beside splat.ply; see ffrecon.export.web
+    spz: bool = True  # splat.spz (Niantic's SPZ, ~10x smaller) beside splat.ply; see ffrecon.formats.web
     sog: bool = False  # splat.sog (PlayCanvas) through splat-transform: opt-in, its CPU k-means is slow
     video_frames: int = 90
     report_views: int = 3  # held-out views rendered into renders/ for the report
@@ -686,7 +686,7 @@ def _write_outputs(
     timer: StageTimer,
 ) -> tuple[Path, Path | None, dict[str, Path | None]]:
     """``splat.ply``, (when ``options.video``) ``flythrough.mp4`` and the web formats asked for
-    (``{"spz_path": ..., "sog_path": ...}``, see :mod:`ffrecon.export.web`); adds their times to ``timer``."""
+    (``{"spz_path": ..., "sog_path": ...}``, see :mod:`ffrecon.formats.web`); adds their times to ``timer``."""
     o = options.optimize
     with timer.stage("write_ply"):
         ply_path = write_splat_ply(out_dir / "splat.ply", cleaned, sh_degree=o.sh_degree)

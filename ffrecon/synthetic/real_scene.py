@@ -27,7 +27,7 @@ import numpy as np
 import pycolmap
 
 from ffrecon.capture.images import load_image
-from ffrecon.sfm.colmap_io import colmap_to_pinhole, pose_from_rigid
+from ffrecon.colmap_io import colmap_to_pinhole, pose_from_rigid
 from ffrecon.types import PinholeCamera
 
 logger = logging.getLogger("ffrecon.synthetic")

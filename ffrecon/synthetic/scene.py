@@ -25,7 +25,7 @@ import cv2
 import numpy as np
 from PIL import Image
 
-from ffrecon.errors import InputError
+from ffrecon.formats.ground_truth import read_ground_truth
 from ffrecon.geometry.poses import look_at_cam_from_world
 from ffrecon.geometry.projection import unproject_depth
 from ffrecon.synthetic import render, textures
@@ -291,13 +291,7 @@ def write_scene(scene: SyntheticScene, out_dir: Path) -> Path:
 def load_scene(out_dir: Path) -> SyntheticScene:
     """Read a scene written by :func:`write_scene`."""
     out_dir = Path(out_dir)
-    truth_path = out_dir / "ground_truth.json"
-    if not truth_path.is_file():
-        raise InputError(
-            f"no synthetic scene in {out_dir}: {truth_path.name} is missing",
-            "write one with ffrecon.synthetic.write_scene",
-        )
-    truth = json.loads(truth_path.read_text())
+    truth = read_ground_truth(out_dir)
     names = tuple(f["name"] for f in truth["frames"])
     images = np.stack([np.asarray(Image.open(out_dir / "images" / n).convert("RGB")) for n in names])
     c = truth["camera"]

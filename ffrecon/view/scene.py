@@ -141,7 +141,7 @@ def _read_model(out: Path, estimate: Estimate):
     """``(names, [N, 3, 4] cam_from_world, [N] (K [3, 3], (w, h)))`` of the registered images, or None."""
     import pycolmap
 
-    from ffrecon.sfm.colmap_io import is_model_dir, pose_from_rigid
+    from ffrecon.colmap_io import is_model_dir, pose_from_rigid
 
     folder = out / estimate.folder
     if not is_model_dir(folder):
@@ -264,7 +264,7 @@ def splat_layer(gaussians, max_gaussians: int) -> SplatLayer:
 
 
 def _read_splat(path: Path, options: ViewOptions) -> SplatLayer:
-    from ffrecon.splat.ply import read_splat_ply
+    from ffrecon.formats.splat_ply import read_splat_ply
 
     fix = f"re-run the splat stage (ffrecon run ... --resume), or delete {path.name} to view without it"
     try:

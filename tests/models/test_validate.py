@@ -9,8 +9,8 @@ import pytest
 
 from ffrecon.errors import ModelError
 from ffrecon.geometry.alignment import umeyama
-from ffrecon.models.validate import validate_prediction
 from ffrecon.types import ModelFamily, ModelInfo, PinholeCamera, Prediction
+from ffrecon.validate import validate_prediction
 
 
 def _prediction(n: int = 3) -> Prediction:

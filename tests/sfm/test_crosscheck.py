@@ -6,9 +6,9 @@ import numpy as np
 import pycolmap
 import pytest
 
+from ffrecon.colmap_io import cam_from_world_by_name, reconstruction_from_cameras, write_reconstruction
 from ffrecon.errors import InputError
 from ffrecon.geometry.metrics import pose_errors
-from ffrecon.sfm.colmap_io import cam_from_world_by_name, reconstruction_from_cameras, write_reconstruction
 from ffrecon.sfm.compare import compare_models
 from ffrecon.sfm.crosscheck import (
     CameraSharing,

@@ -6,10 +6,10 @@ import numpy as np
 import pycolmap
 import pytest
 
+from ffrecon.colmap_io import cam_from_world_by_name
 from ffrecon.geometry.metrics import pose_errors
 from ffrecon.geometry.poses import camera_centers
 from ffrecon.sfm.bundle import BundleOptions
-from ffrecon.sfm.colmap_io import cam_from_world_by_name
 from ffrecon.sfm.guided import GuidanceOptions, MatchGuidance
 from ffrecon.sfm.refine import RefineOptions, RefineStatus, WeakReason, run_refine
 

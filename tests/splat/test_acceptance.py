@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 from plyfile import PlyData
 
+from ffrecon.formats.splat_ply import splat_property_names
 from ffrecon.geometry.projection import unproject_depth
 from ffrecon.splat.optimize import OptimizeOptions
-from ffrecon.splat.ply import splat_property_names
 from ffrecon.splat.stage import SplatOptions, run_splat, split_views
 from ffrecon.synthetic import SceneOptions, make_scene
 from ffrecon.synthetic.simulated_model import SimulationOptions, simulate

@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from ffrecon.errors import InputError
+from ffrecon.formats.splat_ply import read_splat_ply
 from ffrecon.splat.clean import CleanOptions
 from ffrecon.splat.optimize import OptimizeOptions
-from ffrecon.splat.ply import read_splat_ply
 from ffrecon.splat.render_gsplat import gsplat_available
 from ffrecon.splat.seed import seed_from_prediction
 from ffrecon.splat.stage import (

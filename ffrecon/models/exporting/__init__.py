@@ -13,7 +13,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from ffrecon.errors import FFReconError, InputError
-from ffrecon.models.exporting.common import ExportOptions, ExportReport, export_spec
+from ffrecon.models.exporting.common import ExportReport, ModelExportOptions, export_spec
 
 log = logging.getLogger("ffrecon.export_model")
 
@@ -69,7 +69,7 @@ def photo_size_hw(path: Path) -> tuple[int, int]:
     return h, w
 
 
-def export_model(options: ExportOptions) -> ExportReport:
+def export_model(options: ModelExportOptions) -> ExportReport:
     """Build the family's upstream model, export it to ``options.out`` and verify it."""
     module = family_module(options.family)
     size_hw = options.size_hw

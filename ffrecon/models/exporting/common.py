@@ -32,7 +32,7 @@ FP16_TOLERANCE = 5e-2
 
 
 @dataclass(frozen=True, kw_only=True)
-class ExportOptions:
+class ModelExportOptions:
     """What ``ffrecon export-model`` was asked for."""
 
     family: str
@@ -144,7 +144,7 @@ def relative_difference(have: np.ndarray, want: np.ndarray) -> float:
     return float(np.abs(have.astype(np.float64) - want).max() / (np.abs(want).max() + 1e-12))
 
 
-def export_spec(spec: ExportSpec, options: ExportOptions) -> ExportReport:
+def export_spec(spec: ExportSpec, options: ModelExportOptions) -> ExportReport:
     """Trace, save and verify one :class:`ExportSpec` to ``options.out``."""
     import onnx
 
@@ -195,7 +195,7 @@ def export_spec(spec: ExportSpec, options: ExportOptions) -> ExportReport:
     )
 
 
-def _trace(spec: ExportSpec, example: tuple[torch.Tensor, ...], options: ExportOptions, tmp_parent: Path):
+def _trace(spec: ExportSpec, example: tuple[torch.Tensor, ...], options: ModelExportOptions, tmp_parent: Path):
     """Trace ``spec.module`` on ``example`` into an ONNX proto; also return PyTorch's outputs on it.
 
     The module runs once before the trace: that fills the size-dependent caches (see ``patches``).
@@ -232,7 +232,7 @@ def _trace(spec: ExportSpec, example: tuple[torch.Tensor, ...], options: ExportO
     return model, warm
 
 
-def _metadata(spec: ExportSpec, options: ExportOptions, params: int) -> dict[str, str]:
+def _metadata(spec: ExportSpec, options: ModelExportOptions, params: int) -> dict[str, str]:
     """The ``ffrecon.*`` metadata properties the runner detects families by and inspect-model shows."""
     return {
         "ffrecon.contract": spec.contract,

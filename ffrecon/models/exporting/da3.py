@@ -36,7 +36,7 @@ import torch
 
 from ffrecon.errors import InputError
 from ffrecon.models import da3 as contract
-from ffrecon.models.exporting.common import ExportOptions, ExportSpec, random_images
+from ffrecon.models.exporting.common import ExportSpec, ModelExportOptions, random_images
 from ffrecon.models.exporting.patches import frozen_position_embeddings
 from ffrecon.models.exporting.upstream import import_upstream
 from ffrecon.models.exporting.weights import load_into, load_state_dict
@@ -73,10 +73,10 @@ class DA3ForOnnx(torch.nn.Module):
         return out.depth, out.depth_conf, out.extrinsics, out.intrinsics
 
 
-def config_name(options: ExportOptions) -> str:
+def config_name(options: ModelExportOptions) -> str:
     """Which upstream config to build: ``options.variant`` when given, else the checkpoint's, else the largest."""
     registry = import_upstream("depth_anything_3.registry", options.upstream, family="depth_anything_3").MODEL_REGISTRY
-    name = getattr(options, "variant", None)  # ExportOptions.variant (proposed), e.g. "da3-large"
+    name = getattr(options, "variant", None)  # ModelExportOptions.variant (proposed), e.g. "da3-large"
     if name is None and options.checkpoint is not None:
         name = _checkpoint_config_name(Path(options.checkpoint))
     name = name or RANDOM_INIT_CONFIG
@@ -142,7 +142,7 @@ def build_tiny(upstream: Path | None) -> torch.nn.Module:
     )
 
 
-def build_net(options: ExportOptions) -> tuple[torch.nn.Module, str]:
+def build_net(options: ModelExportOptions) -> tuple[torch.nn.Module, str]:
     """The upstream ``DepthAnything3Net`` (weights loaded when a checkpoint is given) and its description."""
     if options.tiny:
         return build_tiny(options.upstream), "tiny configuration"
@@ -321,7 +321,7 @@ def trace_context(upstream: Path | None):
     return context
 
 
-def build(options: ExportOptions, size_hw: tuple[int, int]) -> ExportSpec:
+def build(options: ModelExportOptions, size_hw: tuple[int, int]) -> ExportSpec:
     torch.manual_seed(options.seed)
     net, name = build_net(options)
     net = net.eval().float()

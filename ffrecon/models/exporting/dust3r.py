@@ -47,7 +47,7 @@ import torch
 
 from ffrecon.errors import InputError
 from ffrecon.models import pairwise as contract
-from ffrecon.models.exporting.common import ExportOptions, ExportSpec, random_images
+from ffrecon.models.exporting.common import ExportSpec, ModelExportOptions, random_images
 from ffrecon.models.exporting.upstream import import_upstream
 from ffrecon.models.exporting.weights import WEIGHT_SUFFIXES, find_weights, load_into, load_state_dict
 
@@ -242,7 +242,7 @@ def model_class(family: str, upstream: Path | None) -> type:
     return getattr(import_upstream(MODULES[family], upstream, family=family), CLASSES[family])
 
 
-def load_checkpoint(options: ExportOptions) -> torch.nn.Module:
+def load_checkpoint(options: ModelExportOptions) -> torch.nn.Module:
     """The model a checkpoint describes.
 
     - a ``.pth`` training checkpoint with ``args`` (what naver publishes for download): the
@@ -307,7 +307,7 @@ def plain_patch_embed(model: torch.nn.Module, upstream: Path | None, family: str
     model.patch_embed = new
 
 
-def build_model(options: ExportOptions) -> tuple[torch.nn.Module, list[str]]:
+def build_model(options: ModelExportOptions) -> tuple[torch.nn.Module, list[str]]:
     """The upstream model for ``options`` (eval mode, float32) and notes for the metadata."""
     notes: list[str] = []
     if options.checkpoint:
@@ -353,7 +353,7 @@ def trace_context(size_hw: tuple[int, int]):
     return context
 
 
-def build(options: ExportOptions, size_hw: tuple[int, int]) -> ExportSpec:
+def build(options: ModelExportOptions, size_hw: tuple[int, int]) -> ExportSpec:
     torch.manual_seed(options.seed)
     model, notes = build_model(options)
     descriptors = options.family == "mast3r"

@@ -21,7 +21,7 @@ import torch
 
 from ffrecon.errors import FFReconError, InputError
 from ffrecon.models import monodepth as contract
-from ffrecon.models.exporting.common import ExportOptions, ExportSpec, random_images
+from ffrecon.models.exporting.common import ExportSpec, ModelExportOptions, random_images
 
 log = logging.getLogger("ffrecon.export_model")
 
@@ -94,7 +94,7 @@ def config_for(variant: str, metric: bool = False):
     )
 
 
-def _variant(options: ExportOptions) -> tuple[str, bool]:
+def _variant(options: ModelExportOptions) -> tuple[str, bool]:
     """``(size, metric)`` from ``options.variant`` (proposed option), e.g. ``"large"`` or ``"small-metric"``.
 
     ``--tiny`` always builds the tiny size; a ``-metric`` variant still picks the metric head.
@@ -143,7 +143,7 @@ def depth_kind(config) -> str:
     return "metric" if getattr(config, "depth_estimation_type", "relative") == "metric" else "relative_inverse"
 
 
-def build(options: ExportOptions, size_hw: tuple[int, int]) -> ExportSpec:
+def build(options: ModelExportOptions, size_hw: tuple[int, int]) -> ExportSpec:
     torch.manual_seed(options.seed)
     settings: dict = {}
     if options.checkpoint:

@@ -30,7 +30,7 @@ import torch
 from torch import nn
 
 from ffrecon.models import pi3 as contract
-from ffrecon.models.exporting.common import ExportOptions, ExportSpec, random_images
+from ffrecon.models.exporting.common import ExportSpec, ModelExportOptions, random_images
 from ffrecon.models.exporting.patches import frozen_position_embeddings
 from ffrecon.models.exporting.upstream import import_upstream
 from ffrecon.models.exporting.weights import load_into, load_state_dict
@@ -241,7 +241,7 @@ def trace_context(module: nn.Module) -> Iterator[None]:
         yield
 
 
-def build(options: ExportOptions, size_hw: tuple[int, int]) -> ExportSpec:
+def build(options: ModelExportOptions, size_hw: tuple[int, int]) -> ExportSpec:
     torch.manual_seed(options.seed)
     notes: list[str] = []
     if options.tiny:

@@ -14,7 +14,7 @@ from pathlib import Path
 import torch
 
 from ffrecon.models import vggt as contract
-from ffrecon.models.exporting.common import ExportOptions, ExportSpec, random_images
+from ffrecon.models.exporting.common import ExportSpec, ModelExportOptions, random_images
 from ffrecon.models.exporting.patches import frozen_functions, frozen_position_embeddings
 from ffrecon.models.exporting.upstream import import_upstream
 from ffrecon.models.exporting.weights import load_into, load_state_dict
@@ -106,7 +106,7 @@ def trace_context(upstream: Path | None):
     return context
 
 
-def build(options: ExportOptions, size_hw: tuple[int, int]) -> ExportSpec:
+def build(options: ModelExportOptions, size_hw: tuple[int, int]) -> ExportSpec:
     torch.manual_seed(options.seed)
     notes: list[str] = []
     if options.tiny:

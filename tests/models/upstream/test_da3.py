@@ -25,7 +25,7 @@ except ImportError as exc:  # the package is optional (pip install --no-deps dep
 
 from ffrecon.geometry.poses import compose_poses, invert_pose
 from ffrecon.models import da3
-from ffrecon.models.exporting import ExportOptions, export_model
+from ffrecon.models.exporting import ModelExportOptions, export_model
 from ffrecon.models.exporting import da3 as da3_export
 from ffrecon.models.exporting.common import relative_difference, verify
 from ffrecon.models.runner import OnnxModel
@@ -93,7 +93,7 @@ def upstream_input_processor():
 @pytest.fixture(scope="module")
 def exported(tmp_path_factory):
     """The tiny DA3 exported once with the code users run, and the same PyTorch model."""
-    options = ExportOptions(family="da3", out=tmp_path_factory.mktemp("da3") / "da3_tiny.onnx", tiny=True)
+    options = ModelExportOptions(family="da3", out=tmp_path_factory.mktemp("da3") / "da3_tiny.onnx", tiny=True)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # tracer warnings about the size logic the export fixes on purpose
         report = export_model(options)

@@ -21,7 +21,7 @@ from PIL import Image
 from ffrecon.capture.images import load_image
 from ffrecon.cli import main as cli
 from ffrecon.errors import InputError
-from ffrecon.models.exporting import ExportOptions, export_model, family_module
+from ffrecon.models.exporting import ModelExportOptions, export_model, family_module
 from ffrecon.models.exporting.common import relative_difference
 from ffrecon.models.pairwise import (
     DESCRIPTOR_NAMES,
@@ -42,8 +42,10 @@ TOL = 1e-4
 SIZES = {"dust3r": (96, 128), "mast3r": (128, 96)}  # small: the CLI run aligns at this resolution
 
 
-def _options(family: str, out: Path = Path("unused.onnx"), **kw) -> ExportOptions:
-    return ExportOptions(family=family, out=out, upstream=upstream_dir(family), tiny=True, size_hw=SIZES[family], **kw)
+def _options(family: str, out: Path = Path("unused.onnx"), **kw) -> ModelExportOptions:
+    return ModelExportOptions(
+        family=family, out=out, upstream=upstream_dir(family), tiny=True, size_hw=SIZES[family], **kw
+    )
 
 
 @pytest.fixture(scope="module")
@@ -221,7 +223,7 @@ def test_checkpoints_build_the_architecture_they_name(tmp_path):
     file = tmp_path / "checkpoint.pth"
     torch.save({"args": argparse.Namespace(model=arch, epoch=3), "model": state}, file)
     loaded, _ = build_model(
-        ExportOptions(family="dust3r", out=Path("unused.onnx"), upstream=upstream, checkpoint=str(file))
+        ModelExportOptions(family="dust3r", out=Path("unused.onnx"), upstream=upstream, checkpoint=str(file))
     )
     assert type(loaded.patch_embed).__name__ == "PatchEmbedDust3R" and loaded.head_type == "linear"
     x = torch.rand(2, 3, 64, 96) * 2 - 1
@@ -234,7 +236,9 @@ def test_checkpoints_build_the_architecture_they_name(tmp_path):
     as_trained.load_state_dict(original.state_dict())
     as_trained.save_pretrained(tmp_path / "hub")
     loaded, _ = build_model(
-        ExportOptions(family="dust3r", out=Path("unused.onnx"), upstream=upstream, checkpoint=str(tmp_path / "hub"))
+        ModelExportOptions(
+            family="dust3r", out=Path("unused.onnx"), upstream=upstream, checkpoint=str(tmp_path / "hub")
+        )
     )
     assert type(loaded.patch_embed).__name__ == "PatchEmbedDust3R"
     with torch.no_grad():
@@ -242,13 +246,13 @@ def test_checkpoints_build_the_architecture_they_name(tmp_path):
     assert torch.equal(want[0]["pts3d"], got[0]["pts3d"])
     with pytest.raises(InputError, match="export-model dust3r"):
         load_checkpoint(
-            ExportOptions(
+            ModelExportOptions(
                 family="mast3r", out=Path("unused.onnx"), upstream=upstream_dir("mast3r"), checkpoint=str(file)
             )
         )
     with pytest.raises(InputError, match="no checkpoint"):
         load_checkpoint(
-            ExportOptions(
+            ModelExportOptions(
                 family="dust3r", out=Path("unused.onnx"), upstream=upstream, checkpoint=str(tmp_path / "missing.pth")
             )
         )

@@ -11,7 +11,7 @@ import torch
 from ffrecon.errors import InputError
 from ffrecon.geometry.projection import pixel_centers, project_points
 from ffrecon.models import monodepth
-from ffrecon.models.exporting import ExportOptions, export_model
+from ffrecon.models.exporting import ModelExportOptions, export_model
 from ffrecon.models.exporting import monodepth as mono_export
 from ffrecon.models.exporting.common import relative_difference, verify
 from ffrecon.models.runner import OnnxModel
@@ -38,7 +38,7 @@ def exported(tmp_path_factory):
     models = {}
     for orientation, size_hw in SIZES.items():
         # The portrait file is not re-verified here: the landscape export's verification covers the graph.
-        options = ExportOptions(
+        options = ModelExportOptions(
             family="monodepth",
             out=folder / f"{orientation}.onnx",
             tiny=True,
@@ -210,7 +210,7 @@ def test_export_from_downloaded_metric_folder(tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         export_model(
-            ExportOptions(family="monodepth", out=out, checkpoint=str(folder), size_hw=(126, 168), verify=False)
+            ModelExportOptions(family="monodepth", out=out, checkpoint=str(folder), size_hw=(126, 168), verify=False)
         )
     model = OnnxModel(out, threads=2)
     assert (

@@ -23,14 +23,14 @@ from PIL import Image
 from ffrecon.cli import main as cli
 from ffrecon.errors import ModelError
 from ffrecon.models.adapters import PreprocessMode, adapter_for
-from ffrecon.models.exporting import ExportOptions, family_module
+from ffrecon.models.exporting import ModelExportOptions, family_module
 from ffrecon.models.exporting.common import relative_difference, torch_outputs
 from ffrecon.models.exporting.pi3 import closest_rotation
 from ffrecon.models.exporting.upstream import import_upstream
 from ffrecon.models.pi3 import ADAPTER, decode_pi3_outputs, network_size_hw, preprocess_pi3
 from ffrecon.models.runner import OnnxModel
-from ffrecon.models.validate import validate_prediction
 from ffrecon.types import ModelFamily, ModelInfo
+from ffrecon.validate import validate_prediction
 
 from .conftest import real_photos, upstream_dir
 
@@ -66,7 +66,7 @@ def exported(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def spec():
     """The same upstream model in PyTorch, rebuilt from the same seed (as export-model builds it)."""
-    options = ExportOptions(
+    options = ModelExportOptions(
         family="pi3", out=Path("unused.onnx"), upstream=upstream_dir("pi3"), tiny=True, size_hw=SIZE_HW
     )
     return family_module("pi3").build(options, SIZE_HW)
@@ -274,7 +274,7 @@ def test_bad_outputs_name_the_output():
 def test_untrained_rays_stop_with_the_decoded_output_error(landscape_and_portrait):
     """Left as initialised (--keep-untrained-heads), the point head's rays fit no usable focal: the
     decoded-output check names the outputs it came from instead of letting a broken camera through."""
-    options = ExportOptions(
+    options = ModelExportOptions(
         family="pi3",
         out=Path("unused.onnx"),
         upstream=upstream_dir("pi3"),

@@ -18,7 +18,7 @@ import torch
 
 from ffrecon.cli import main as cli
 from ffrecon.models.adapters import PreprocessMode
-from ffrecon.models.exporting import ExportOptions, family_module
+from ffrecon.models.exporting import ModelExportOptions, family_module
 from ffrecon.models.exporting.common import relative_difference, torch_outputs
 from ffrecon.models.runner import OnnxModel
 from ffrecon.models.vggt import decode_vggt_outputs, network_size_hw, preprocess_vggt
@@ -62,7 +62,7 @@ def torch_spec():
     """The same upstream model in PyTorch, rebuilt from the same seed (as export-model builds it)."""
 
     def build(size_hw):
-        options = ExportOptions(
+        options = ModelExportOptions(
             family="vggt", out=Path("unused.onnx"), upstream=upstream_dir("vggt"), tiny=True, size_hw=size_hw
         )
         return family_module("vggt").build(options, size_hw)

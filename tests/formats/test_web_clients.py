@@ -1,6 +1,6 @@
 """Web-ready splats (issue 11): splat.spz and SOG, opened in the clients people use.
 
-- SPZ round trip through gsply, within SPZ's quantisation (ffrecon.export.web states the steps).
+- SPZ round trip through gsply, within SPZ's quantisation (ffrecon.formats.web states the steps).
 - splat-transform (PlayCanvas) reads splat.ply and splat.spz with the count and bounds ffrecon wrote,
   and converts both to SOG, which it reads back.
 - Spark (three.js, headless Chromium) renders splat.ply and splat.spz from a training camera; the
@@ -27,10 +27,10 @@ import pycolmap
 import pytest
 import torch
 
-from ffrecon.export.web import SPLAT_TRANSFORM_ENV, WebExportError, find_splat_transform, write_sog, write_splat_spz
+from ffrecon.formats.splat_ply import read_splat_ply, write_splat_ply
+from ffrecon.formats.web import SPLAT_TRANSFORM_ENV, WebExportError, find_splat_transform, write_sog, write_splat_spz
 from ffrecon.splat.gaussians import Gaussians
 from ffrecon.splat.optimize import OptimizeOptions
-from ffrecon.splat.ply import read_splat_ply, write_splat_ply
 from ffrecon.splat.render import render_view
 from ffrecon.types import PinholeCamera
 
@@ -162,7 +162,7 @@ def test_splat_transform_reads_count_and_bounds(full_run, splat_transform, name,
 def test_splat_transform_converts_to_sog(full_run, splat_transform, name, tmp_path):
     """The files the run wrote, whole, to SOG and back: 3-4 s each here, because the brief test splat's
     higher SH bands are still all zero; SOG's SH k-means on the CPU grows fast once they are not (see
-    ffrecon.export.web), which is why the test that writes SOG from the stage uses a small splat."""
+    ffrecon.formats.web), which is why the test that writes SOG from the stage uses a small splat."""
     count = len(read_splat_ply(full_run / "splat.ply"))
     sog = write_sog(full_run / name, tmp_path / f"{name}.sog", executable=splat_transform, timeout_s=180)
     assert sog.stat().st_size > 0

@@ -1,6 +1,6 @@
 """report.html from report.json's data: the splat's held-out quality over time."""
 
-from ffrecon.export import report_html
+from ffrecon.report import html as report_html
 
 CURVE = [
     {"iteration": 0, "seconds": 0.0, "psnr": 14.5, "ssim": 0.40},

@@ -1,4 +1,4 @@
-"""Report figures (ffrecon.export.plots): valid PNGs of the expected size, correct top-down axes."""
+"""Report figures (ffrecon.report.plots): valid PNGs of the expected size, correct top-down axes."""
 
 from __future__ import annotations
 
@@ -7,15 +7,14 @@ import io
 import numpy as np
 from PIL import Image
 
-from ffrecon.export.plots import (
+from ffrecon.geometry.poses import look_at_cam_from_world, up_from_cameras
+from ffrecon.report.plots import (
     PathSeries,
     _plane_axes,
     camera_paths_png,
     error_bars_png,
     thumbnail_png,
-    up_from_cameras,
 )
-from ffrecon.geometry.poses import look_at_cam_from_world
 
 
 def _png(data: bytes) -> Image.Image:

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from ffrecon.export.pointcloud import FuseOptions, downsample
+from ffrecon.formats.pointcloud import FuseOptions, downsample
 
 
 def _voxels(xyz: np.ndarray, size: float) -> set[tuple[int, int, int]]:

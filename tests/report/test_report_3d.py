@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from ffrecon.export import report_html, scene3d
+from ffrecon.report import html as report_html
+from ffrecon.report import scene3d
 from ffrecon.view.scene import Estimate, PointLayer, ViewOptions, load_scene
 from tests.conftest import CLIENTS
 

@@ -5,7 +5,7 @@ data only (numbers, names, paths relative to the run folder). ``render_html(repo
 turns that data into one self-contained page: it computes the table rows and draws the figures,
 reading the pictures it shows (frames, depth maps, renders) from the run folder, so a report can be
 rebuilt from ``report.json`` and the folder alone. The command-line summary uses
-:func:`ffrecon.export.report_html.summary_rows`, as the page does.
+:func:`ffrecon.report.html.summary_rows`, as the page does.
 """
 
 from __future__ import annotations
@@ -17,9 +17,9 @@ from pathlib import Path
 import numpy as np
 
 from ffrecon import __version__
-from ffrecon.export.report_html import render_html
+from ffrecon.colmap_io import is_model_dir
+from ffrecon.report.html import render_html
 from ffrecon.results import QUICK_STATEMENT, RunMode, RunResults, Skipped
-from ffrecon.sfm.colmap_io import is_model_dir
 from ffrecon.sfm.evidence import CameraStatus, EvidenceResult, FrameVerdict
 from ffrecon.sfm.refine import RefineResult, RefineStatus
 

@@ -27,17 +27,6 @@ class PathSeries:
     centers: np.ndarray  # [N, 3] float, nan rows for frames this set has no pose for
 
 
-def up_from_cameras(cam_from_world: np.ndarray) -> np.ndarray:
-    """``[3]`` unit world direction of the mean image-up axis (-y of OpenCV cameras).
-
-    >>> (up_from_cameras(np.eye(3, 4)[None]) + 0.0).tolist()  # identity camera: image-up is world -y
-    [0.0, -1.0, 0.0]
-    """
-    up = -cam_from_world[:, 1, :3].sum(axis=0)  # row 1 of R is the camera y axis in world coordinates
-    norm = np.linalg.norm(up)
-    return up / norm if norm > 1e-9 else np.array([0.0, 0.0, 1.0])
-
-
 def _plane_axes(points: np.ndarray, up: np.ndarray | None) -> np.ndarray:
     """``[2, 3]`` orthonormal axes of the drawing plane (perpendicular to ``up``)."""
     centred = points - points.mean(axis=0)

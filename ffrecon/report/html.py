@@ -13,9 +13,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ffrecon.export.media import animated_webp, video_frames
-from ffrecon.export.plots import PathSeries, camera_paths_png, curves_png, error_bars_png, thumbnail_png, timings_png
-from ffrecon.export.scene3d import scene_html
+from ffrecon.report.media import animated_webp, video_frames
+from ffrecon.report.plots import PathSeries, camera_paths_png, curves_png, error_bars_png, thumbnail_png, timings_png
+from ffrecon.report.scene3d import scene_html
 
 MAX_THUMBNAILS = 12
 
@@ -518,7 +518,7 @@ def render_html(report: dict, run_dir: Path) -> str:
     """The whole page: verdict banner, summary, then one section per stage with figures and tables.
 
     Args:
-        report: what :func:`ffrecon.export.report.build_report` returns (or report.json, read back).
+        report: what :func:`ffrecon.report.build.build_report` returns (or report.json, read back).
         run_dir: the run folder the report describes; the frames, depth maps and renders shown are read
             from it (missing ones are left out).
     """

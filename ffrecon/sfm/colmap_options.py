@@ -1,0 +1,66 @@
+"""The options of the COLMAP cross-check (:func:`ffrecon.sfm.crosscheck.run_colmap`) and the choices they
+name, in a module of their own so that mapping (:mod:`ffrecon.sfm.mapping`) and the cross-check both read
+them without importing each other."""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+from pathlib import Path
+
+from ffrecon.checks import check_number
+from ffrecon.sfm.features import CameraModel, SiftOptions
+from ffrecon.sfm.two_view import TwoViewOptions
+
+
+class MapperKind(enum.Enum):
+    AUTO = "auto"  # incremental; then the global mapper too when incremental leaves images out
+    INCREMENTAL = "incremental"
+    GLOBAL = "global"  # GLOMAP, merged into COLMAP 4
+    TWO_VIEW = "two_view"  # ffrecon's own, from COLMAP's verified geometry of two photos (sfm/two_view.py)
+
+
+class PairingMode(enum.Enum):
+    AUTO = "auto"  # exhaustive up to ``exhaustive_max_images``, then vocabulary tree if given, else sequential
+    EXHAUSTIVE = "exhaustive"
+    # video order: each frame against its ``sequential_overlap`` successors and successors 2^k apart
+    # (quadratic overlap); with ``vocab_tree_path`` also against similar-looking frames (loop detection)
+    SEQUENTIAL = "sequential"
+    SPATIAL = "spatial"  # nearest GPS positions (needs position priors in the database, e.g. from EXIF)
+    VOCAB_TREE = "vocab_tree"  # image retrieval; needs ``vocab_tree_path``
+
+
+class CameraSharing(enum.Enum):
+    AUTO = "auto"  # one camera when all images have one size and one focal prior (or none is known)
+    SHARED = "shared"  # one camera for all images (they must have one size)
+    PER_IMAGE = "per_image"
+
+
+@dataclass(frozen=True, kw_only=True)
+class ColmapOptions:
+    enabled: bool = True  # False: the stage is skipped (and the report says so)
+    pairing: PairingMode = PairingMode.AUTO
+    exhaustive_max_images: int = 150
+    sequential_overlap: int = 10
+    vocab_tree_path: Path | None = None  # COLMAP vocabulary tree: retrieval pairing, loop detection
+    mapper: MapperKind = MapperKind.AUTO
+    camera_model: CameraModel = CameraModel.SIMPLE_RADIAL
+    camera_sharing: CameraSharing = CameraSharing.AUTO
+    sift: SiftOptions = SiftOptions()
+    max_mapping_seconds: int = 600  # per mapper; the incremental mapper stops, global bundle adjustment is capped
+    # An image counts as registered when it sees this many model points (COLMAP's incremental mapper
+    # registers an image on 30 2D-3D inliers; the global mapper places every connected image, however weak).
+    min_points_per_image: int = 30
+    num_threads: int = -1  # feature extraction and matching; -1: all cores
+    # Two photos that COLMAP's mappers refuse (forward step, small angles) but that verify many matches:
+    # ffrecon builds their reconstruction itself from the verified geometry and the EXIF focal prior.
+    two_view: TwoViewOptions = TwoViewOptions()
+    mapper_num_threads: int = 1  # 1 makes mapping repeatable (COLMAP's multi-threaded solvers are not); -1: all
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("exhaustive_max_images", "min_points_per_image"):
+            check_number(f"ColmapOptions.{name}", getattr(self, name), low=0, integer=True)
+        check_number("ColmapOptions.sequential_overlap", self.sequential_overlap, low=1, integer=True)
+        # COLMAP takes whole seconds, and 0 there means no bound
+        check_number("ColmapOptions.max_mapping_seconds", self.max_mapping_seconds, low=1)
