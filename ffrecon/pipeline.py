@@ -10,80 +10,22 @@ from __future__ import annotations
 
 import datetime as dt
 import logging
-from dataclasses import dataclass, field
 from pathlib import Path
 
-from ffrecon.capture import CaptureOptions, run_capture
 from ffrecon.errors import InputError, Interrupted
-from ffrecon.export.stage import ExportOptions
-from ffrecon.models.stage import FeedForwardOptions
+from ffrecon.options import RunOptions
 from ffrecon.report.build import write_report
-from ffrecon.results import RunMode, RunResults, Verdict
-from ffrecon.resume import StageRunner, file_key, rebase_paths
+from ffrecon.results import RunResults, Verdict
+from ffrecon.resume import StageRunner, rebase_paths
 from ffrecon.sfm.comparisons import check_references
-from ffrecon.sfm.crosscheck import ColmapOptions
-from ffrecon.sfm.evidence import EvidenceOptions, EvidenceResult
-from ffrecon.sfm.gates import GateOptions
-from ffrecon.sfm.refine import RefineOptions
-from ffrecon.splat.stage import SplatOptions, check_splat_memory
-from ffrecon.stages import (
-    STAGE_OUTPUTS,
-    comparisons_stage,
-    evidence_stage,
-    exports_stage,
-    final_cameras,
-    gates_stage,
-    pose_stages,
-    refine_stage,
-    seed_comparison_stage,
-    splat_stage,
-    with_curves,
-    write_final_model,
-)
+from ffrecon.stages import STAGES
+from ffrecon.state import RunState, StagePlan
+from ffrecon.types import RunMode
 from ffrecon.workspace import staged_output
 
+__all__ = ["RunOptions", "check_run_options", "run"]  # RunOptions lives in ffrecon.options; imported from here too
+
 log = logging.getLogger("ffrecon")
-
-
-@dataclass(frozen=True, kw_only=True)
-class RunOptions:
-    """What to run, one options object per stage; a stage is turned off by its ``enabled`` field.
-
-    Presets: ``RunOptions()`` (the full run) and :meth:`RunOptions.quick` (``--quick``).
-    """
-
-    mode: RunMode = RunMode.FULL  # QUICK: no COLMAP reconstruction (see RunOptions.quick)
-    concurrent: bool = True  # run the feed-forward stage and the COLMAP cross-check at the same time
-    capture: CaptureOptions = field(default_factory=CaptureOptions)
-    feedforward: FeedForwardOptions = field(default_factory=FeedForwardOptions)
-    colmap: ColmapOptions = field(default_factory=ColmapOptions)
-    gates: GateOptions = field(default_factory=GateOptions)
-    refine: RefineOptions = field(default_factory=RefineOptions)
-    splat: SplatOptions = field(default_factory=SplatOptions)
-    evidence: EvidenceOptions = field(default_factory=EvidenceOptions)
-    exports: ExportOptions = field(default_factory=ExportOptions)
-    force: bool = False  # go on past failed gates
-    overwrite: bool = False  # replace results already in OUT
-    resume: bool = False  # reuse the finished stages of OUT (and of an interrupted run) whose inputs are unchanged
-    fresh: bool = False  # recompute every stage, ignoring those an interrupted run finished
-    ground_truth: Path | None = None  # a synthetic scene folder (ground_truth.json) to score against
-    reference: Path | None = None  # a reference COLMAP model to score against
-    command: str = ""  # the command line, recorded in the report
-
-    @classmethod
-    def quick(cls, **overrides) -> RunOptions:
-        """Quick mode (``ffrecon run --quick``): the model's cameras, refined by bundle adjustment, without
-        an independent COLMAP reconstruction. Needs a model.
-
-        No incremental or global mapper runs. The refinement extracts SIFT on the frames itself (lighter
-        settings: :meth:`RefineOptions.quick`), matches only the pairs the feed-forward cameras and depth
-        say overlap, checks those matches against the feed-forward geometry (re-matching guided by it
-        when many disagree), triangulates with the feed-forward cameras and bundle-adjusts; then the
-        splat. The report says that nothing independent checked the cameras; the gates that need COLMAP
-        are skipped. ``overrides`` replace fields of the preset.
-        """
-        preset = {"mode": RunMode.QUICK, "colmap": ColmapOptions(enabled=False), "refine": RefineOptions.quick()}
-        return cls(**{**preset, **overrides})
 
 
 def run(source: Path, out_dir: Path, model: Path | None, options: RunOptions | None = None) -> RunResults:
@@ -102,7 +44,7 @@ def run(source: Path, out_dir: Path, model: Path | None, options: RunOptions | N
         work = staging.path
         stages = StageRunner(work, reuse=not options.fresh)
         try:
-            results = _run_stages(Path(source), model and Path(model), options, work, stages, created)
+            results = _run_stages(Path(source), model and Path(model), options, stages, created)
         except KeyboardInterrupt:
             resume = options.command or "the same command"
             raise Interrupted(stages.current, stages.finished, str(work), _resume_command(resume)) from None
@@ -134,53 +76,30 @@ def _resume_command(command: str) -> str:
     return command if "--resume" in command.split() else f"{command} --resume"
 
 
-def _run_stages(
-    source: Path, model: Path | None, options: RunOptions, work: Path, stages: StageRunner, created: str
-) -> RunResults:
-    """The whole run: one typed call per stage (those that cannot or should not run are Skipped)."""
-    capture, k_capture = stages.run(
-        "capture",
-        lambda: run_capture(source, options.capture, work),
-        options=options.capture,
-        inputs=[file_key(source)],
-        outputs=STAGE_OUTPUTS["capture"],
-    )
-    if options.splat.enabled:  # a splat that cannot fit in memory at all is refused now, not after the poses
-        check_splat_memory([f.size_wh for f in capture.frames], options.splat, when=" (planned)")
-    (ff, k_ff), (colmap, k_colmap), sift = pose_stages(capture, model, options, work, stages, [k_capture])
-    gates, k_gates = gates_stage(capture, ff, colmap, options, stages, [k_capture, k_ff, k_colmap])
-    k_pose = [k_capture, k_ff, k_colmap]
-    refine, k_refine = refine_stage(capture, ff, colmap, gates, options, work, stages, k_pose, sift)
-    evidence, k_evidence = evidence_stage(
-        capture, ff, colmap, gates, refine, options, stages, [k_ff, k_colmap, k_gates, k_refine]
-    )
-    verdicts = (gates, evidence.gates if isinstance(evidence, EvidenceResult) else None)
-    comparisons, _ = comparisons_stage(
-        capture, ff, colmap, refine, options, stages, [k_capture, k_ff, k_colmap, k_refine]
-    )
-    final = final_cameras(capture, ff, colmap, refine, evidence)
-    write_final_model(final, ff, colmap, refine, work)
-    final_keys = [k_capture, k_ff, k_colmap, k_refine, k_evidence]  # the final cameras depend on these
-    options = with_curves(options)
-    splat, _ = splat_stage(capture, ff, colmap, final, verdicts, options, work, stages, final_keys)
-    seeds = seed_comparison_stage(capture, colmap, final, splat, options, work, stages, final_keys)
-    exports, _ = exports_stage(capture, ff, colmap, final, options, work, stages, final_keys)
+def _run_stages(source: Path, model: Path | None, options: RunOptions, runner: StageRunner, created: str) -> RunResults:
+    """The whole run: the stages in order (:data:`ffrecon.stages.STAGES`), each reading the state so far."""
+    plan = StagePlan(runner, options)
+    plan.inputs_key("source", source)
+    plan.inputs_key("model", model)
+    state = RunState(source, model, runner.run_dir)
+    for stage in STAGES:
+        state = plan.run(state, stage)
     return RunResults(
-        out_dir=work,
+        out_dir=runner.run_dir,
         created=created,
         command=options.command,
-        capture=capture,
-        feedforward=ff,
-        colmap=colmap,
-        gates=gates,
-        comparisons=comparisons,
-        refine=refine,
-        evidence=evidence,
-        splat=splat,
-        seed_comparison=seeds,
-        exports=exports,
-        timings=tuple(stages.timings),
+        capture=state.capture,
+        feedforward=state.feedforward,
+        colmap=state.colmap,
+        gates=state.gates,
+        comparisons=state.comparisons,
+        refine=state.refine,
+        evidence=state.evidence,
+        splat=state.splat,
+        seed_comparison=state.seed_comparison,
+        exports=state.exports,
+        timings=tuple(runner.timings),
         forced=options.force,
         mode=options.mode,
-        overlaps=tuple(stages.overlaps),
+        overlaps=tuple(runner.overlaps),
     )

@@ -183,6 +183,9 @@ class Skipped:
     reason: str
 
 
+ONE_VIEW = "needs two or more views; this run has one photo (its depth, camera and point cloud are still produced)"
+
+
 class RunMode(enum.Enum):
     """How a run makes its cameras (:attr:`ffrecon.pipeline.RunOptions.mode`)."""
 

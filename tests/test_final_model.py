@@ -1,7 +1,6 @@
 """``sparse/0`` holds every final camera: the source model's, plus the final frames it lacks (posed, no points)."""
 
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pycolmap
@@ -11,8 +10,7 @@ from ffrecon.colmap_io import (
     reconstruction_from_cameras,
     write_reconstruction,
 )
-from ffrecon.export.stage import FinalCameras
-from ffrecon.stages import write_final_model
+from ffrecon.final_cameras import CameraSource, FinalCameras, write_final_model
 from ffrecon.types import PinholeCamera
 
 
@@ -33,9 +31,15 @@ def test_frames_the_refinement_left_out_are_added_posed_without_points(tmp_path:
     refine_dir = write_reconstruction(refined, tmp_path / "refine" / "model")
     lens = (0.01, -0.002, 0.0, 0.0)
     final = FinalCameras(
-        tuple(range(4)), tuple(names), poses, (cam,) * 4, "refined", ((0.0,) * 4,) * 3 + (lens,), unconfirmed=(3,)
+        tuple(range(4)),
+        tuple(names),
+        poses,
+        (cam,) * 4,
+        CameraSource.REFINED,
+        ((0.0,) * 4,) * 3 + (lens,),
+        unconfirmed=(3,),
     )
-    target = write_final_model(final, None, None, SimpleNamespace(model_path=refine_dir), tmp_path)
+    target = write_final_model(final, refine_dir, tmp_path)
     assert target == tmp_path / "sparse" / "0"
     rec = pycolmap.Reconstruction(str(target))
     got, registered = cam_from_world_by_name(rec, names)
@@ -46,12 +50,10 @@ def test_frames_the_refinement_left_out_are_added_posed_without_points(tmp_path:
     assert added.model.name == "OPENCV" and np.allclose(added.params, [300, 301, 160, 120, *lens])
     assert pycolmap.Reconstruction(str(refine_dir)).num_images() == 3  # a resumed run reads this back unchanged
     # Rewritten on every run: a second call gives the same model, not a duplicate frame.
-    rec2 = pycolmap.Reconstruction(
-        str(write_final_model(final, None, None, SimpleNamespace(model_path=refine_dir), tmp_path))
-    )
+    rec2 = pycolmap.Reconstruction(str(write_final_model(final, refine_dir, tmp_path)))
     assert rec2.num_images() == 4
 
 
 def test_no_final_cameras_no_model(tmp_path: Path):
-    assert write_final_model(None, None, None, None, tmp_path) is None
+    assert write_final_model(None, None, tmp_path) is None
     assert not (tmp_path / "sparse").exists()

@@ -16,11 +16,15 @@ from pathlib import Path
 
 import numpy as np
 
+from ffrecon.final_cameras import CameraSource, FinalCameras
 from ffrecon.formats.mesh import MeshOptions, write_mesh
 from ffrecon.formats.nerfstudio import write_transforms
 from ffrecon.formats.pointcloud import FuseOptions, fuse_prediction, write_point_cloud
 from ffrecon.geometry.poses import camera_centers
-from ffrecon.types import PinholeCamera, Prediction
+from ffrecon.models.stage import FeedForwardResult
+from ffrecon.sfm.crosscheck import ColmapResult
+from ffrecon.splat.seed import seed_from_reconstruction
+from ffrecon.types import Prediction, Skipped
 
 log = logging.getLogger("ffrecon.export")
 OUTPUTS = ("points.ply", "transforms.json", "mesh.ply", "mesh.glb")  # relative to the run folder
@@ -33,23 +37,6 @@ class ExportOptions:
 
 
 @dataclass(frozen=True)
-class FinalCameras:
-    """The cameras the exports (and the splat) use: all frames, or COLMAP's registered ones."""
-
-    indices: tuple[int, ...]  # into the capture's frames
-    names: tuple[str, ...]
-    cam_from_world: np.ndarray  # [M, 3, 4] float64, OpenCV
-    cameras: tuple[PinholeCamera, ...]
-    source: str  # "refined", "feed-forward" or "COLMAP"
-    # Per camera OpenCV (k1, k2, p1, p2) of the original photos (None: pinhole). The splat trains on
-    # undistorted copies; transforms.json carries them (OPENCV) for the original images.
-    distortion: tuple[tuple[float, float, float, float], ...] | None = None
-    # Positions (into these lists) of the cameras no independent evidence confirmed: unchecked or corrected
-    # (the splat may refine their poses photometrically). The model's cameras unrefined: all of them.
-    unconfirmed: tuple[int, ...] = ()
-
-
-@dataclass(frozen=True)
 class ExportsResult:
     """Files written by the export stage (paths in the run folder)."""
 
@@ -59,7 +46,7 @@ class ExportsResult:
     transforms_json: Path
     mesh_ply: Path | None
     mesh_glb: Path | None
-    cameras_from: str  # FinalCameras.source
+    cameras_from: CameraSource  # FinalCameras.source
 
 
 def fuse_with_final_cameras(
@@ -104,3 +91,27 @@ def run_exports(
             out_dir / "mesh.ply", out_dir / "mesh.glb", xyz, rgb, centers, options.mesh_options
         )
     return ExportsResult(cloud, int(len(xyz)), points_from, transforms, mesh_ply, mesh_glb, final.source)
+
+
+def export_final_cameras(
+    final: FinalCameras,
+    ff: FeedForwardResult | Skipped,
+    colmap: ColmapResult | Skipped,
+    read_images: Callable[[list[int]], list[np.ndarray]],
+    options: ExportOptions,
+    fuse: FuseOptions,
+    out_dir: Path,
+) -> ExportsResult:
+    """The exports of a run: the cloud that agrees with the final cameras (COLMAP's sparse points for its
+    cameras; the depth maps fused again with the refined cameras; the model's own fused cloud for its
+    cameras), then :func:`run_exports`."""
+    if final.source is CameraSource.COLMAP and isinstance(colmap, ColmapResult):
+        points, what = seed_from_reconstruction(colmap.reconstruction), "COLMAP's sparse points"
+    elif isinstance(ff, FeedForwardResult) and final.source is CameraSource.REFINED:
+        points = fuse_with_final_cameras(ff.prediction, final, read_images, fuse)
+        what = "depth maps fused with the refined cameras"
+    elif isinstance(ff, FeedForwardResult):
+        points, what = (ff.points_xyz, ff.points_rgb), "depth maps fused with the model's cameras"
+    else:
+        raise AssertionError(f"final cameras from {final.source} without the result they come from")
+    return run_exports(final, points, what, options, out_dir)

@@ -15,13 +15,14 @@ import numpy as np
 from ffrecon.capture import Capture
 from ffrecon.checks import check_number
 from ffrecon.colmap_io import reconstruction_from_cameras, write_reconstruction
+from ffrecon.concurrency import CoreShare
 from ffrecon.errors import InputError, ModelError
 from ffrecon.formats.pointcloud import FuseOptions, fuse_prediction, write_depth_maps
 from ffrecon.models.adapters import adapter_for
 from ffrecon.models.memory import default_chunk_size
 from ffrecon.models.multiview import MultiviewOptions, predict_multiview
 from ffrecon.models.pairwise import PairwiseOptions
-from ffrecon.models.runner import OnnxModel
+from ffrecon.models.runner import OnnxModel, cpu_threads
 from ffrecon.types import ModelFamily, ModelInfo, Prediction
 from ffrecon.validate import validate_prediction
 
@@ -202,3 +203,32 @@ def run_feedforward(
         model.providers,
         _assumptions(model.info(), capture),
     )
+
+
+def feedforward_skip_reason(model: Path | None, num_frames: int, *, colmap: bool) -> str | None:
+    """Why the feed-forward stage does not run (no model given), or None; an :class:`InputError` when
+    without a model nothing would make the cameras (one photo, or ``colmap`` turned off)."""
+    if model is not None:
+        return None
+    if num_frames < 2:
+        raise InputError("one photo and no model: nothing can place a camera", "pass --model, or more photos")
+    if not colmap:
+        raise InputError("no model and --no-colmap: nothing would make the cameras", "pass --model or drop --no-colmap")
+    return "no model given (--model): the cameras come from COLMAP and the splat is seeded from its points"
+
+
+def run_feedforward_sharing(
+    capture: Capture, model: Path, options: FeedForwardOptions, out_dir: Path, cores: CoreShare | None
+) -> FeedForwardResult:
+    """:func:`run_feedforward`, claiming its CPU threads in ``cores`` while it runs beside another stage
+    (None: alone).
+
+    One core for the stage's own thread throughout (reading, decoding, fusing, writing), and the rest of
+    onnxruntime's threads only while the network runs: with a small or simulated network most of the
+    stage is that one thread, and COLMAP's extraction (asking per batch) takes the other core.
+    """
+    if cores is None:
+        return run_feedforward(capture, model, options, out_dir)
+    extra = cpu_threads(options.threads) - 1
+    with cores.claim(1):
+        return run_feedforward(capture, model, options, out_dir, while_inferring=lambda: cores.claim(extra))

@@ -19,6 +19,9 @@ from ffrecon.errors import InputError
 from ffrecon.formats.ground_truth import ground_truth_poses
 from ffrecon.geometry.poses import up_from_cameras
 from ffrecon.sfm.compare import PoseComparison, compare_poses
+from ffrecon.sfm.crosscheck import ColmapResult
+from ffrecon.sfm.refine import RefineResult
+from ffrecon.types import Prediction, Skipped
 
 # Reference poses by label: (cam_from_world [N, 3, 4], has a pose [N] bool), over the run's names.
 References = dict[str, tuple[np.ndarray, np.ndarray]]
@@ -112,3 +115,33 @@ def run_comparisons(names: Sequence[str], estimates: References, references: Ref
         label = primary[0].reference
         up = up_from_cameras(references[label][0] if label in references else estimates["COLMAP"][0])
     return ComparisonsResult(tuple(comparisons), tuple(primary), up)
+
+
+def pose_estimates(
+    prediction: Prediction | None, colmap: ColmapResult | Skipped, refine: RefineResult | Skipped
+) -> References:
+    """The run's cameras to compare, by label: the model's, COLMAP's (two images or more) and the refined."""
+    estimates: References = {}
+    if prediction is not None:
+        estimates["feed-forward"] = (prediction.cam_from_world, np.ones(len(prediction.names), bool))
+    if isinstance(colmap, ColmapResult) and colmap.num_registered >= 2:
+        estimates["COLMAP"] = (colmap.cam_from_world, colmap.registered)
+    if isinstance(refine, RefineResult):
+        estimates["refined"] = (refine.cam_from_world, refine.registered)
+    return estimates
+
+
+def comparison_skip_reason(
+    prediction: Prediction | None,
+    colmap: ColmapResult | Skipped,
+    refine: RefineResult | Skipped,
+    ground_truth: Path | None,
+    reference: Path | None,
+) -> str | None:
+    """Why there is nothing to compare (fewer than two sets of cameras and no reference), or None."""
+    if len(pose_estimates(prediction, colmap, refine)) >= 2 or ground_truth is not None or reference is not None:
+        return None
+    if prediction is None:
+        return "no model, and no ground truth or --reference: COLMAP's cameras are the only ones"
+    state = "did not run" if isinstance(colmap, Skipped) else "registered fewer than two images"
+    return f"no reference cameras: the COLMAP cross-check {state} and no ground truth or --reference"

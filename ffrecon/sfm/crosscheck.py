@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from ffrecon.capture import Capture
 from ffrecon.colmap_io import cam_from_world_by_name, cameras_by_name, write_reconstruction
 from ffrecon.errors import InputError
 from ffrecon.sfm.colmap_options import CameraSharing, ColmapOptions, MapperKind, PairingMode
@@ -396,3 +397,13 @@ def _model_result(best: pycolmap.Reconstruction, names: tuple[str, ...], model_d
         reconstruction=best,
         **provenance,
     )
+
+
+def run_colmap_on(
+    capture: Capture, options: ColmapOptions, out_dir: Path, *, step: Callable[[], int] | None = None
+) -> ColmapResult:
+    """:func:`run_colmap` on a capture's photos. The focal prior of each photo is its EXIF focal where known
+    (else COLMAP's own guess), never the model's: the cross-check must stay independent evidence of the
+    model's cameras."""
+    priors = [f.focal_prior_px for f in capture.frames]
+    return run_colmap(capture.image_dir, capture.names, options, out_dir, focal_prior_px=priors, step=step)

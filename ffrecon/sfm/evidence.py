@@ -46,6 +46,7 @@ from ffrecon.sfm.gates import GatesResult, GateStatus, GateVerdict
 from ffrecon.sfm.refine import RefineResult
 from ffrecon.sfm.support import PairSupport, planar_single_pair
 from ffrecon.sfm.verified_pairs import relative_rotations
+from ffrecon.types import Prediction, Skipped
 
 
 class FrameVerdict(enum.Enum):
@@ -408,4 +409,24 @@ def _track_verdict(refine: RefineResult, options: EvidenceOptions) -> GateVerdic
         f"mean track length {track:.2f} observations per point",
         "" if ok else "points are seen in few images (pairwise evidence): photos that overlap more check more",
         blocking=False,
+    )
+
+
+def judge_refined_cameras(
+    names: Sequence[str],
+    prediction: Prediction,
+    colmap: ColmapResult | Skipped,
+    gates: GatesResult | Skipped,
+    refine: RefineResult,
+    options: EvidenceOptions,
+    *,
+    force: bool,
+) -> EvidenceResult:
+    """:func:`judge_final_cameras` on a run's results: COLMAP's model when it ran, and the gates that ran
+    (none: an empty witness)."""
+    witness = gates if isinstance(gates, GatesResult) else GatesResult((), force)
+    skipped = colmap.reason if isinstance(colmap, Skipped) else ""
+    colmap_result = colmap if isinstance(colmap, ColmapResult) else None
+    return judge_final_cameras(
+        names, prediction.cam_from_world, refine, colmap_result, witness, options, force=force, colmap_skipped=skipped
     )

@@ -22,7 +22,7 @@ from ffrecon.capture.quality import CaptureQuality
 from ffrecon.checks import check_number
 from ffrecon.sfm.crosscheck import ColmapResult
 from ffrecon.sfm.verified_pairs import ImagePairs, read_image_pairs
-from ffrecon.types import Prediction
+from ffrecon.types import Prediction, Skipped
 
 logger = logging.getLogger("ffrecon.sfm")
 
@@ -501,3 +501,24 @@ def run_gates(
         names = ", ".join(v.name for v in result.failed)
         logger.warning("continuing despite %d failed gates (forced): %s", len(result.failed), names)
     return result
+
+
+def gate_poses(
+    quality: CaptureQuality | None,
+    prediction: Prediction | None,
+    colmap: ColmapResult | Skipped,
+    options: GateOptions,
+    *,
+    force: bool,
+) -> GatesResult:
+    """The run's gates on the capture and the COLMAP cross-check. With a model (``prediction``), COLMAP is a
+    witness: the final cameras are judged on their own evidence instead (:mod:`ffrecon.sfm.evidence`)."""
+    return run_gates(
+        colmap=colmap if isinstance(colmap, ColmapResult) else None,
+        prediction=prediction,
+        quality=quality,
+        options=options,
+        force=force,
+        witness=prediction is not None,
+        colmap_skipped=colmap.reason if isinstance(colmap, Skipped) else "",
+    )

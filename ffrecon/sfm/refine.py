@@ -34,6 +34,7 @@ from ffrecon.geometry.alignment import Sim3
 from ffrecon.geometry.metrics import aligned_rotation_errors_deg
 from ffrecon.geometry.undistort import NO_DISTORTION, opencv_coefficients
 from ffrecon.sfm.bundle import BundleOptions, BundleSummary, refine_tracks, sim3_to_ff_frame
+from ffrecon.sfm.crosscheck import ColmapResult
 from ffrecon.sfm.dense import DenseOptions, DenseStats, add_dense_evidence, short_frames
 from ffrecon.sfm.features import (
     CameraModel,
@@ -55,7 +56,7 @@ from ffrecon.sfm.overlap import OverlapGraph, OverlapOptions, overlap_graph
 from ffrecon.sfm.relocalize import Relocalized, RelocalizeOptions, reach_matrix, relocalize, with_poses
 from ffrecon.sfm.screen import ScreenOptions, Suspect, reseeded, screen_rotations
 from ffrecon.timing import StageTimer, Timings
-from ffrecon.types import PinholeCamera, Prediction
+from ffrecon.types import PinholeCamera, Prediction, Skipped
 from ffrecon.validate import validate_prediction
 
 logger = logging.getLogger("ffrecon.sfm")
@@ -629,3 +630,34 @@ def _refined_result(
         reconstruction=rec,
         **provenance,
     )
+
+
+def sift_beside_skip_reason(beside: bool, model: Path | None, options: RefineOptions, views: int) -> str | None:
+    """Why the refinement's SIFT is not extracted ahead, beside the inference (only quick mode runs it there,
+    ``beside``, when the refinement will run on a model's cameras and extracts its own), or None."""
+    if beside and model is not None and options.enabled and options.reuse_features_from is None and views >= 2:
+        return None
+    return "extracted by the refinement itself (only quick mode extracts it beside the inference)"
+
+
+def refine_skip_reason(prediction: Prediction | None) -> str | None:
+    """Why the refinement does not run for want of a model's cameras, or None."""
+    return "needs a model's cameras to refine; COLMAP's are final" if prediction is None else None
+
+
+def run_refine_reusing(
+    image_dir: Path,
+    prediction: Prediction,
+    colmap: ColmapResult | Skipped,
+    sift: Path | Skipped,
+    options: RefineOptions,
+    out_dir: Path,
+) -> RefineResult:
+    """:func:`run_refine`, reusing SIFT already extracted (unless ``options`` name features to reuse): the
+    COLMAP cross-check's database (SIFT once, used twice), else quick mode's ``sift`` extracted beside the
+    inference, else none (the refinement extracts its own)."""
+    if options.reuse_features_from is None and isinstance(colmap, ColmapResult):
+        options = dataclasses.replace(options, reuse_features_from=colmap.database_path)
+    elif options.reuse_features_from is None and isinstance(sift, Path):
+        options = dataclasses.replace(options, reuse_features_from=sift)
+    return run_refine(image_dir, prediction, options, out_dir)

@@ -289,6 +289,15 @@ def resolve_device(device: SplatDevice | str) -> str:
     return "cuda" if device is SplatDevice.CUDA or (device is SplatDevice.AUTO and gsplat_available()) else "cpu"
 
 
+OUTPUTS = ("splat.ply", "splat.spz", "splat.sog", "renders", "flythrough.mp4")  # relative to the run folder
+
+
+def check_splat_fits(sizes_wh: Sequence[tuple[int, int]], options: SplatOptions) -> None:
+    """Refuse, before any pose is made, a splat that cannot fit in memory at all (when the splat is on)."""
+    if options.enabled:
+        check_splat_memory(sizes_wh, options, when=" (planned)")
+
+
 def check_splat_memory(sizes_wh: Sequence[tuple[int, int]], options: SplatOptions, *, when: str = "") -> int | None:
     """The long side (px) to which the CPU splat shrinks larger views of ``sizes_wh`` to fit the memory free
     now (None: full size; :mod:`ffrecon.splat.memory`), logged when it shrinks any. The pipeline asks before

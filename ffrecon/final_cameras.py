@@ -1,0 +1,181 @@
+"""The final cameras: which cameras a run keeps, per frame, and ``sparse/0``, the COLMAP model of them.
+
+The refined cameras when the refinement kept two frames or more (frames it left out but COLMAP registered
+take COLMAP's pose, moved into the refined frame); else the model's; else COLMAP's registered ones (also when
+the evidence found the model unsuited). Frames the evidence contradicted stay out; those no independent
+evidence confirmed are named (:attr:`FinalCameras.unconfirmed`), for the splat to refine photometrically.
+The splat and the exports read these cameras and nothing else.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from ffrecon.colmap_io import add_posed_images, is_model_dir, write_reconstruction
+from ffrecon.geometry.alignment import umeyama
+from ffrecon.geometry.poses import camera_centers
+from ffrecon.geometry.undistort import NO_DISTORTION, opencv_coefficients
+from ffrecon.models.stage import FeedForwardResult
+from ffrecon.sfm.crosscheck import ColmapResult
+from ffrecon.sfm.evidence import CameraStatus, EvidenceResult, FrameVerdict
+from ffrecon.sfm.refine import RefineResult
+from ffrecon.types import PinholeCamera, Skipped
+
+log = logging.getLogger("ffrecon")
+
+
+class CameraSource(enum.StrEnum):
+    """Where the final cameras come from (also the labels of the pose comparisons)."""
+
+    REFINED = "refined"  # the model's cameras refined by bundle adjustment
+    FEEDFORWARD = "feed-forward"  # the model's cameras as it gave them
+    COLMAP = "COLMAP"  # COLMAP's registered cameras (no model, or the model found unsuited)
+
+
+@dataclass(frozen=True)
+class FinalCameras:
+    """The cameras the exports (and the splat) use: all frames, or COLMAP's registered ones."""
+
+    indices: tuple[int, ...]  # into the capture's frames
+    names: tuple[str, ...]
+    cam_from_world: np.ndarray  # [M, 3, 4] float64, OpenCV
+    cameras: tuple[PinholeCamera, ...]
+    source: CameraSource
+    # Per camera OpenCV (k1, k2, p1, p2) of the original photos (None: pinhole). The splat trains on
+    # undistorted copies; transforms.json carries them (OPENCV) for the original images.
+    distortion: tuple[tuple[float, float, float, float], ...] | None = None
+    # Positions (into these lists) of the cameras no independent evidence confirmed: unchecked or corrected
+    # (the splat may refine their poses photometrically). The model's cameras unrefined: all of them.
+    unconfirmed: tuple[int, ...] = ()
+
+
+def select_final_cameras(
+    names: tuple[str, ...],
+    ff: FeedForwardResult | Skipped,
+    colmap: ColmapResult | Skipped,
+    refine: RefineResult | Skipped,
+    evidence: EvidenceResult | Skipped,
+) -> FinalCameras | None:
+    """Refined cameras when refinement kept two frames or more; else the model's; else COLMAP's registered
+    ones (also when the model was found unsuited)."""
+    every = tuple(range(len(names)))
+    unsuited = isinstance(evidence, EvidenceResult) and evidence.model_unsuited
+    if not unsuited and isinstance(refine, RefineResult) and refine.registered.sum() >= 2:
+        return _refined_final_cameras(names, colmap, refine, evidence)
+    if not unsuited and isinstance(ff, FeedForwardResult):
+        pred = ff.prediction
+        cams = tuple(pred.cameras)
+        return FinalCameras(every, names, pred.cam_from_world, cams, CameraSource.FEEDFORWARD, unconfirmed=every)
+    if isinstance(colmap, ColmapResult) and colmap.num_registered >= 2:
+        kept = tuple(int(i) for i in np.flatnonzero(colmap.registered))
+        kept_names = tuple(names[i] for i in kept)
+        cameras = tuple(colmap.cameras[i] for i in kept)
+        distortion = tuple(_colmap_lens(colmap, kept_names))
+        poses = colmap.cam_from_world[list(kept)]
+        return FinalCameras(kept, kept_names, poses, cameras, CameraSource.COLMAP, distortion)
+    return None
+
+
+def _refined_final_cameras(
+    names: tuple[str, ...], colmap: ColmapResult | Skipped, refine: RefineResult, evidence: EvidenceResult | Skipped
+) -> FinalCameras:
+    """The refined cameras; frames the refinement left out but COLMAP registered (evidence: COLMAP only)
+    take COLMAP's pose, moved into the refined frame by a Sim(3) fit over the frames both hold, and its lens."""
+    poses, cameras = refine.cam_from_world.copy(), list(refine.cameras)
+    distortion = list(refine.distortion or [NO_DISTORTION] * len(poses))
+    per_image = evidence.per_image if isinstance(evidence, EvidenceResult) else ()
+    colmap_only = [
+        k
+        for k, e in enumerate(per_image)
+        if e.status in (CameraStatus.COLMAP_ONLY, CameraStatus.CORRECTED) and not refine.registered[k]
+    ]
+    if colmap_only:
+        both = refine.registered & colmap.registered
+        sim = umeyama(camera_centers(colmap.cam_from_world[both]), camera_centers(refine.cam_from_world[both]))
+        lenses = _colmap_lens(colmap, [names[k] for k in colmap_only])
+        for k, lens in zip(colmap_only, lenses):
+            poses[k] = sim.transform_cam_from_world(colmap.cam_from_world[k : k + 1])[0]
+            cameras[k] = colmap.cameras[k]
+            distortion[k] = lens
+        log.info("%d frames not refined take COLMAP's poses: %s", len(colmap_only), [names[k] for k in colmap_only])
+    kept = [k for k in range(len(poses)) if not per_image or per_image[k].status.kept]
+    if len(kept) < len(poses):
+        left_out = [names[k] for k in range(len(poses)) if k not in kept]
+        log.info("frames left out, contradicted by the evidence: %s", left_out)
+    lens = tuple(distortion[k] for k in kept) if any(d != NO_DISTORTION for d in distortion) else None
+    kept_names = tuple(names[k] for k in kept)
+    unconfirmed = tuple(
+        p for p, k in enumerate(kept) if per_image and per_image[k].verdict is not FrameVerdict.CONFIRMED
+    )
+    cams = tuple(cameras[k] for k in kept)
+    return FinalCameras(tuple(kept), kept_names, poses[kept], cams, CameraSource.REFINED, lens, unconfirmed=unconfirmed)
+
+
+def _colmap_lens(colmap: ColmapResult, names: tuple[str, ...] | list[str]) -> list[tuple[float, float, float, float]]:
+    """OpenCV (k1, k2, p1, p2) of COLMAP's camera of each of ``names`` (registered images)."""
+    by_name = {im.name: im for im in colmap.reconstruction.images.values()}
+    return [opencv_coefficients(colmap.reconstruction.cameras[by_name[n].camera_id]) for n in names]
+
+
+def source_model(
+    source: CameraSource,
+    ff: FeedForwardResult | Skipped,
+    colmap: ColmapResult | Skipped,
+    refine: RefineResult | Skipped,
+) -> Path | None:
+    """The COLMAP model folder of the final cameras' source, None when it has none."""
+    folders = {
+        CameraSource.REFINED: refine.model_path if isinstance(refine, RefineResult) else None,
+        CameraSource.COLMAP: colmap.model_path if isinstance(colmap, ColmapResult) else None,
+        CameraSource.FEEDFORWARD: ff.sparse_dir if isinstance(ff, FeedForwardResult) else None,
+    }
+    return folders[source]
+
+
+def write_final_model(final: FinalCameras | None, folder: Path | None, work: Path) -> Path | None:
+    """``work/sparse/0``: every final camera as a COLMAP model, where downstream tools look (docs/contracts.md,
+    "Output folder"): the model of the final cameras' source, ``folder`` (the refinement's, COLMAP's in a run without a
+    model, the model's when the refinement failed or was turned off), plus, posed and without points, the
+    final frames that model lacks (a frame the refinement left out keeps the model's camera, unchecked).
+
+    Runs every time (a small model): the refinement's record owns ``sparse`` and removes it whenever it is
+    skipped or runs again; the refinement's own model stays in ``refine/model``, which a resumed run reads.
+    Returns the folder, or None when there is none.
+    """
+    if final is None:
+        return None
+    target = work / "sparse" / "0"
+    if folder is None or not is_model_dir(Path(folder)):
+        return None
+    rec = pycolmap.Reconstruction(str(folder))
+    added = add_posed_images(rec, final.names, final.cam_from_world, final.cameras, final.distortion)
+    shutil.rmtree(target, ignore_errors=True)
+    write_reconstruction(rec, target)
+    log.info(
+        "sparse/0: the final cameras (%s, from %s)%s",
+        final.source,
+        folder,
+        f", plus {len(added)} frame(s) it lacks, posed without points: {', '.join(added)}" if added else "",
+    )
+    return target
+
+
+def final_cameras(
+    names: tuple[str, ...],
+    ff: FeedForwardResult | Skipped,
+    colmap: ColmapResult | Skipped,
+    refine: RefineResult | Skipped,
+    evidence: EvidenceResult | Skipped,
+    work: Path,
+) -> FinalCameras | None:
+    """The final cameras (:func:`select_final_cameras`), written as ``work/sparse/0`` (:func:`write_final_model`)."""
+    final = select_final_cameras(names, ff, colmap, refine, evidence)
+    write_final_model(final, final and source_model(final.source, ff, colmap, refine), work)
+    return final

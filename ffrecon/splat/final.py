@@ -1,0 +1,82 @@
+"""The splat of a run's final cameras (:mod:`ffrecon.final_cameras`): which seed it grows from, and the
+same splat grown from COLMAP's points for comparison (``--compare-seeds``).
+
+The model's cameras (refined or not) grow from the model's depth maps; COLMAP's cameras from COLMAP's
+sparse points. Photos with lens distortion are undistorted first: the rasteriser is a pinhole camera.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+
+import numpy as np
+
+from ffrecon.final_cameras import CameraSource, FinalCameras
+from ffrecon.geometry.undistort import undistort_image
+from ffrecon.models.stage import FeedForwardResult
+from ffrecon.sfm.compare import compare_poses
+from ffrecon.sfm.crosscheck import ColmapResult
+from ffrecon.splat.seed import seed_from_reconstruction
+from ffrecon.splat.stage import SplatOptions, SplatResult, run_splat, run_splat_from_prediction
+from ffrecon.types import Skipped
+
+ReadImages = Callable[[list[int]], list[np.ndarray]]  # the capture's photos at these frame indices
+CURVE_EVERY = 20  # iterations between held-out scores when the two seeds are compared
+
+
+def splat_final_cameras(
+    final: FinalCameras,
+    ff: FeedForwardResult | Skipped,
+    colmap: ColmapResult | Skipped,
+    read_images: ReadImages,
+    options: SplatOptions,
+    work,
+) -> SplatResult:
+    """The run's splat on the final cameras, in ``work``."""
+    images = read_images(list(final.indices))
+    cameras = final.cameras
+    if final.distortion is not None:  # the rasteriser is a pinhole camera: train on undistorted photos
+        pairs = [undistort_image(im, c, d) for im, c, d in zip(images, cameras, final.distortion)]
+        images, cameras = [p[0] for p in pairs], tuple(p[1] for p in pairs)
+    if final.source is not CameraSource.COLMAP and isinstance(ff, FeedForwardResult):
+        args = (ff.prediction.subset(final.indices), images, final.cam_from_world, cameras, options, work)
+        return run_splat_from_prediction(*args, unconfirmed=final.unconfirmed)
+    if not isinstance(colmap, ColmapResult):
+        raise AssertionError(f"final cameras from {final.source} without the result they come from")
+    xyz, rgb = seed_from_reconstruction(colmap.reconstruction)  # COLMAP's cameras: its points
+    return run_splat(images, final.names, final.cam_from_world, cameras, xyz, rgb, options, work)
+
+
+def with_curves(options: SplatOptions) -> SplatOptions:
+    """With --compare-seeds both splats score their held-out views at least every ``CURVE_EVERY`` iterations
+    as they train (for the plot that compares them; the default curve is sparser)."""
+    if not options.compare_seeds or 0 < options.curve_every <= CURVE_EVERY:
+        return options
+    return dataclasses.replace(options, curve_every=CURVE_EVERY)
+
+
+def seed_comparison_skip_reason(
+    splat: SplatResult | Skipped, final: FinalCameras | Skipped, colmap: ColmapResult | Skipped
+) -> str | None:
+    """Why the seed comparison cannot run, or None."""
+    if not isinstance(splat, SplatResult):
+        return "the splat did not run"
+    usable = isinstance(colmap, ColmapResult) and colmap.num_registered >= 3
+    if not usable or not isinstance(final, FinalCameras) or final.source is CameraSource.COLMAP:
+        return "needs a model's cameras and a COLMAP model of three images or more (seeds differ only then)"
+    return None
+
+
+def splat_from_colmap_points(
+    final: FinalCameras, colmap: ColmapResult, names: tuple[str, ...], read_images: ReadImages, options, out_dir
+) -> SplatResult:
+    """The same splat trained from COLMAP's points (moved into the final cameras' frame), same budget;
+    ``names``: every frame of the capture."""
+    full = np.stack([np.eye(3, 4)] * len(names))
+    full[list(final.indices)] = final.cam_from_world
+    to_final = compare_poses(colmap.cam_from_world, full, names, colmap.registered).errors.est_to_ref
+    xyz, rgb = seed_from_reconstruction(colmap.reconstruction)
+    images = read_images(list(final.indices))
+    args = (images, final.names, final.cam_from_world, final.cameras, to_final.apply(xyz), rgb)
+    return run_splat(*args, options, out_dir)
