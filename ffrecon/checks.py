@@ -7,23 +7,25 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from ffrecon.errors import InputError, ModelError
+from ffrecon.errors import InputError, ModelError, NonFiniteError, ShapeError
 
 
-def check_shape(name: str, array: np.ndarray, expected: Sequence[int | None]) -> None:
-    """Raise ``ValueError`` unless ``array.shape`` matches ``expected`` (``None`` = any size).
+def check_shape(name: str, array: np.ndarray, expected: Sequence[int | None], *, fix: str = "") -> None:
+    """Raise :class:`ShapeError` unless ``array.shape`` matches ``expected`` (``None`` = any size); ``fix``:
+    what the caller should do, which the calling stage knows.
 
     >>> check_shape("points", np.zeros((5, 3)), (None, 3))
-    >>> check_shape("points", np.zeros((5, 2)), (None, 3))
+    >>> check_shape("points", np.zeros((5, 2)), (None, 3), fix="pass [N, 3] points")
     Traceback (most recent call last):
     ...
-    ValueError: points: expected shape (N, 3), got (5, 2)
+    ffrecon.errors.ShapeError: points: expected shape (N, 3), got (5, 2)
+      fix: pass [N, 3] points
     """
     shape = tuple(array.shape)
     ok = len(shape) == len(expected) and all(e is None or e == s for e, s in zip(expected, shape))
     if not ok:
         want = ", ".join("N" if e is None else str(e) for e in expected)
-        raise ValueError(f"{name}: expected shape ({want}), got {shape}")
+        raise ShapeError(f"{name}: expected shape ({want}), got {shape}", fix)
 
 
 def require_outputs(outputs, required: Sequence[str], *, fix: str) -> None:
@@ -63,23 +65,23 @@ def strip_batch_axis(name: str, array: np.ndarray, shape: Sequence[int | None], 
     return array
 
 
-def require_finite(step: str, **arrays: np.ndarray) -> None:
-    """Refuse NaN/inf inputs to an iterative or linear-algebra step (they can make LAPACK spin forever).
+def require_finite(step: str, *, fix: str = "", **arrays: np.ndarray) -> None:
+    """Refuse NaN/inf inputs to an iterative or linear-algebra step (they can make LAPACK spin forever) with a
+    :class:`NonFiniteError`. ``fix``: where the values came from is the caller's knowledge, so is the fix (a
+    kernel that does not know leaves it empty, and the stage that called it adds it: ``err.with_fix``).
 
     >>> require_finite("alignment", src=np.zeros((2, 3)))
-    >>> require_finite("alignment", src=np.array([1.0, np.nan]))  # doctest: +ELLIPSIS
+    >>> require_finite("alignment", src=np.array([1.0, np.nan]), fix="re-export the model")
     Traceback (most recent call last):
     ...
-    ffrecon.errors.ModelError: alignment: input 'src' has 1 non-finite values (NaN/inf) of 2
-      fix: the values come from an earlier stage (usually the feed-forward model's cameras or depth); ...
+    ffrecon.errors.NonFiniteError: alignment: input 'src' has 1 non-finite values (NaN/inf) of 2
+      fix: re-export the model
     """
     for name, array in arrays.items():
         bad = ~np.isfinite(np.asarray(array, dtype=np.float64))
         if bad.any():
-            raise ModelError(
-                f"{step}: input '{name}' has {int(bad.sum())} non-finite values (NaN/inf) of {bad.size}",
-                "the values come from an earlier stage (usually the feed-forward model's cameras or depth); "
-                "check them with `ffrecon inspect-model` and re-export the model",
+            raise NonFiniteError(
+                f"{step}: input '{name}' has {int(bad.sum())} non-finite values (NaN/inf) of {bad.size}", fix
             )
 
 

@@ -24,6 +24,25 @@ class ModelError(FFReconError):
     exit_code = 3
 
 
+class CheckError(FFReconError):
+    """A check on arrays failed (:mod:`ffrecon.checks`). The check knows what is wrong, not where the values
+    came from: the stage that called it supplies the fix (``fix=``, or :meth:`with_fix` on the way up)."""
+
+    exit_code = 3
+
+    def with_fix(self, fix: str) -> CheckError:
+        """The same error, of the same class, with the calling stage's fix."""
+        return type(self)(self.problem, fix)
+
+
+class ShapeError(CheckError, ValueError):
+    """An array of the wrong shape (also a ``ValueError``, as numpy raises for shapes)."""
+
+
+class NonFiniteError(CheckError):
+    """NaN or infinite values where a step needs finite ones (they can make LAPACK spin forever)."""
+
+
 class OutputExistsError(FFReconError):
     """The output folder cannot be used: it holds results (without --overwrite/--resume), it holds files
     ffrecon did not write, another run is using it, it is a file, or it overlaps the input."""

@@ -19,6 +19,7 @@ import numpy as np
 import pycolmap
 
 from ffrecon.colmap_io import add_posed_images, is_model_dir, write_reconstruction
+from ffrecon.errors import NonFiniteError
 from ffrecon.geometry.alignment import umeyama
 from ffrecon.geometry.poses import camera_centers
 from ffrecon.geometry.undistort import NO_DISTORTION, opencv_coefficients
@@ -98,7 +99,10 @@ def _refined_final_cameras(
     ]
     if colmap_only:
         both = refine.registered & colmap.registered
-        sim = umeyama(camera_centers(colmap.cam_from_world[both]), camera_centers(refine.cam_from_world[both]))
+        try:
+            sim = umeyama(camera_centers(colmap.cam_from_world[both]), camera_centers(refine.cam_from_world[both]))
+        except NonFiniteError as err:
+            raise err.with_fix("COLMAP's or the refinement's cameras are broken: run again with --fresh") from None
         lenses = _colmap_lens(colmap, [names[k] for k in colmap_only])
         for k, lens in zip(colmap_only, lenses):
             poses[k] = sim.transform_cam_from_world(colmap.cam_from_world[k : k + 1])[0]

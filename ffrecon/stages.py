@@ -1,8 +1,6 @@
-"""The stages of :func:`ffrecon.pipeline.run`, declared: what each reads of the :class:`RunState`, when it
-does not run (a typed :class:`~ffrecon.types.Skipped`, saying why), and the call into its own package,
-where its decisions live (which cameras are final: :mod:`ffrecon.final_cameras`; which seed the splat
-grows from: :mod:`ffrecon.splat.final`; which cloud is exported: :mod:`ffrecon.export.stage`).
-"""
+"""The stages of :func:`ffrecon.pipeline.run`, declared: what each reads of the :class:`RunState`, when it does not
+run (a typed :class:`~ffrecon.types.Skipped`, saying why), and the call into its own package, where its decisions
+live (docs/architecture.md)."""
 
 from __future__ import annotations
 
@@ -10,20 +8,13 @@ from ffrecon.capture import run_capture
 from ffrecon.export.stage import OUTPUTS, export_final_cameras
 from ffrecon.final_cameras import final_cameras
 from ffrecon.models.stage import feedforward_skip_reason, run_feedforward_sharing
+from ffrecon.sfm import refine
 from ffrecon.sfm.comparisons import comparison_skip_reason, load_references, pose_estimates, run_comparisons
 from ffrecon.sfm.crosscheck import run_colmap_on
-from ffrecon.sfm.evidence import judge_refined_cameras
+from ffrecon.sfm.evidence import evidence_skip_reason, judge_refined_cameras
 from ffrecon.sfm.gates import gate_poses
-from ffrecon.sfm.refine import (
-    RefineResult,
-    extract_refine_features,
-    refine_skip_reason,
-    run_refine_reusing,
-    sift_beside_skip_reason,
-)
+from ffrecon.splat import stage as splat
 from ffrecon.splat.final import seed_comparison_skip_reason, splat_final_cameras, splat_from_colmap_points, with_curves
-from ffrecon.splat.stage import OUTPUTS as SPLAT_OUTPUTS
-from ffrecon.splat.stage import check_splat_fits
 from ffrecon.state import Beside, Stage
 from ffrecon.types import QUICK_NO_CROSSCHECK, RunMode
 
@@ -32,15 +23,15 @@ NO_CAMERAS = "COLMAP registered fewer than two images"
 CAPTURE = Stage(
     "capture",
     ("source",),
-    lambda s, o, share: run_capture(s.source, o.capture, s.work),
+    lambda s, o, c: run_capture(s.source, o.capture, s.work),
     lambda o: o.capture,
     outputs=("images",),
-    check=lambda capture, o: check_splat_fits([f.size_wh for f in capture.frames], o.splat),
+    check=lambda capture, o: splat.check_splat_fits([f.size_wh for f in capture.frames], o.splat),
 )
 FEEDFORWARD = Stage(
     "feedforward",
     ("capture", "model"),
-    lambda s, o, share: run_feedforward_sharing(s.capture, s.model, o.feedforward, s.work, share.cores),
+    lambda s, o, c: run_feedforward_sharing(s.capture, s.model, o.feedforward, s.work, c.cores),
     lambda o: o.feedforward,
     label="feed-forward",
     skip=lambda s, o: feedforward_skip_reason(s.model, len(s.capture.frames), colmap=o.colmap.enabled),
@@ -49,7 +40,7 @@ FEEDFORWARD = Stage(
 COLMAP = Stage(
     "colmap",
     ("capture",),
-    lambda s, o, share: run_colmap_on(s.capture, o.colmap, s.work / "colmap", step=share.step),
+    lambda s, o, c: run_colmap_on(s.capture, o.colmap, s.work / "colmap", step=c.step),
     lambda o: o.colmap,
     label="colmap cross-check",
     skip=lambda s, o: (
@@ -61,18 +52,16 @@ COLMAP = Stage(
 SIFT = Stage(  # quick mode: the refinement's SIFT, extracted beside the inference as COLMAP's is in the full run
     "sift",
     ("capture",),
-    lambda s, o, share: extract_refine_features(
-        s.capture.image_dir, s.capture.names, o.refine.sift, s.work / "sift" / "database.db", threads=share.step
-    ),
+    lambda s, o, c: refine.extract_refine_features(s.capture.image_dir, s.capture.names, o.refine.sift, s.work, c.step),
     lambda o: o.refine.sift,
     label="SIFT extraction",
-    skip=lambda s, o: sift_beside_skip_reason(o.mode is RunMode.QUICK and o.concurrent, s.model, o.refine, s.views),
+    skip=lambda s, o: refine.sift_beside_skip_reason(o.mode, o.concurrent, s.model, o.refine, s.views),
     outputs=("sift",),
 )
 GATES = Stage(
     "gates",
     ("capture", "feedforward", "colmap"),
-    lambda s, o, share: gate_poses(s.capture.quality, s.prediction, s.colmap, o.gates, force=o.force),
+    lambda s, o, c: gate_poses(s.capture.quality, s.prediction, s.colmap, o.gates, force=o.force),
     lambda o: (o.gates, o.force),
     label="gates",
     skip=lambda s, o: s.why_not(),
@@ -80,28 +69,28 @@ GATES = Stage(
 REFINE = Stage(
     "refine",
     ("capture", "feedforward", "colmap", "sift"),
-    lambda s, o, share: run_refine_reusing(s.capture.image_dir, s.prediction, s.colmap, s.sift, o.refine, s.work),
+    lambda s, o, c: refine.run_refine_reusing(s.capture.image_dir, s.prediction, s.colmap, s.sift, o.refine, s.work),
     lambda o: o.refine,
     label="refinement",
     skip=lambda s, o: (
-        s.why_not(s.gates, enabled=o.refine.enabled, flag="--no-refine") or refine_skip_reason(s.prediction)
+        s.why_not(s.gates, enabled=o.refine.enabled, flag="--no-refine") or refine.refine_skip_reason(s.prediction)
     ),
     outputs=("sparse", "refine"),
 )
 EVIDENCE = Stage(
     "evidence",
     ("feedforward", "colmap", "gates", "refine"),
-    lambda s, o, share: judge_refined_cameras(
+    lambda s, o, c: judge_refined_cameras(
         s.capture.names, s.prediction, s.colmap, s.gates, s.refine, o.evidence, force=o.force
     ),
     lambda o: (o.evidence, o.force),
     label="evidence on the final cameras",
-    skip=lambda s, o: None if isinstance(s.refine, RefineResult) else f"no refinement ({s.refine.reason})",
+    skip=lambda s, o: evidence_skip_reason(s.refine),
 )
 COMPARISONS = Stage(
     "comparisons",
     ("capture", "feedforward", "colmap", "refine"),
-    lambda s, o, share: run_comparisons(
+    lambda s, o, c: run_comparisons(
         s.capture.names,
         pose_estimates(s.prediction, s.colmap, s.refine),
         load_references(o.ground_truth, o.reference, s.capture.names),
@@ -116,30 +105,26 @@ COMPARISONS = Stage(
 FINAL = Stage(  # the final cameras and sparse/0: cheap, so made every time from the results they come from
     "final",
     ("capture", "feedforward", "colmap", "refine", "evidence"),
-    lambda s, o, share: final_cameras(s.capture.names, s.feedforward, s.colmap, s.refine, s.evidence, s.work),
+    lambda s, o, c: final_cameras(s.capture.names, s.feedforward, s.colmap, s.refine, s.evidence, s.work),
     lambda o: (),
     recorded=False,
 )
 SPLAT = Stage(
     "splat",
     ("capture", "feedforward", "colmap", "gates", "evidence", "final"),
-    lambda s, o, share: splat_final_cameras(
-        s.final, s.feedforward, s.colmap, s.capture.read_images, with_curves(o.splat), s.work
-    ),
+    lambda s, o, c: splat_final_cameras(s.final, s.feedforward, s.colmap, s.capture, with_curves(o.splat), s.work),
     lambda o: with_curves(o.splat),
     label="splat",
     skip=lambda s, o: (
         s.why_not(*s.verdicts, enabled=o.splat.enabled, flag="--no-splat")
         or (None if s.final else f"no cameras: {NO_CAMERAS}")
     ),
-    outputs=SPLAT_OUTPUTS,
+    outputs=splat.OUTPUTS,
 )
 SEED_COMPARISON = Stage(
     "seed_comparison",
     ("capture", "colmap", "final", "splat"),
-    lambda s, o, share: splat_from_colmap_points(
-        s.final, s.colmap, s.capture.names, s.capture.read_images, with_curves(o.splat), s.work / "seed_comparison"
-    ),
+    lambda s, o, c: splat_from_colmap_points(s.final, s.colmap, s.capture, with_curves(o.splat), s.work),
     lambda o: with_curves(o.splat),
     label="seed comparison",
     skip=lambda s, o: seed_comparison_skip_reason(s.splat, s.final, s.colmap),
@@ -149,7 +134,7 @@ SEED_COMPARISON = Stage(
 EXPORTS = Stage(
     "exports",
     ("capture", "feedforward", "colmap", "final"),
-    lambda s, o, share: export_final_cameras(
+    lambda s, o, c: export_final_cameras(
         s.final, s.feedforward, s.colmap, s.capture.read_images, o.exports, o.feedforward.fuse, s.work
     ),
     lambda o: (o.exports, o.feedforward.fuse),

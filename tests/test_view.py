@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from ffrecon.errors import InputError
-from ffrecon.splat.gaussians import SH_C0
+from ffrecon.gaussians import SH_C0
 from ffrecon.view import Estimate, ViewOptions, load_scene
 from ffrecon.view.scene import FLAG_COLOR, image_flags, splat_layer
 from ffrecon.view.server import _camera_markdown
@@ -130,7 +130,7 @@ def test_bad_folders_raise_readable_errors(full_run, tmp_path):
 
 
 def test_splat_layer_covariances_colours_and_cap():
-    from ffrecon.splat.gaussians import Gaussians
+    from ffrecon.gaussians import Gaussians
 
     angle = 0.7  # about z
     quat = torch.tensor([np.cos(angle / 2), 0.0, 0.0, np.sin(angle / 2)], dtype=torch.float32)

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from ffrecon.errors import InputError
-from ffrecon.splat.gaussians import Gaussians, num_sh_bases
+from ffrecon.gaussians import Gaussians, num_sh_bases
 
 logger = logging.getLogger("ffrecon.splat")
 

@@ -33,7 +33,7 @@ import numpy as np
 import torch
 
 from ffrecon.errors import FFReconError
-from ffrecon.splat.gaussians import Gaussians
+from ffrecon.gaussians import Gaussians
 
 logger = logging.getLogger("ffrecon.export")
 

@@ -38,6 +38,11 @@ from ffrecon.geometry.alignment import Sim3, umeyama
 from ffrecon.geometry.poses import invert_pose
 from ffrecon.geometry.projection import pixel_centers
 
+MODEL_FIX = (
+    "the pairs come from the feed-forward model: check it on two photos with `ffrecon inspect-model` and re-export "
+    "it in fp32 (fp16 overflow is a common cause)"
+)
+
 log = logging.getLogger("ffrecon.models.global_alignment")
 
 MAX_FIT_POINTS = 20000  # points per Umeyama / focal fit (evenly strided), plenty for 7 unknowns
@@ -351,6 +356,7 @@ def _check_pairs(pairs: Sequence[PairPrediction], size_hw: tuple[int, int]) -> i
             conf=p.conf_i,
             pts3d_in_other_view=p.pts_j_in_i,
             conf_in_other_view=p.conf_j,
+            fix=MODEL_FIX,
         )
         if p.i == p.j or min(p.i, p.j) < 0:
             raise FFReconError(

@@ -412,6 +412,11 @@ def _track_verdict(refine: RefineResult, options: EvidenceOptions) -> GateVerdic
     )
 
 
+def evidence_skip_reason(refine: RefineResult | Skipped) -> str | None:
+    """Why the final cameras are not judged (there is no refinement to judge), or None."""
+    return None if isinstance(refine, RefineResult) else f"no refinement ({refine.reason})"
+
+
 def judge_refined_cameras(
     names: Sequence[str],
     prediction: Prediction,

@@ -56,7 +56,7 @@ from ffrecon.sfm.overlap import OverlapGraph, OverlapOptions, overlap_graph
 from ffrecon.sfm.relocalize import Relocalized, RelocalizeOptions, reach_matrix, relocalize, with_poses
 from ffrecon.sfm.screen import ScreenOptions, Suspect, reseeded, screen_rotations
 from ffrecon.timing import StageTimer, Timings
-from ffrecon.types import PinholeCamera, Prediction, Skipped
+from ffrecon.types import PinholeCamera, Prediction, RunMode, Skipped
 from ffrecon.validate import validate_prediction
 
 logger = logging.getLogger("ffrecon.sfm")
@@ -395,15 +395,16 @@ def _screen(db_path: Path, prediction: Prediction, verified: list, options: Refi
 
 
 def extract_refine_features(
-    image_dir: Path, names: Sequence[str], sift: SiftOptions, db_path: Path, *, threads: Callable[[], int] | None = None
+    image_dir: Path, names: Sequence[str], sift: SiftOptions, out_dir: Path, threads: Callable[[], int] | None = None
 ) -> Path:
-    """SIFT of ``names`` (``image_dir``) into a fresh COLMAP database at ``db_path``, for the refinement to reuse
-    (:attr:`RefineOptions.reuse_features_from`); returns ``db_path``. ``threads``: see :func:`extract_sift`.
+    """SIFT of ``names`` (``image_dir``) into a fresh COLMAP database, ``out_dir/sift/database.db``, for the
+    refinement to reuse (:attr:`RefineOptions.reuse_features_from`); returns its path. ``threads``: see
+    :func:`extract_sift`.
 
     Quick mode runs it beside the feed-forward inference, the part COLMAP's extraction plays in the full
     run: the features depend only on the photos, so they need not wait for the cameras.
     """
-    db_path = Path(db_path)
+    db_path = Path(out_dir) / "sift" / "database.db"
     db_path.parent.mkdir(parents=True, exist_ok=True)
     create_database(db_path, Path(image_dir), list(names), camera_model=CameraModel.PINHOLE, single_camera=False)
     extract_sift(db_path, Path(image_dir), list(names), sift, threads=threads)
@@ -632,10 +633,13 @@ def _refined_result(
     )
 
 
-def sift_beside_skip_reason(beside: bool, model: Path | None, options: RefineOptions, views: int) -> str | None:
+def sift_beside_skip_reason(
+    mode: RunMode, concurrent: bool, model: Path | None, options: RefineOptions, views: int
+) -> str | None:
     """Why the refinement's SIFT is not extracted ahead, beside the inference (only quick mode runs it there,
-    ``beside``, when the refinement will run on a model's cameras and extracts its own), or None."""
-    if beside and model is not None and options.enabled and options.reuse_features_from is None and views >= 2:
+    when ``concurrent``, and when the refinement will run on a model's cameras and extracts its own), or None."""
+    wanted = options.enabled and options.reuse_features_from is None and model is not None and views >= 2
+    if mode is RunMode.QUICK and concurrent and wanted:
         return None
     return "extracted by the refinement itself (only quick mode extracts it beside the inference)"
 

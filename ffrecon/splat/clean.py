@@ -18,7 +18,7 @@ import torch
 
 from ffrecon.checks import check_number
 from ffrecon.errors import InputError
-from ffrecon.splat.gaussians import Gaussians
+from ffrecon.gaussians import Gaussians
 from ffrecon.types import PinholeCamera
 
 logger = logging.getLogger("ffrecon.splat")

@@ -15,7 +15,7 @@ import kornia
 import torch
 
 from ffrecon.checks import check_number
-from ffrecon.splat.gaussians import Gaussians
+from ffrecon.gaussians import Gaussians
 
 logger = logging.getLogger("ffrecon.splat")
 

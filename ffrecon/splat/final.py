@@ -8,10 +8,11 @@ sparse points. Photos with lens distortion are undistorted first: the rasteriser
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 
+from ffrecon.capture import Capture
 from ffrecon.final_cameras import CameraSource, FinalCameras
 from ffrecon.geometry.undistort import undistort_image
 from ffrecon.models.stage import FeedForwardResult
@@ -21,7 +22,6 @@ from ffrecon.splat.seed import seed_from_reconstruction
 from ffrecon.splat.stage import SplatOptions, SplatResult, run_splat, run_splat_from_prediction
 from ffrecon.types import Skipped
 
-ReadImages = Callable[[list[int]], list[np.ndarray]]  # the capture's photos at these frame indices
 CURVE_EVERY = 20  # iterations between held-out scores when the two seeds are compared
 
 
@@ -29,12 +29,12 @@ def splat_final_cameras(
     final: FinalCameras,
     ff: FeedForwardResult | Skipped,
     colmap: ColmapResult | Skipped,
-    read_images: ReadImages,
+    capture: Capture,
     options: SplatOptions,
-    work,
+    work: Path,
 ) -> SplatResult:
     """The run's splat on the final cameras, in ``work``."""
-    images = read_images(list(final.indices))
+    images = capture.read_images(list(final.indices))
     cameras = final.cameras
     if final.distortion is not None:  # the rasteriser is a pinhole camera: train on undistorted photos
         pairs = [undistort_image(im, c, d) for im, c, d in zip(images, cameras, final.distortion)]
@@ -69,14 +69,15 @@ def seed_comparison_skip_reason(
 
 
 def splat_from_colmap_points(
-    final: FinalCameras, colmap: ColmapResult, names: tuple[str, ...], read_images: ReadImages, options, out_dir
+    final: FinalCameras, colmap: ColmapResult, capture: Capture, options: SplatOptions, work: Path
 ) -> SplatResult:
-    """The same splat trained from COLMAP's points (moved into the final cameras' frame), same budget;
-    ``names``: every frame of the capture."""
+    """The same splat trained from COLMAP's points (moved into the final cameras' frame), same budget, in
+    ``work/seed_comparison``."""
+    names = capture.names
     full = np.stack([np.eye(3, 4)] * len(names))
     full[list(final.indices)] = final.cam_from_world
     to_final = compare_poses(colmap.cam_from_world, full, names, colmap.registered).errors.est_to_ref
     xyz, rgb = seed_from_reconstruction(colmap.reconstruction)
-    images = read_images(list(final.indices))
+    images = capture.read_images(list(final.indices))
     args = (images, final.names, final.cam_from_world, final.cameras, to_final.apply(xyz), rgb)
-    return run_splat(*args, options, out_dir)
+    return run_splat(*args, options, work / "seed_comparison")

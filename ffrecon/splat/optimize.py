@@ -21,11 +21,11 @@ from tqdm import tqdm
 
 from ffrecon.checks import check_number
 from ffrecon.errors import InputError
+from ffrecon.gaussians import Gaussians
 from ffrecon.geometry.poses import camera_centers
 from ffrecon.splat.appearance import appearance_penalty, apply_color_transform, identity_transforms
 from ffrecon.splat.budget import StepClock
 from ffrecon.splat.densify import Densifier, DensifyOptions, replace_rows
-from ffrecon.splat.gaussians import Gaussians
 from ffrecon.splat.poses import bound_poses, depth_levels, depth_loss, pose_views_of, refined_pose
 from ffrecon.splat.render import RasterOptions, interrupts_deferred, render, warm_up
 from ffrecon.splat.ssim import ssim_mean

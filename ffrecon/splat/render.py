@@ -23,7 +23,7 @@ import torch
 
 from ffrecon.checks import check_number
 from ffrecon.concurrency import interrupts_deferred
-from ffrecon.splat.gaussians import Gaussians, sh_to_rgb
+from ffrecon.gaussians import Gaussians, sh_to_rgb
 from ffrecon.splat.project import project_gaussians
 from ffrecon.splat.raster import TileLayout, bin_gaussians, composite
 from ffrecon.types import PinholeCamera

@@ -17,7 +17,7 @@ import pycolmap
 
 from ffrecon.checks import check_shape
 from ffrecon.errors import InputError
-from ffrecon.splat.gaussians import Gaussians
+from ffrecon.gaussians import Gaussians
 from ffrecon.types import Prediction
 
 logger = logging.getLogger("ffrecon.splat")

@@ -32,11 +32,11 @@ from ffrecon.checks import check_number, check_shape, require_finite
 from ffrecon.errors import InputError
 from ffrecon.formats.splat_ply import write_splat_ply
 from ffrecon.formats.web import WebExportError, write_sog, write_splat_spz
+from ffrecon.gaussians import Gaussians
 from ffrecon.geometry.poses import camera_centers
 from ffrecon.geometry.rotations import rotation_angle_deg
 from ffrecon.splat.appearance import apply_color_transform, fit_color_transform
 from ffrecon.splat.clean import CleanOptions, CleanReport, clean_gaussians
-from ffrecon.splat.gaussians import Gaussians
 from ffrecon.splat.memory import splat_peak_bytes, training_side
 from ffrecon.splat.optimize import (
     OptimizeOptions,
@@ -617,17 +617,22 @@ def _validate_views(images, names, cam_from_world, cameras, seed=None) -> None:
             "pass one of each per frame",
         )
     check_shape("cam_from_world", np.asarray(cam_from_world), (n, 3, 4))
-    require_finite(
-        "splat", cam_from_world=cam_from_world, intrinsics=np.array([[c.fx, c.fy, c.cx, c.cy] for c in cameras])
-    )
+    intrinsics = np.array([[c.fx, c.fy, c.cx, c.cy] for c in cameras])
+    require_finite("splat", cam_from_world=cam_from_world, intrinsics=intrinsics, fix=CAMERAS_FIX)
     for name, image, cam in zip(names, images, cameras):
         check_shape(f"image {name}", image, (cam.height, cam.width, 3))
+
+
+CAMERAS_FIX = (
+    "the cameras and seed points come from the earlier stages: see which made them in the run's report "
+    "(a model: check it with `ffrecon inspect-model` and re-export it; COLMAP: pass --no-colmap or other photos)"
+)
 
 
 def _validate_seed(seed_xyz, seed_rgb) -> None:
     check_shape("seed_xyz", np.asarray(seed_xyz), (None, 3))
     check_shape("seed_rgb", np.asarray(seed_rgb), (len(seed_xyz), 3))
-    require_finite("splat", seed_xyz=seed_xyz, seed_rgb=seed_rgb)
+    require_finite("splat", seed_xyz=seed_xyz, seed_rgb=seed_rgb, fix=CAMERAS_FIX)
 
 
 def _initial_splat(seed_xyz: np.ndarray, seed_rgb: np.ndarray, options: SplatOptions) -> tuple[Gaussians, np.ndarray]:

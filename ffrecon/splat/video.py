@@ -9,9 +9,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from ffrecon.gaussians import Gaussians
 from ffrecon.geometry.poses import camera_centers
 from ffrecon.geometry.rotations import matrix_to_quat_xyzw, quat_xyzw_to_matrix
-from ffrecon.splat.gaussians import Gaussians
 from ffrecon.splat.render import RasterOptions, render_view
 from ffrecon.types import PinholeCamera
 

@@ -29,7 +29,7 @@ import torch
 
 from ffrecon.formats.splat_ply import read_splat_ply, write_splat_ply
 from ffrecon.formats.web import SPLAT_TRANSFORM_ENV, WebExportError, find_splat_transform, write_sog, write_splat_spz
-from ffrecon.splat.gaussians import Gaussians
+from ffrecon.gaussians import Gaussians
 from ffrecon.splat.optimize import OptimizeOptions
 from ffrecon.splat.render import render_view
 from ffrecon.types import PinholeCamera

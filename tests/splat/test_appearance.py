@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from ffrecon.gaussians import Gaussians
 from ffrecon.splat.appearance import (
     apply_color_transform,
     change_photo_colors,
@@ -13,7 +14,6 @@ from ffrecon.splat.appearance import (
     random_color_changes,
 )
 from ffrecon.splat.densify import Densifier, DensifyOptions
-from ffrecon.splat.gaussians import Gaussians
 from ffrecon.splat.optimize import OptimizeOptions, _densify, _trainable
 from ffrecon.splat.stage import SplatOptions, color_corrected, image_metrics, run_splat, split_views
 from ffrecon.synthetic import SceneOptions, make_scene

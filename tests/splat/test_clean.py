@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from ffrecon.gaussians import Gaussians
 from ffrecon.geometry.poses import look_at_cam_from_world
 from ffrecon.splat.clean import CleanOptions, clean_gaussians
-from ffrecon.splat.gaussians import Gaussians
 from ffrecon.types import PinholeCamera
 
 

@@ -12,9 +12,9 @@ from plyfile import PlyData, PlyElement
 from ffrecon.errors import InputError
 from ffrecon.formats.mesh import write_mesh
 from ffrecon.formats.splat_ply import read_splat_ply, splat_property_names, splat_to_array, write_splat_ply
+from ffrecon.gaussians import Gaussians, rgb_to_sh_dc
 from ffrecon.geometry.poses import camera_centers, look_at_cam_from_world
 from ffrecon.geometry.rotations import rotation_angle_deg
-from ffrecon.splat.gaussians import Gaussians, rgb_to_sh_dc
 from ffrecon.splat.render import render
 from ffrecon.splat.video import smooth_camera_path, write_flythrough
 from ffrecon.types import PinholeCamera

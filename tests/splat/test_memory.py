@@ -97,7 +97,7 @@ def test_the_time_budget_is_an_upper_bound_even_for_slow_steps(monkeypatch):
     monkeypatch.setattr(optimize_module, "_train_step", slow_step)
     rng = np.random.default_rng(0)
     n = 300
-    from ffrecon.splat.gaussians import Gaussians
+    from ffrecon.gaussians import Gaussians
 
     g = Gaussians.from_points(rng.uniform(-1, 1, (n, 3)) + [0, 0, 4], rng.uniform(0, 1, (n, 3)), np.full(n, -3.0))
     w, h = 160, 120  # 0.192 s a step at full size, 0.012 s at 1/4

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import torch
 
+from ffrecon.gaussians import Gaussians, rgb_to_sh_dc
 from ffrecon.geometry.poses import look_at_cam_from_world
 from ffrecon.geometry.rotations import axis_angle_to_matrix, rotation_angle_deg
 from ffrecon.splat.densify import Densifier, DensifyOptions, replace_rows
-from ffrecon.splat.gaussians import Gaussians, rgb_to_sh_dc
 from ffrecon.splat.optimize import OptimizeOptions, downscaled, optimize, resolution_factor
 from ffrecon.splat.render import render
 from ffrecon.splat.ssim import ssim_map

@@ -8,8 +8,8 @@ import pytest
 import torch
 from kornia.geometry.liegroup import So3
 
+from ffrecon.gaussians import SH_C0, SH_C1, sh_basis, sh_to_rgb
 from ffrecon.geometry.rotations import random_rotation
-from ffrecon.splat.gaussians import SH_C0, SH_C1, sh_basis, sh_to_rgb
 from ffrecon.splat.render import RasterOptions, render
 
 from .reference import random_scene, reference_render

@@ -6,7 +6,7 @@ import numpy as np
 import pycolmap
 import pytest
 
-from ffrecon.splat.gaussians import SH_C0
+from ffrecon.gaussians import SH_C0
 from ffrecon.splat.seed import (
     initial_gaussians,
     nearest_neighbour_log_scales,
