@@ -29,7 +29,8 @@ def _setup_logging(verbose: int) -> None:
 
 
 def _field_default(options_class, name: str):
-    """The default of a field of an options dataclass, for help texts (the value lives in the class alone)."""
+    """The default of a field of an options dataclass, for help texts (the value lives in the class alone;
+    tests/test_cli_defaults.py checks every help text's default against its field)."""
     return options_class.__dataclass_fields__[name].default
 
 
@@ -59,18 +60,18 @@ def _add_extra_output_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--reference", type=Path, default=None, help="a reference COLMAP model to score the cameras against")
 
 
-def _add_run_options(p: argparse.ArgumentParser) -> None:
-    """Options of ``run`` and ``demo``; their defaults live in the stage options classes alone, and so do
-    their checks (each class's ``__post_init__``: a bad value is an InputError naming the flag)."""
+def _add_model_call_options(p: argparse.ArgumentParser) -> None:
+    """Options of ``run`` and ``demo`` for the model's calls (defaults: MultiviewOptions' and
+    FeedForwardOptions')."""
+    from ffrecon.models.memory import MEMORY_FRACTION
     from ffrecon.models.multiview import MultiviewOptions
-    from ffrecon.sfm.gates import GateOptions
 
-    _add_output_folder_options(p)
     p.add_argument(
         "--chunk-size",
         type=int,
         default=None,
-        help="frames per model call (default: as many as fit in 60%% of the free memory; docs/benchmarks.md)",
+        help=f"frames per model call (default: as many as fit in {MEMORY_FRACTION * 100:g}%% of the free memory; "
+        "docs/benchmarks.md)",
     )
     p.add_argument(
         "--chunk-overlap",
@@ -86,13 +87,24 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
         help="preprocessing mode (default: the model family's reference; VGGT: crop or pad, DA3: resize or crop)",
     )
     p.add_argument("--threads", type=int, default=None, help="CPU threads for inference, >= 1 (default: all)")
+
+
+def _add_run_options(p: argparse.ArgumentParser) -> None:
+    """Options of ``run`` and ``demo``; their defaults live in the stage options classes alone, and so do
+    their checks (each class's ``__post_init__``: a bad value is an InputError naming the flag)."""
+    from ffrecon.capture import CaptureOptions
+    from ffrecon.sfm.gates import GateOptions
+
+    _add_output_folder_options(p)
+    _add_model_call_options(p)
     p.add_argument(
         "--max-image-size",
         type=int,
         default=None,
         metavar="N",
         help="long side in pixels of the frames every stage works on; larger photos are downscaled at capture "
-        "(default 1600, as 3DGS; 0 keeps full size, which costs memory and time: docs/benchmarks.md)",
+        f"(default {_field_default(CaptureOptions, 'max_image_size')}, as 3DGS; 0 keeps full size, which costs "
+        "memory and time: docs/benchmarks.md)",
     )
     p.add_argument(
         "--quick",
@@ -150,12 +162,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--skip-bad-images", action="store_true", help="leave out unreadable files and non-images instead of stopping"
     )
     _add_run_options(run)
-    demo = sub.add_parser("demo", help="synthetic scene + simulated model through every stage (no downloads)")
-    demo.add_argument("--frames", type=int, default=24)
-    demo.add_argument("--width", type=int, default=320)
-    demo.add_argument("--height", type=int, default=240)
-    demo.add_argument("--seed", type=int, default=0)
-    _add_run_options(demo)
+    _add_demo_parser(sub)
     inspect = sub.add_parser("inspect-model", help="show a model's family, inputs, outputs and preprocessing")
     inspect.add_argument("model", type=Path)
     _add_export_parser(sub)
@@ -179,6 +186,34 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+# demo's flags for fields of ffrecon.synthetic.SceneOptions: (dest, field, help); the flag is --dest
+_DEMO_SCENE_FLAGS = (
+    ("frames", "num_frames", "frames of the synthetic scene"),
+    ("width", "width", "frame width in pixels"),
+    ("height", "height", "frame height in pixels"),
+    ("seed", "seed", "seed of the scene's random textures and jitter"),
+)
+
+
+def _add_demo_parser(sub) -> None:
+    """``demo``: the synthetic scene's options (defaults: :class:`~ffrecon.synthetic.SceneOptions`'s), then
+    those of ``run``."""
+    from ffrecon.synthetic import SceneOptions
+
+    demo = sub.add_parser("demo", help="synthetic scene + simulated model through every stage (no downloads)")
+    for dest, name, what in _DEMO_SCENE_FLAGS:
+        default = _field_default(SceneOptions, name)
+        demo.add_argument(f"--{dest}", type=int, default=None, help=f"{what} (default {default})")
+    _add_run_options(demo)
+
+
+def _scene_options(args: argparse.Namespace):
+    """The demo scene's :class:`~ffrecon.synthetic.SceneOptions`: the flags given, the class's defaults else."""
+    from ffrecon.synthetic import SceneOptions
+
+    return SceneOptions(**_given(**{name: getattr(args, dest) for dest, name, _ in _DEMO_SCENE_FLAGS}))
+
+
 def _add_export_parser(sub) -> None:
     from ffrecon.models.exporting import FAMILIES
 
@@ -198,7 +233,11 @@ def _add_export_parser(sub) -> None:
 
 
 def _add_export_arguments(export: argparse.ArgumentParser) -> None:
-    """The options of ``export-model``. Long because it is one declaration per option, a few lines each."""
+    """The options of ``export-model``; the defaults of --frames, --opset and --seed are
+    :class:`~ffrecon.models.exporting.ModelExportOptions`'s. Long because it is one declaration per option,
+    a few lines each."""
+    from ffrecon.models.exporting import ModelExportOptions
+
     export.add_argument(
         "-o",
         "--out",
@@ -247,10 +286,13 @@ def _add_export_arguments(export: argparse.ArgumentParser) -> None:
     export.add_argument(
         "--frames",
         type=int,
-        default=2,
-        help="frames (pairs for pairwise models) in the traced example; the check runs one more (default %(default)s)",
+        default=None,
+        help="frames (pairs for pairwise models) in the traced example; the check runs one more "
+        f"(default {_field_default(ModelExportOptions, 'count')})",
     )
-    export.add_argument("--opset", type=int, default=17)
+    export.add_argument(
+        "--opset", type=int, default=None, help=f"ONNX opset (default {_field_default(ModelExportOptions, 'opset')})"
+    )
     export.add_argument("--skip-verify", action="store_true", help="do not compare onnxruntime with PyTorch")
     export.add_argument(
         "--keep-untrained-heads",
@@ -263,21 +305,27 @@ def _add_export_arguments(export: argparse.ArgumentParser) -> None:
         help="upstream configuration to build with --random-init "
         "(da3: da3-small|base|large|giant; monodepth: small|base|large, optionally -metric)",
     )
-    export.add_argument("--seed", type=int, default=0)
+    export.add_argument(
+        "--seed",
+        type=int,
+        default=None,
+        help="seed of the random weights and of the traced example's inputs "
+        f"(default {_field_default(ModelExportOptions, 'seed')})",
+    )
     export.add_argument("-v", "--verbose", action="count", default=0)
     export.add_argument("-q", "--quiet", action="store_true")
 
 
-def _export(args: argparse.Namespace) -> None:
-    import warnings
-
-    from ffrecon.models.exporting import ModelExportOptions, export_model
+def _export_options(args: argparse.Namespace):
+    """``export-model``'s :class:`~ffrecon.models.exporting.ModelExportOptions`; the flags not given
+    (None) leave the class's defaults."""
+    from ffrecon.models.exporting import ModelExportOptions
 
     if (args.height is None) != (args.width is None):
         raise FFReconError(
             "--height and --width go together", "pass both, or neither (then --photos or the family's default decides)"
         )
-    options = ModelExportOptions(
+    return ModelExportOptions(
         family=args.family,
         out=args.out,
         checkpoint=args.checkpoint,
@@ -289,12 +337,18 @@ def _export(args: argparse.Namespace) -> None:
         random_init=args.random_init,
         tiny=args.tiny,
         keep_untrained_heads=args.keep_untrained_heads,
-        opset=args.opset,
-        count=args.frames,
         verify=not args.skip_verify,
-        seed=args.seed,
         variant=args.variant,
+        **_given(opset=args.opset, count=args.frames, seed=args.seed),
     )
+
+
+def _export(args: argparse.Namespace) -> None:
+    import warnings
+
+    from ffrecon.models.exporting import export_model
+
+    options = _export_options(args)
     with warnings.catch_warnings():
         warnings.simplefilter(
             "ignore"
@@ -397,15 +451,21 @@ def _inspect(path: Path) -> None:
         print(f"  metadata {k}: {v[:200]}")
 
 
+def _view_options(args: argparse.Namespace):
+    """``view``'s :class:`~ffrecon.view.ViewOptions`: the caps given, the class's defaults else."""
+    from ffrecon.view import ViewOptions
+
+    return ViewOptions(**_given(max_points=args.max_points, max_gaussians=args.max_gaussians))
+
+
 def _view(args: argparse.Namespace) -> int:
     """Serve the viewer until Ctrl-C (or SIGTERM), then stop it and say so in one line (exit 0)."""
     import time
 
-    from ffrecon.view import ViewOptions, load_scene, start_viewer
+    from ffrecon.view import load_scene, start_viewer
 
     started = time.perf_counter()
-    options = ViewOptions(**_given(max_points=args.max_points, max_gaussians=args.max_gaussians))
-    scene = load_scene(args.out, options)
+    scene = load_scene(args.out, _view_options(args))
     signal.signal(signal.SIGTERM, _terminate)  # pycolmap, imported by load_scene, installs its own handler
     viewer = start_viewer(scene, host=args.host, port=args.port)
     for what, why in scene.missing:
@@ -487,10 +547,8 @@ def _run_command(args: argparse.Namespace):
 
     if args.command == "demo":
         from ffrecon.demo import DemoOptions, prepare_demo
-        from ffrecon.synthetic import SceneOptions
 
-        scene = SceneOptions(num_frames=args.frames, width=args.width, height=args.height, seed=args.seed)
-        demo = prepare_demo(DemoOptions(scene=scene))
+        demo = prepare_demo(DemoOptions(scene=_scene_options(args)))
         return run(demo.images, args.out, demo.model, _run_options(args, ground_truth=demo.scene_dir))
     return run(args.input, args.out, args.model, _run_options(args))
 

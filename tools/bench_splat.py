@@ -160,7 +160,7 @@ MEMORY_GAUSSIANS = 200_000
 
 def memory_probe(width: int, height: int, count: int) -> None:
     """One process's part of ``--memory``: prints the growth of its peak RSS over three steps, in bytes."""
-    from ffrecon.splat.gaussians import Gaussians
+    from ffrecon.gaussians import Gaussians
 
     rng = np.random.default_rng(0)
     xyz = np.c_[rng.uniform(-1, 1, (count, 2)), rng.uniform(2, 4, count)]

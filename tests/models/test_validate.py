@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from ffrecon.errors import ModelError
+from ffrecon.errors import ModelError, NonFiniteError
 from ffrecon.geometry.alignment import umeyama
 from ffrecon.types import ModelFamily, ModelInfo, PinholeCamera, Prediction
 from ffrecon.validate import validate_prediction
@@ -76,7 +76,7 @@ def test_iterative_steps_refuse_nan_inputs():
     src = np.random.default_rng(0).normal(size=(10, 3))
     dst = src.copy()
     dst[3, 1] = np.nan
-    with pytest.raises(ModelError, match="non-finite"):
+    with pytest.raises(NonFiniteError, match="non-finite"):
         umeyama(src, dst)
 
 
