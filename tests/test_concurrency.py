@@ -83,9 +83,8 @@ def test_the_feedforward_stage_claims_onnxruntimes_threads_only_while_the_networ
     import onnxruntime as ort
 
     from ffrecon.capture import CaptureOptions, run_capture
+    from ffrecon.models.stage import run_feedforward_sharing
     from ffrecon.pipeline import RunOptions
-    from ffrecon.resume import StageRunner
-    from ffrecon.stages import feedforward_stage
 
     capture = run_capture(small_demo.images, CaptureOptions(), tmp_path / "run")
     options = RunOptions()
@@ -99,7 +98,6 @@ def test_the_feedforward_stage_claims_onnxruntimes_threads_only_while_the_networ
         return real_run(session, *args, **kwargs)
 
     monkeypatch.setattr(ort.InferenceSession, "run", spying_run)
-    stages = StageRunner(tmp_path / "work", reuse=False)
     real_claim = cores.claim
     left_outside_runs = []
 
@@ -108,7 +106,7 @@ def test_the_feedforward_stage_claims_onnxruntimes_threads_only_while_the_networ
         return real_claim(threads)
 
     monkeypatch.setattr(cores, "claim", recording_claim)
-    ff, _ = feedforward_stage(capture, small_demo.model, options, tmp_path / "run", stages, [], cores=cores)
+    ff = run_feedforward_sharing(capture, small_demo.model, options.feedforward, tmp_path / "run", cores)
     assert len(ff.prediction) == 8 and left_during_runs
     assert set(left_during_runs) == {8 - 3}  # the stage's core and onnxruntime's two others while it runs
     assert left_outside_runs[0] == 8 and set(left_outside_runs[1:]) == {8 - 1}  # otherwise the stage's one

@@ -6,7 +6,7 @@ callers declare their own frame when packing; but its own ``ply_to_spz`` tool pa
 UNSPECIFIED)" into the same frame as a PLY, and Spark's Rust decoder converts nothing either. So the
 bytes are written in the PLY's own frame, ffrecon's OpenCV world (x, y, z as in ``splat.ply``), and
 every one of those readers then places each Gaussian where ``splat.ply`` does (checked by
-``tests/export/test_web_clients.py``, which renders both in Spark from a training camera).
+``tests/formats/test_web_clients.py``, which renders both in Spark from a training camera).
 
 **SPZ quantisation** (version 3, gzip, as gsply writes it; the round trip is tested against these):
 
