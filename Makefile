@@ -9,7 +9,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.ffrecon-installed
 DEMO_OUT ?= demo_out
 
-.PHONY: demo test test-fast lint setup clients clean bench
+.PHONY: demo test test-fast lint setup clients colmap-cli clean bench
 
 setup: $(STAMP)
 
@@ -36,12 +36,30 @@ lint: $(STAMP)
 test: lint clients
 	$(PY) -m pytest
 
-# The web clients ffrecon's outputs are tested in (tests/clients): Debian's chromium (headless) and the npm
-# packages pinned in clients/package-lock.json (splat-transform, Spark, three, puppeteer-core; no browser
-# download). Optional: when either cannot be installed, the tests that need it are skipped with the reason.
+# The clients ffrecon's outputs are tested in: Debian's chromium (headless) and the npm packages pinned in
+# clients/package-lock.json (splat-transform, Spark, three, puppeteer-core; no browser download) for the web
+# (tests/formats/test_web_clients.py); nerfstudio's data parsers (pinned, into clients/python, without
+# the training stack they do not import) and Debian's COLMAP 3.8 command line for the desktop
+# (tests/formats/test_desktop_clients.py). Optional: whatever cannot be installed, the tests that need it
+# are skipped with the reason.
 CLIENTS_STAMP := clients/node_modules/.ffrecon-installed
+NERFSTUDIO_STAMP := clients/python/.ffrecon-installed
+NERFSTUDIO_PINS := nerfstudio==1.1.5 jaxtyping==0.3.11 tensorboard==2.21.0 absl-py==2.5.1 appdirs==1.4.4 rawpy==0.28.0
 
-clients: $(CLIENTS_STAMP)
+clients: $(CLIENTS_STAMP) $(NERFSTUDIO_STAMP) colmap-cli
+
+$(NERFSTUDIO_STAMP): $(STAMP) Makefile
+	rm -rf clients/python
+	$(PY) -m pip install -q --no-deps --target clients/python $(NERFSTUDIO_PINS) && touch $@ \
+		|| echo "WARNING: could not install nerfstudio's parsers; the nerfstudio tests will be skipped"
+
+colmap-cli:
+	@if ! command -v colmap >/dev/null 2>&1; then \
+		echo "installing Debian's colmap (its command line reads ffrecon's sparse/0 in the client tests)"; \
+		SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
+		{ $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq colmap >/dev/null; } \
+			|| echo "WARNING: could not install colmap; the COLMAP command-line tests will be skipped"; \
+	fi
 
 $(CLIENTS_STAMP): clients/package.json clients/package-lock.json
 	@if ! command -v chromium >/dev/null 2>&1; then \
@@ -71,4 +89,4 @@ bench: $(STAMP)
 	$(PY) tools/bench_splat.py
 
 clean:
-	rm -rf $(VENV) $(DEMO_OUT) .pytest_cache clients/node_modules
+	rm -rf $(VENV) $(DEMO_OUT) .pytest_cache clients/node_modules clients/python

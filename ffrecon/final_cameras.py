@@ -143,32 +143,37 @@ def source_model(
     return folders[source]
 
 
-def write_final_model(final: FinalCameras | None, folder: Path | None, work: Path) -> Path | None:
-    """``work/sparse/0``: every final camera as a COLMAP model, where downstream tools look (docs/contracts.md,
-    "Output folder"): the model of the final cameras' source, ``folder`` (the refinement's, COLMAP's in a run without a
-    model, the model's when the refinement failed or was turned off), plus, posed and without points, the
-    final frames that model lacks (a frame the refinement left out keeps the model's camera, unchecked).
+FINAL_MODELS = (Path("sparse") / "0", Path("colmap") / "sparse" / "0")  # relative to the run folder
 
-    Runs every time (a small model): the refinement's record owns ``sparse`` and removes it whenever it is
-    skipped or runs again; the refinement's own model stays in ``refine/model``, which a resumed run reads.
-    Returns the folder, or None when there is none.
+
+def write_final_model(final: FinalCameras | None, folder: Path | None, work: Path) -> Path | None:
+    """``work/sparse/0`` and ``work/colmap/sparse/0``: every final camera as a COLMAP model, where downstream
+    tools look (docs/contracts.md, "Output folder"; ``colmap/sparse/0`` is where nerfstudio's COLMAP data
+    parser looks by default). The model of the final cameras' source, ``folder`` (the refinement's, COLMAP's
+    in a run without a model, the model's when the refinement failed or was turned off), plus, posed and
+    without points, the final frames that model lacks (a frame the refinement left out keeps the model's
+    camera, unchecked).
+
+    Runs every time (a small model), so both are always the final cameras of this run; without them both are
+    removed. The refinement's own model stays in ``refine/model``, which a resumed run reads. Returns
+    ``work/sparse/0``, or None when there is none.
     """
-    if final is None:
-        return None
-    target = work / "sparse" / "0"
-    if folder is None or not is_model_dir(Path(folder)):
+    targets = [work / rel for rel in FINAL_MODELS]
+    for stale in (targets[0], work / "colmap"):  # colmap/ holds nothing else (the cross-check is crosscheck/)
+        shutil.rmtree(stale, ignore_errors=True)
+    if final is None or folder is None or not is_model_dir(Path(folder)):
         return None
     rec = pycolmap.Reconstruction(str(folder))
     added = add_posed_images(rec, final.names, final.cam_from_world, final.cameras, final.distortion)
-    shutil.rmtree(target, ignore_errors=True)
-    write_reconstruction(rec, target)
+    for target in targets:
+        write_reconstruction(rec, target)
     log.info(
-        "sparse/0: the final cameras (%s, from %s)%s",
+        "sparse/0 and colmap/sparse/0: the final cameras (%s, from %s)%s",
         final.source,
         folder,
         f", plus {len(added)} frame(s) it lacks, posed without points: {', '.join(added)}" if added else "",
     )
-    return target
+    return targets[0]
 
 
 def final_cameras(

@@ -40,14 +40,14 @@ FEEDFORWARD = Stage(
 COLMAP = Stage(
     "colmap",
     ("capture",),
-    lambda s, o, c: run_colmap_on(s.capture, o.colmap, s.work / "colmap", step=c.step),
+    lambda s, o, c: run_colmap_on(s.capture, o.colmap, s.work / "crosscheck", step=c.step),
     lambda o: o.colmap,
     label="colmap cross-check",
     skip=lambda s, o: (
         (QUICK_NO_CROSSCHECK if o.mode is RunMode.QUICK and s.views >= 2 else None)
         or s.why_not(enabled=o.colmap.enabled, flag="--no-colmap")
     ),
-    outputs=("colmap",),
+    outputs=("crosscheck",),
 )
 SIFT = Stage(  # quick mode: the refinement's SIFT, extracted beside the inference as COLMAP's is in the full run
     "sift",

@@ -199,7 +199,7 @@ def test_two_runs_on_one_folder_give_one_result_and_one_clear_refusal(demo12, tm
     assert len(said) == 1 and f"process {first.pid}" in said[0] and "Traceback" not in err2
     assert _complete(out) and _siblings(out) == []
     report = json.loads((out / "report.json").read_text())
-    assert all((out / name).exists() for name in ("images", "colmap", "sparse", "report.html"))
+    assert all((out / name).exists() for name in ("images", "crosscheck", "colmap", "sparse", "report.html"))
     assert report["verdict"]["status"] == "ok"
 
 

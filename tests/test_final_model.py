@@ -46,6 +46,8 @@ def test_frames_the_refinement_left_out_are_added_posed_without_points(tmp_path:
     assert registered.all()
     np.testing.assert_allclose(got, poses, atol=1e-9)
     assert rec.num_points3D() == 50  # the refinement's points, none for the added frame
+    copy = pycolmap.Reconstruction(str(tmp_path / "colmap" / "sparse" / "0"))  # where nerfstudio's parser looks
+    np.testing.assert_array_equal(cam_from_world_by_name(copy, names)[0], got)
     added = rec.cameras[rec.find_image_with_name(names[3]).camera_id]
     assert added.model.name == "OPENCV" and np.allclose(added.params, [300, 301, 160, 120, *lens])
     assert pycolmap.Reconstruction(str(refine_dir)).num_images() == 3  # a resumed run reads this back unchanged
@@ -55,5 +57,6 @@ def test_frames_the_refinement_left_out_are_added_posed_without_points(tmp_path:
 
 
 def test_no_final_cameras_no_model(tmp_path: Path):
+    (tmp_path / "colmap" / "sparse" / "0").mkdir(parents=True)  # left by an earlier run: no final cameras now
     assert write_final_model(None, None, tmp_path) is None
-    assert not (tmp_path / "sparse").exists()
+    assert not (tmp_path / "sparse").exists() and not (tmp_path / "colmap").exists()

@@ -20,7 +20,7 @@ def test_no_model_reconstructs_from_colmap_alone(demo12, tmp_path):
     out = tmp_path / "out"
     splat = SplatOptions(optimize=OptimizeOptions.brief(iterations=30, max_seconds=1e6, progress=False), video=False)
     result = run(demo12.images, out, None, RunOptions(splat=splat, ground_truth=demo12.scene_dir))
-    rec = pycolmap.Reconstruction(str(out / "colmap" / "sparse" / "0"))
+    rec = pycolmap.Reconstruction(str(out / "crosscheck" / "sparse" / "0"))
     assert result.exit_code == 0
     assert isinstance(result.feedforward, Skipped) and "--model" in result.feedforward.reason
     assert isinstance(result.refine, Skipped)
@@ -39,12 +39,17 @@ def test_no_model_reconstructs_from_colmap_alone(demo12, tmp_path):
     k1 = rec.cameras[1].params[3]
     assert transforms["camera_model"] == "OPENCV" and transforms["k1"] == k1 and transforms["k2"] == 0.0
     assert result.exports.num_points == rec.num_points3D()
-    # sparse/0 holds the final cameras, COLMAP's here: the same model as colmap/sparse/0 (docs/contracts.md).
+    # sparse/0 holds the final cameras, COLMAP's here: the same model as crosscheck/sparse/0 (docs/contracts.md);
+    # colmap/sparse/0, where nerfstudio's COLMAP parser looks, is a copy of sparse/0.
     final = pycolmap.Reconstruction(str(out / "sparse" / "0"))
     assert final.num_reg_images() == 12 and final.num_points3D() == rec.num_points3D()
     for image in final.images.values():
         same = rec.images[image.image_id]
         assert same.name == image.name and np.allclose(same.cam_from_world().matrix(), image.cam_from_world().matrix())
+    copy = pycolmap.Reconstruction(str(out / "colmap" / "sparse" / "0"))
+    assert {i.name: i.cam_from_world().matrix().tolist() for i in copy.images.values()} == {
+        i.name: i.cam_from_world().matrix().tolist() for i in final.images.values()
+    }
     report = json.loads((out / "report.json").read_text())
     assert report["feedforward"] == {"skipped": result.feedforward.reason}
     assert "none: cameras from COLMAP" in (out / "report.html").read_text()

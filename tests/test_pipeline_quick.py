@@ -22,7 +22,7 @@ def test_quick_mode_reaches_ground_truth_accuracy_and_says_nothing_checked_it(de
     assert report["mode"] == "quick" and report["cross_check_note"] == QUICK_STATEMENT
     assert QUICK_STATEMENT in (out / "report.html").read_text()
     # No COLMAP reconstruction: the gates that need one are skipped, saying why, and nothing failed.
-    assert report["colmap"] == {"skipped": QUICK_NO_CROSSCHECK} and not (out / "colmap").exists()
+    assert report["colmap"] == {"skipped": QUICK_NO_CROSSCHECK} and not (out / "crosscheck").exists()
     verdicts = {g["name"]: g for g in report["gates"] + report["evidence"]["gates"]}
     for name in ("registration", "sparse_cloud", "colmap_agreement"):
         assert verdicts[name]["status"] == "skipped" and QUICK_NO_CROSSCHECK in verdicts[name]["reason"], name

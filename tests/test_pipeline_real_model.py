@@ -40,7 +40,7 @@ def lund_runs(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("runs")
     no_splat = SplatOptions(enabled=False)
     reference = run(LUND, tmp / "reference", None, RunOptions(splat=no_splat))
-    ref_model = tmp / "reference" / "colmap" / "sparse" / "0"
+    ref_model = tmp / "reference" / "crosscheck" / "sparse" / "0"
     scene = real_scene_from_colmap(ref_model, LUND)
     photos = tmp / "photos"  # the model knows only the photos the reference registered
     photos.mkdir()

@@ -98,7 +98,7 @@ def test_report_cross_check_equals_independent_computation(demo_run):
     demo, out, result = demo_run
     names = sorted(p.name for p in (out / "images").iterdir())
     ff = _poses(pycolmap.Reconstruction(str(out / "feedforward" / "sparse")), names)
-    colmap = _poses(pycolmap.Reconstruction(str(out / "colmap" / "sparse" / "0")), names)
+    colmap = _poses(pycolmap.Reconstruction(str(out / "crosscheck" / "sparse" / "0")), names)
     expected = _independent_metrics(ff, colmap)
     reported = result.comparisons.by_label("feed-forward", "COLMAP").errors.to_dict()
     for key, value in expected.items():

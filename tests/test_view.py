@@ -31,7 +31,7 @@ def _free_port() -> int:
 
 def _copy_run(full_run: Path, dst: Path, *, drop: tuple[str, ...] = ()) -> Path:
     """A light copy of the output folder (models, report, points, splat, images), less ``drop``."""
-    keep = {"report.json", "points.ply", "splat.ply", "images", "sparse", "colmap", "feedforward"} - set(drop)
+    keep = {"report.json", "points.ply", "splat.ply", "images", "sparse", "crosscheck", "feedforward"} - set(drop)
     dst.mkdir()
     for item in full_run.iterdir():
         if item.name in keep:
@@ -108,10 +108,10 @@ def test_colmap_cameras_sit_on_the_final_ones_after_alignment(scene):
 
 
 def test_missing_layers_are_skipped_and_said(full_run, tmp_path):
-    out = _copy_run(full_run, tmp_path / "quick", drop=("colmap", "splat.ply"))
+    out = _copy_run(full_run, tmp_path / "quick", drop=("crosscheck", "splat.ply"))
     scene = load_scene(out, ViewOptions(max_points=500))
     assert [layer.estimate for layer in scene.layers] == [Estimate.FEEDFORWARD, Estimate.FINAL]
-    assert dict(scene.missing) == {"COLMAP cameras": "no model in colmap/sparse/0", "splat": "no splat.ply"}
+    assert dict(scene.missing) == {"COLMAP cameras": "no model in crosscheck/sparse/0", "splat": "no splat.ply"}
     assert scene.splat is None and len(scene.points.xyz) == 500 < scene.points.total
 
 

@@ -65,5 +65,8 @@ def write_transforms(
     out["frames"] = frames
     if ply_file_path:
         out["ply_file_path"] = ply_file_path
+    # The poses are in sparse/0's world, untransformed. Saying so stops nerfstudio's data parser from assuming
+    # the axis swap of its own ns-process-data (which it does when it finds colmap/sparse/0 and no field).
+    out["applied_transform"] = np.eye(3, 4).tolist()
     path.write_text(json.dumps(out, indent=2))
     return path

@@ -2,7 +2,7 @@
 
 Stage functions (one per stage, typed in and out):
 
-- :func:`ffrecon.sfm.crosscheck.run_colmap`: plain COLMAP on the images -> ``OUT/colmap/sparse/0``.
+- :func:`ffrecon.sfm.crosscheck.run_colmap`: plain COLMAP on the images -> ``OUT/crosscheck/sparse/0``.
 - :func:`ffrecon.sfm.gates.run_gates`: verdicts, and whether they stop the run (``GatesResult.blocking``).
 - :func:`ffrecon.sfm.compare.compare_poses`: section-5 metrics and the images that disagree.
 - :func:`ffrecon.sfm.refine.run_refine`: refinement seeded by the prediction -> ``OUT/sparse/0``.

@@ -2,7 +2,7 @@
 
 The simulated VGGT-contract model (:mod:`ffrecon.synthetic.simulated_model`) needs per-frame poses,
 one shared camera and depth maps to add its errors to. For real photos these come from a reference
-reconstruction, e.g. ``OUT/colmap/sparse/0`` of a no-model ffrecon run:
+reconstruction, e.g. ``OUT/crosscheck/sparse/0`` (or ``OUT/sparse/0``) of a no-model ffrecon run:
 
 - poses: COLMAP's ``cam_from_world`` (OpenCV) of every registered image, in name order;
 - camera: the pinhole part of COLMAP's one shared camera (``SIMPLE_RADIAL``/``RADIAL`` and the like

@@ -27,7 +27,7 @@ class Estimate(enum.Enum):
     """The camera estimates an output folder can hold, with where they live and how they are drawn."""
 
     FEEDFORWARD = ("feed-forward", "feedforward/sparse", (255, 140, 0))
-    COLMAP = ("COLMAP", "colmap/sparse/0", (30, 110, 255))
+    COLMAP = ("COLMAP", "crosscheck/sparse/0", (30, 110, 255))  # the independent cross-check
     FINAL = ("final", "sparse/0", (0, 170, 70))
 
     def __init__(self, label: str, folder: str, color: tuple[int, int, int]) -> None:
@@ -295,7 +295,7 @@ def load_scene(out_dir: Path, options: ViewOptions = ViewOptions(), report: dict
     models = {e: _read_model(out, e) for e in Estimate}
     if not any(models.values()) and not (out / "points.ply").exists() and not (out / "splat.ply").exists():
         raise InputError(
-            f"{out} is not an ffrecon output folder: no sparse/0, feedforward/sparse, colmap/sparse/0, "
+            f"{out} is not an ffrecon output folder: no sparse/0, feedforward/sparse, crosscheck/sparse/0, "
             "points.ply or splat.ply in it",
             "pass the folder given to `ffrecon run -o OUT` (or `ffrecon demo -o OUT`) after the run finished",
         )
