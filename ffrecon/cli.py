@@ -107,6 +107,20 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
         "memory and time: docs/benchmarks.md)",
     )
     p.add_argument(
+        "--intrinsics",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="known intrinsics in COLMAP's cameras.txt form (one camera for all photos, or a line per photo with "
+        "its name in place of the id): they replace the model's (reported beside them), seed COLMAP's focal "
+        "and stay fixed in the bundle adjustment",
+    )
+    p.add_argument(
+        "--intrinsics-prior",
+        action="store_true",
+        help="with --intrinsics: starting values the bundle adjustment refines, not fixed ones",
+    )
+    p.add_argument(
         "--quick",
         action="store_true",
         help="needs --model: no COLMAP reconstruction; the model's cameras refined by bundle adjustment on SIFT "
@@ -380,7 +394,9 @@ def _run_options(args: argparse.Namespace, ground_truth: Path | None = None):
             video_frames=getattr(args, "video_frames", None),
             skip_bad_images=getattr(args, "skip_bad_images", None),
             max_image_size=args.max_image_size,
-        )
+            intrinsics=args.intrinsics,
+        ),
+        intrinsics_prior=args.intrinsics_prior,
     )
     splat = SplatOptions(
         enabled=not args.no_splat,

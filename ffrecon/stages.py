@@ -25,6 +25,7 @@ CAPTURE = Stage(
     ("source",),
     lambda s, o, c: run_capture(s.source, o.capture, s.work),
     lambda o: o.capture,
+    files=lambda s, o: (o.capture.intrinsics,),
     outputs=("images",),
     check=lambda capture, o: splat.check_splat_fits([f.size_wh for f in capture.frames], o.splat),
 )
@@ -69,7 +70,9 @@ GATES = Stage(
 REFINE = Stage(
     "refine",
     ("capture", "feedforward", "colmap", "sift"),
-    lambda s, o, c: refine.run_refine_reusing(s.capture.image_dir, s.prediction, s.colmap, s.sift, o.refine, s.work),
+    lambda s, o, c: refine.run_refine_reusing(
+        s.capture.image_dir, s.prediction, s.colmap, s.sift, o.refine, s.work, fixed_intrinsics=s.fixed_intrinsics
+    ),
     lambda o: o.refine,
     label="refinement",
     skip=lambda s, o: (

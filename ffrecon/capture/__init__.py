@@ -24,7 +24,8 @@ from ffrecon.capture.quality import CaptureQuality, FrameMeasures, QualityOption
 from ffrecon.capture.video import extract_video_frames
 from ffrecon.checks import check_number
 from ffrecon.errors import FFReconError, InputError, ResourceError
-from ffrecon.types import Frame, capped_size
+from ffrecon.formats.intrinsics import KnownIntrinsics, read_intrinsics
+from ffrecon.types import Frame, PinholeCamera, capped_size
 
 log = logging.getLogger("ffrecon.capture")
 
@@ -55,6 +56,12 @@ class CaptureOptions:
     max_images: int | None = None  # keep at most this many (evenly spaced), None for all
     max_image_size: int | None = 1600  # long side of the frames, px; larger ones are downscaled; None or 0: full size
     quality: QualityOptions = field(default_factory=QualityOptions)
+    # Known intrinsics (--intrinsics, COLMAP's cameras.txt form: ffrecon.formats.intrinsics), scaled to each
+    # frame. Fixed by default: the model's own estimate is replaced (and reported beside them), the cross-check
+    # starts from them as focal priors and the bundle adjustment keeps them; with ``intrinsics_prior`` the
+    # bundle adjustment refines them.
+    intrinsics: Path | None = None
+    intrinsics_prior: bool = False
 
     def __post_init__(self) -> None:
         check_number("capture video_frames", self.video_frames, low=2, integer=True, flag="--video-frames")
@@ -88,6 +95,16 @@ class Capture:
     quality: CaptureQuality
     original_sizes_wh: tuple[tuple[int, int], ...] = ()  # per frame, upright size in the input (empty: = size_wh)
     max_image_size: int | None = None  # the cap the frames were made with (CaptureOptions.max_image_size)
+    known_cameras: tuple[PinholeCamera, ...] = ()  # per frame, the given intrinsics at its size (empty: none given)
+    intrinsics_fixed: bool = True  # the known cameras are fixed (else starting values the adjustment refines)
+    known_file: Path | None = None  # the file they came from (--intrinsics)
+
+    @property
+    def focal_priors_px(self) -> list[float | None]:
+        """Per frame, the focal length COLMAP starts from: the given intrinsics', else EXIF's, else None."""
+        if self.known_cameras:
+            return [float(np.sqrt(c.fx * c.fy)) for c in self.known_cameras]
+        return [f.focal_prior_px for f in self.frames]
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -321,6 +338,11 @@ def run_capture(source: Path, options: CaptureOptions, out_dir: Path) -> Capture
     quality = assess_capture(names, loaded.measures, options.quality)
     for flag in quality.flags:
         log.warning(flag.message)
+    known = ()
+    if options.intrinsics is not None:
+        intrinsics = read_intrinsics(options.intrinsics)
+        originals = loaded.original_sizes_wh or [f.size_wh for f in loaded.frames]
+        known = tuple(_known_camera(intrinsics, f, o) for f, o in zip(loaded.frames, originals))
     return Capture(
         tuple(loaded.frames),
         image_dir,
@@ -330,4 +352,15 @@ def run_capture(source: Path, options: CaptureOptions, out_dir: Path) -> Capture
         quality,
         original_sizes_wh=tuple(loaded.original_sizes_wh),
         max_image_size=options.max_image_size,
+        known_cameras=known,
+        intrinsics_fixed=not options.intrinsics_prior,
+        known_file=options.intrinsics,
     )
+
+
+def _known_camera(intrinsics: KnownIntrinsics, frame: Frame, original_wh: tuple[int, int]) -> PinholeCamera:
+    """The given camera of ``frame`` at its size as captured: given for the photo as it was (upright), then
+    scaled as the photo was (downscaled at capture, see ``max_image_size``)."""
+    camera = intrinsics.camera(frame.name, tuple(original_wh))
+    sx, sy = frame.size_wh[0] / camera.width, frame.size_wh[1] / camera.height
+    return camera if (sx, sy) == (1.0, 1.0) else camera.scaled(sx, sy)

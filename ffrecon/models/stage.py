@@ -23,7 +23,7 @@ from ffrecon.models.memory import default_chunk_size
 from ffrecon.models.multiview import MultiviewOptions, predict_multiview
 from ffrecon.models.pairwise import PairwiseOptions
 from ffrecon.models.runner import OnnxModel, cpu_threads
-from ffrecon.types import ModelFamily, ModelInfo, Prediction
+from ffrecon.types import ModelFamily, ModelInfo, PinholeCamera, Prediction
 from ffrecon.validate import validate_prediction
 
 log = logging.getLogger("ffrecon.models")
@@ -48,6 +48,8 @@ class FeedForwardResult:
     sparse_dir: Path
     providers: tuple[str, ...]
     assumptions: str = ""  # what decoding had to assume (monocular depth), for the report
+    # The model's own intrinsics where the user gave them (--intrinsics): the prediction holds the given ones.
+    model_cameras: tuple[PinholeCamera, ...] = ()
 
     def to_report(self) -> dict:
         m = self.prediction.model
@@ -68,7 +70,16 @@ class FeedForwardResult:
                 {"name": n, "fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy, "width": c.width, "height": c.height}
                 for n, c in zip(self.prediction.names, self.prediction.cameras)
             ],
+            **({"model_cameras": _model_cameras(self.prediction, self.model_cameras)} if self.model_cameras else {}),
         }
+
+
+def _model_cameras(prediction: Prediction, model_cameras: tuple[PinholeCamera, ...]) -> list[dict]:
+    """The model's own estimate beside the given intrinsics, per frame: its focal and how far it is from them."""
+    return [
+        {"name": n, "fx": m.fx, "fy": m.fy, "cx": m.cx, "cy": m.cy, "focal_vs_given": m.fx / c.fx - 1.0}
+        for n, m, c in zip(prediction.names, model_cameras, prediction.cameras)
+    ]
 
 
 def _world_frame(model: ModelInfo) -> str:
@@ -190,6 +201,11 @@ def run_feedforward(
     )
     images = capture.read_images()  # held only while this stage runs
     prediction = predict(model, capture, images, options)
+    model_cameras = ()
+    if capture.known_cameras:  # the user's intrinsics replace the model's estimate (kept for the report)
+        model_cameras = prediction.cameras
+        prediction = dataclasses.replace(prediction, cameras=_known_at(capture.known_cameras, model_cameras))
+        _log_given(prediction, model_cameras)
     xyz, rgb = fuse_prediction(prediction, images, options.fuse)
     ff_dir = Path(out_dir) / "feedforward"
     rec = reconstruction_from_cameras(prediction.names, prediction.cam_from_world, prediction.cameras, xyz, rgb)
@@ -202,6 +218,24 @@ def run_feedforward(
         sparse_dir,
         model.providers,
         _assumptions(model.info(), capture),
+        model_cameras,
+    )
+
+
+def _known_at(known: tuple[PinholeCamera, ...], predicted: tuple[PinholeCamera, ...]) -> tuple[PinholeCamera, ...]:
+    """The given cameras at the size of the model's (the frames as captured; scaled when they differ)."""
+    return tuple(
+        k if (k.width, k.height) == (p.width, p.height) else k.scaled(p.width / k.width, p.height / k.height)
+        for k, p in zip(known, predicted)
+    )
+
+
+def _log_given(prediction: Prediction, model_cameras: tuple[PinholeCamera, ...]) -> None:
+    moved = np.array([m.fx / c.fx - 1.0 for m, c in zip(model_cameras, prediction.cameras)])
+    log.info(
+        "the given intrinsics replace the model's (its focal lengths differ by %+.1f%% median, %.1f%% at most)",
+        100 * float(np.median(moved)),
+        100 * float(np.abs(moved).max()),
     )
 
 

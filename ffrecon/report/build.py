@@ -18,6 +18,7 @@ import numpy as np
 
 from ffrecon import __version__
 from ffrecon.colmap_io import is_model_dir
+from ffrecon.models.stage import FeedForwardResult
 from ffrecon.report.html import render_html
 from ffrecon.results import QUICK_STATEMENT, RunMode, RunResults, Skipped
 from ffrecon.sfm.evidence import CameraStatus, EvidenceResult, FrameVerdict
@@ -158,6 +159,34 @@ def _outputs(results: RunResults) -> dict[str, str]:
     return {k: str(Path(v).relative_to(out)) for k, v in candidates.items() if v is not None}
 
 
+def _intrinsics(results: RunResults) -> dict | None:
+    """The given intrinsics (--intrinsics) beside the model's own estimate and the final cameras' (median focal
+    lengths, px, and relative differences); None when none were given."""
+    capture = results.capture
+    if not capture.known_cameras:
+        return None
+    given = float(np.median([c.fx for c in capture.known_cameras]))
+    ff = results.feedforward
+    model = [c.fx for c in ff.model_cameras] if isinstance(ff, FeedForwardResult) and ff.model_cameras else []
+    final = []
+    if isinstance(results.refine, RefineResult):
+        final = [c.fx for c, r in zip(results.refine.cameras, results.refine.registered) if r]
+    elif isinstance(ff, FeedForwardResult):
+        final = [c.fx for c in ff.prediction.cameras]
+
+    def vs_given(values: list[float]) -> dict:
+        median = float(np.median(values)) if values else None
+        return {"focal_px": median, "vs_given": None if median is None else median / given - 1.0}
+
+    return {
+        "file": str(capture.known_file) if capture.known_file else None,
+        "fixed": capture.intrinsics_fixed,
+        "given_focal_px": given,
+        "model": vs_given(model),
+        "final": vs_given(final),
+    }
+
+
 def build_report(results: RunResults) -> dict:
     """The run's machine-readable record (JSON-serialisable; numbers, names, relative paths)."""
     pose_errors, pose_plot = _pose_section(results)
@@ -186,6 +215,7 @@ def build_report(results: RunResults) -> dict:
         "verdict": _verdict(results),
         "inputs": results.capture.to_report(),
         "feedforward": _section(results.feedforward),
+        "intrinsics": _intrinsics(results),
         "colmap": _section(results.colmap),
         "gates": _section(results.gates, lambda g: [v.to_report() for v in g.verdicts]),
         "refine": _section(results.refine),

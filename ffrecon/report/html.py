@@ -129,12 +129,29 @@ def _capture(report: dict, run_dir: Path) -> tuple[list[dict], str]:
     return rows, note + _gallery(thumbs, flagged=frozenset(captions[n] for n in issues))
 
 
+def _given_intrinsics(given: dict | None) -> str:
+    """One line: the given focal length beside the model's own estimate and the final one."""
+    if not given:
+        return ""
+
+    def focal(part: dict) -> str:
+        f, d = part["focal_px"], part["vs_given"]
+        return "not measured" if f is None else f"{f:.2f} px ({100 * d:+.2f}%)"
+
+    how = "fixed" if given["fixed"] else "as starting values"
+    return (
+        f"given ({given['file']}, {how}): focal {given['given_focal_px']:.2f} px; the model's own estimate "
+        f"{focal(given['model'])}; final {focal(given['final'])}"
+    )
+
+
 def _feedforward(report: dict, run_dir: Path) -> tuple[list[dict], str]:
     ff = report["feedforward"]
     if "skipped" in ff:
         return [], ""
     model = ff["model"]
     items = [
+        ("intrinsics", _given_intrinsics(report.get("intrinsics"))),
         ("world frame", ff.get("world_frame")),
         ("assumptions", ff.get("assumptions")),
         ("model notes", model.get("notes")),

@@ -402,8 +402,8 @@ def _model_result(best: pycolmap.Reconstruction, names: tuple[str, ...], model_d
 def run_colmap_on(
     capture: Capture, options: ColmapOptions, out_dir: Path, *, step: Callable[[], int] | None = None
 ) -> ColmapResult:
-    """:func:`run_colmap` on a capture's photos. The focal prior of each photo is its EXIF focal where known
-    (else COLMAP's own guess), never the model's: the cross-check must stay independent evidence of the
-    model's cameras."""
-    priors = [f.focal_prior_px for f in capture.frames]
+    """:func:`run_colmap` on a capture's photos. The focal prior of each photo is the given intrinsics' (the
+    user's, ``--intrinsics``), else its EXIF focal where known (else COLMAP's own guess), never the model's:
+    the cross-check must stay independent evidence of the model's cameras."""
+    priors = capture.focal_priors_px
     return run_colmap(capture.image_dir, capture.names, options, out_dir, focal_prior_px=priors, step=step)

@@ -656,10 +656,16 @@ def run_refine_reusing(
     sift: Path | Skipped,
     options: RefineOptions,
     out_dir: Path,
+    *,
+    fixed_intrinsics: bool = False,
 ) -> RefineResult:
     """:func:`run_refine`, reusing SIFT already extracted (unless ``options`` name features to reuse): the
     COLMAP cross-check's database (SIFT once, used twice), else quick mode's ``sift`` extracted beside the
-    inference, else none (the refinement extracts its own)."""
+    inference, else none (the refinement extracts its own). ``fixed_intrinsics``: the prediction holds the
+    user's intrinsics (``--intrinsics``), which the adjustment keeps as they are (pinhole, focal fixed)."""
+    if fixed_intrinsics:
+        bundle = dataclasses.replace(options.bundle, refine_focal_length=False, refine_principal_point=False)
+        options = dataclasses.replace(options, bundle=bundle, square_pixels=False)
     if options.reuse_features_from is None and isinstance(colmap, ColmapResult):
         options = dataclasses.replace(options, reuse_features_from=colmap.database_path)
     elif options.reuse_features_from is None and isinstance(sift, Path):
