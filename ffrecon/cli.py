@@ -116,6 +116,14 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
         "and stay fixed in the bundle adjustment",
     )
     p.add_argument(
+        "--masks",
+        type=Path,
+        default=None,
+        metavar="FOLDER",
+        help="a PNG per photo (<stem>.png or <name>.png, nerfstudio's and COLMAP's convention), 0 where the photo "
+        "is to be ignored (moving objects, people): no features, fused points or splat loss there",
+    )
+    p.add_argument(
         "--intrinsics-prior",
         action="store_true",
         help="with --intrinsics: starting values the bundle adjustment refines, not fixed ones",
@@ -395,6 +403,7 @@ def _run_options(args: argparse.Namespace, ground_truth: Path | None = None):
             skip_bad_images=getattr(args, "skip_bad_images", None),
             max_image_size=args.max_image_size,
             intrinsics=args.intrinsics,
+            masks=args.masks,
         ),
         intrinsics_prior=args.intrinsics_prior,
     )

@@ -25,7 +25,7 @@ CAPTURE = Stage(
     ("source",),
     lambda s, o, c: run_capture(s.source, o.capture, s.work),
     lambda o: o.capture,
-    files=lambda s, o: (o.capture.intrinsics,),
+    files=lambda s, o: (o.capture.intrinsics, o.capture.masks),
     outputs=("images",),
     check=lambda capture, o: splat.check_splat_fits([f.size_wh for f in capture.frames], o.splat),
 )
@@ -53,7 +53,7 @@ COLMAP = Stage(
 SIFT = Stage(  # quick mode: the refinement's SIFT, extracted beside the inference as COLMAP's is in the full run
     "sift",
     ("capture",),
-    lambda s, o, c: refine.extract_refine_features(s.capture.image_dir, s.capture.names, o.refine.sift, s.work, c.step),
+    lambda s, o, c: refine.extract_refine_features(s.capture, o.refine.sift, s.work, c.step),
     lambda o: o.refine.sift,
     label="SIFT extraction",
     skip=lambda s, o: refine.sift_beside_skip_reason(o.mode, o.concurrent, s.model, o.refine, s.views),
@@ -70,9 +70,7 @@ GATES = Stage(
 REFINE = Stage(
     "refine",
     ("capture", "feedforward", "colmap", "sift"),
-    lambda s, o, c: refine.run_refine_reusing(
-        s.capture.image_dir, s.prediction, s.colmap, s.sift, o.refine, s.work, fixed_intrinsics=s.fixed_intrinsics
-    ),
+    lambda s, o, c: refine.run_refine_reusing(s.capture, s.prediction, s.colmap, s.sift, o.refine, s.work),
     lambda o: o.refine,
     label="refinement",
     skip=lambda s, o: (
@@ -138,7 +136,7 @@ EXPORTS = Stage(
     "exports",
     ("capture", "feedforward", "colmap", "final"),
     lambda s, o, c: export_final_cameras(
-        s.final, s.feedforward, s.colmap, s.capture.read_images, o.exports, o.feedforward.fuse, s.work
+        s.final, s.feedforward, s.colmap, s.capture, o.exports, o.feedforward.fuse, s.work
     ),
     lambda o: (o.exports, o.feedforward.fuse),
     label="exports",

@@ -59,11 +59,6 @@ class RunState:
         return len(self.capture.frames)
 
     @property
-    def fixed_intrinsics(self) -> bool:
-        """The user gave intrinsics (--intrinsics) to hold fixed."""
-        return bool(self.capture.known_cameras) and self.capture.intrinsics_fixed
-
-    @property
     def prediction(self) -> Prediction | None:
         """The model's prediction, None when the feed-forward stage was skipped."""
         return self.feedforward.prediction if isinstance(self.feedforward, FeedForwardResult) else None

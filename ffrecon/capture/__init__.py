@@ -20,6 +20,7 @@ from ffrecon.capture.images import (
     list_images,
     load_photo,
 )
+from ffrecon.capture.masks import write_masks
 from ffrecon.capture.quality import CaptureQuality, FrameMeasures, QualityOptions, assess_capture, measure_frame
 from ffrecon.capture.video import extract_video_frames
 from ffrecon.checks import check_number
@@ -62,6 +63,11 @@ class CaptureOptions:
     # bundle adjustment refines them.
     intrinsics: Path | None = None
     intrinsics_prior: bool = False
+    # A folder of masks (--masks; nerfstudio's and COLMAP's convention: a PNG per photo named after it,
+    # <stem>.png or <name>.png, 0 where the photo is to be ignored: moving objects, people, the photographer).
+    # Applied to SIFT extraction, the model's depth (no fused points, no dense evidence there) and the splat's
+    # loss and scores; written as OUT/masks/<name>.png and named in transforms.json.
+    masks: Path | None = None
 
     def __post_init__(self) -> None:
         check_number("capture video_frames", self.video_frames, low=2, integer=True, flag="--video-frames")
@@ -98,6 +104,16 @@ class Capture:
     known_cameras: tuple[PinholeCamera, ...] = ()  # per frame, the given intrinsics at its size (empty: none given)
     intrinsics_fixed: bool = True  # the known cameras are fixed (else starting values the adjustment refines)
     known_file: Path | None = None  # the file they came from (--intrinsics)
+    mask_dir: Path | None = None  # OUT/masks: a mask per frame, <name>.png at its size, 255 keep / 0 ignore
+
+    def read_masks(self, indices: Sequence[int] | None = None) -> list[np.ndarray] | None:
+        """``[H_i, W_i]`` bool masks (True: use the pixel) of the frames at ``indices``; None without masks."""
+        if self.mask_dir is None:
+            return None
+        chosen = range(len(self.frames)) if indices is None else indices
+        return [
+            cv2.imread(str(self.mask_dir / f"{self.frames[i].name}.png"), cv2.IMREAD_GRAYSCALE) > 127 for i in chosen
+        ]
 
     @property
     def focal_priors_px(self) -> list[float | None]:
@@ -343,6 +359,10 @@ def run_capture(source: Path, options: CaptureOptions, out_dir: Path) -> Capture
         intrinsics = read_intrinsics(options.intrinsics)
         originals = loaded.original_sizes_wh or [f.size_wh for f in loaded.frames]
         known = tuple(_known_camera(intrinsics, f, o) for f, o in zip(loaded.frames, originals))
+    mask_dir = None
+    if options.masks is not None:
+        originals = loaded.original_sizes_wh or [f.size_wh for f in loaded.frames]
+        mask_dir = write_masks(Path(options.masks), loaded.frames, originals, Path(out_dir) / "masks")
     return Capture(
         tuple(loaded.frames),
         image_dir,
@@ -355,6 +375,7 @@ def run_capture(source: Path, options: CaptureOptions, out_dir: Path) -> Capture
         known_cameras=known,
         intrinsics_fixed=not options.intrinsics_prior,
         known_file=options.intrinsics,
+        mask_dir=mask_dir,
     )
 
 

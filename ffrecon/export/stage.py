@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ffrecon.capture import Capture
 from ffrecon.final_cameras import CameraSource, FinalCameras
 from ffrecon.formats.mesh import MeshOptions, write_mesh
 from ffrecon.formats.nerfstudio import write_transforms
@@ -63,7 +64,13 @@ def fuse_with_final_cameras(
 
 
 def run_exports(
-    final: FinalCameras, points: tuple[np.ndarray, np.ndarray], points_from: str, options: ExportOptions, out_dir: Path
+    final: FinalCameras,
+    points: tuple[np.ndarray, np.ndarray],
+    points_from: str,
+    options: ExportOptions,
+    out_dir: Path,
+    *,
+    masks: bool = False,
 ) -> ExportsResult:
     """Write the point cloud, transforms.json (the final cameras) and the optional mesh.
 
@@ -71,6 +78,7 @@ def run_exports(
         final: the cameras to write; transforms.json lists exactly these frames.
         points: ``(xyz [M, 3] world, rgb [M, 3] in [0, 1])`` in the frame of ``final``.
         points_from: what the points are, for the report.
+        masks: the run has masks (``masks/<name>.png``), which transforms.json names per frame.
     """
     out_dir = Path(out_dir)
     xyz, rgb = points
@@ -83,6 +91,7 @@ def run_exports(
         final.cameras,
         ply_file_path="points.ply",
         distortion=final.distortion,
+        mask_paths=[f"masks/{n}.png" for n in final.names] if masks else None,
     )
     mesh_ply = mesh_glb = None
     if options.mesh:
@@ -97,7 +106,7 @@ def export_final_cameras(
     final: FinalCameras,
     ff: FeedForwardResult | Skipped,
     colmap: ColmapResult | Skipped,
-    read_images: Callable[[list[int]], list[np.ndarray]],
+    capture: Capture,
     options: ExportOptions,
     fuse: FuseOptions,
     out_dir: Path,
@@ -108,10 +117,10 @@ def export_final_cameras(
     if final.source is CameraSource.COLMAP and isinstance(colmap, ColmapResult):
         points, what = seed_from_reconstruction(colmap.reconstruction), "COLMAP's sparse points"
     elif isinstance(ff, FeedForwardResult) and final.source is CameraSource.REFINED:
-        points = fuse_with_final_cameras(ff.prediction, final, read_images, fuse)
+        points = fuse_with_final_cameras(ff.prediction, final, capture.read_images, fuse)
         what = "depth maps fused with the refined cameras"
     elif isinstance(ff, FeedForwardResult):
         points, what = (ff.points_xyz, ff.points_rgb), "depth maps fused with the model's cameras"
     else:
         raise AssertionError(f"final cameras from {final.source} without the result they come from")
-    return run_exports(final, points, what, options, out_dir)
+    return run_exports(final, points, what, options, out_dir, masks=capture.mask_dir is not None)

@@ -40,8 +40,10 @@ def write_transforms(
     *,
     ply_file_path: str | None = None,
     distortion: Sequence[tuple[float, float, float, float]] | None = None,
+    mask_paths: Sequence[str] | None = None,
 ) -> Path:
-    """Write transforms.json; ``file_paths`` are relative to the file's folder.
+    """Write transforms.json; ``file_paths`` (and ``mask_paths``, per frame: 0 where to ignore) are relative
+    to the file's folder.
 
     The first camera's intrinsics go at the top level (tools that read only those still work);
     when cameras differ, each frame carries its own, which nerfstudio's dataparser prefers.
@@ -57,8 +59,9 @@ def write_transforms(
     shared = all(p == per_frame[0] for p in per_frame)
     out: dict = {"camera_model": "OPENCV" if opencv else "PINHOLE", **per_frame[0]}
     frames = []
-    for fp, pose, own in zip(file_paths, world_from_cam_opengl(cam_from_world), per_frame, strict=True):
-        frame = {"file_path": fp, "transform_matrix": pose.tolist()}
+    masks = mask_paths if mask_paths is not None else [None] * len(file_paths)
+    for fp, mask, pose, own in zip(file_paths, masks, world_from_cam_opengl(cam_from_world), per_frame, strict=True):
+        frame = {"file_path": fp, "transform_matrix": pose.tolist(), **({"mask_path": mask} if mask else {})}
         if not shared:
             frame.update(own)
         frames.append(frame)

@@ -10,6 +10,7 @@ from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from ffrecon.capture import Capture
@@ -206,6 +207,9 @@ def run_feedforward(
         model_cameras = prediction.cameras
         prediction = dataclasses.replace(prediction, cameras=_known_at(capture.known_cameras, model_cameras))
         _log_given(prediction, model_cameras)
+    masks = capture.read_masks()
+    if masks is not None:  # masked pixels carry no confidence: no fused point, seed or dense evidence from them
+        prediction = masked_prediction(prediction, masks)
     xyz, rgb = fuse_prediction(prediction, images, options.fuse)
     ff_dir = Path(out_dir) / "feedforward"
     rec = reconstruction_from_cameras(prediction.names, prediction.cam_from_world, prediction.cameras, xyz, rgb)
@@ -220,6 +224,21 @@ def run_feedforward(
         _assumptions(model.info(), capture),
         model_cameras,
     )
+
+
+def masked_prediction(prediction: Prediction, masks: list[np.ndarray]) -> Prediction:
+    """``prediction`` with no depth (0, unknown) and no confidence where ``masks`` (``[H, W]`` bool per frame
+    at the photo's size, True: use) say to ignore a pixel, so that no fused point, splat seed or dense
+    evidence comes from there (:meth:`Prediction.valid_mask`); each mask is resized (nearest) to its depth
+    map's grid."""
+    depths, confs = [], []
+    for depth, conf, mask in zip(prediction.depth, prediction.depth_conf, masks):
+        h, w = depth.shape
+        if mask.shape != (h, w):
+            mask = cv2.resize(mask.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST) > 0
+        depths.append(np.where(mask, depth, 0).astype(depth.dtype))
+        confs.append(np.where(mask, conf, 0).astype(conf.dtype))
+    return dataclasses.replace(prediction, depth=tuple(depths), depth_conf=tuple(confs))
 
 
 def _known_at(known: tuple[PinholeCamera, ...], predicted: tuple[PinholeCamera, ...]) -> tuple[PinholeCamera, ...]:

@@ -241,6 +241,7 @@ def run_colmap(
     *,
     focal_prior_px: float | Sequence[float | None] | None,
     step: Callable[[], int] | None = None,
+    mask_dir: Path | None = None,
 ) -> ColmapResult:
     """COLMAP on ``names`` in ``image_dir``; writes ``out_dir/database.db`` and ``out_dir/sparse/0``.
 
@@ -266,7 +267,7 @@ def run_colmap(
     priors = _as_priors(focal_prior_px, len(names))
     sizes = image_sizes_wh(image_dir, names)
     shared = resolve_camera_sharing(options.camera_sharing, sizes, priors)
-    stats = _features_and_matches(db_path, image_dir, names, options, pairing, priors, shared, timer, step)
+    stats = _features_and_matches(db_path, image_dir, names, options, pairing, priors, shared, timer, step, mask_dir)
     if step is not None:
         step()  # mapping keeps its own threads (options.mapper_num_threads)
     with timer.stage("mapping"), colmap_log_level():
@@ -318,6 +319,7 @@ def _features_and_matches(
     shared_camera: bool,
     timer: StageTimer,
     step: Callable[[], int] | None = None,
+    mask_dir: Path | None = None,
 ) -> FeatureStats:
     """Create the database (cameras with the focal priors), extract SIFT and match with ``pairing``.
 
@@ -341,7 +343,7 @@ def _features_and_matches(
         options.mapper.value,
     )
     with timer.stage("feature_extraction"):
-        extract_sift(db_path, image_dir, names, options.sift, threads=step)
+        extract_sift(db_path, image_dir, names, options.sift, threads=step, mask_dir=mask_dir)
     with timer.stage("matching"), colmap_log_level():
         _match(db_path, pairing, _with_threads(options, step))
     return feature_stats(db_path, names)
@@ -405,5 +407,7 @@ def run_colmap_on(
     """:func:`run_colmap` on a capture's photos. The focal prior of each photo is the given intrinsics' (the
     user's, ``--intrinsics``), else its EXIF focal where known (else COLMAP's own guess), never the model's:
     the cross-check must stay independent evidence of the model's cameras."""
-    priors = capture.focal_priors_px
-    return run_colmap(capture.image_dir, capture.names, options, out_dir, focal_prior_px=priors, step=step)
+    priors, masks = capture.focal_priors_px, capture.mask_dir
+    return run_colmap(
+        capture.image_dir, capture.names, options, out_dir, focal_prior_px=priors, step=step, mask_dir=masks
+    )

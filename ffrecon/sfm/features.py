@@ -227,8 +227,12 @@ def extract_sift(
     options: SiftOptions,
     *,
     threads: Callable[[], int] | None = None,
+    mask_dir: Path | None = None,
 ) -> None:
     """SIFT on the CPU for the images of the database that have no keypoints yet.
+
+    ``mask_dir``: COLMAP's masks (``<image name>.png``, 0 where features are ignored), as the capture wrote
+    them from ``--masks``; None: every pixel.
 
     ``threads``: when the cores are shared (:meth:`ffrecon.concurrency.CoreShare.step`), the images are
     extracted in up to four calls, each with at most the threads ``threads()`` gives as it starts (it may
@@ -245,11 +249,15 @@ def extract_sift(
             extraction.sift.max_num_features = options.max_num_features
             extraction.sift.first_octave = first_octave
             extraction.use_gpu = False
+            reader = pycolmap.ImageReaderOptions()
+            if mask_dir is not None:
+                reader.mask_path = str(mask_dir)
             with colmap_log_level():
                 pycolmap.extract_features(
                     str(db_path),
                     str(image_dir),
                     image_names=group[start : start + size],
+                    reader_options=reader,
                     extraction_options=extraction,
                     device=pycolmap.Device.cpu,
                 )

@@ -14,13 +14,14 @@ import dataclasses
 import enum
 import logging
 import shutil
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import pycolmap
 
+from ffrecon.capture import Capture
 from ffrecon.checks import check_number
 from ffrecon.colmap_io import (
     cam_from_world_by_name,
@@ -253,7 +254,12 @@ def _colmap_camera(camera: PinholeCamera, camera_id: int, square_pixels: bool) -
 
 
 def _prepare_database(
-    image_dir: Path, prediction: Prediction, options: RefineOptions, db_path: Path, timer: StageTimer
+    image_dir: Path,
+    prediction: Prediction,
+    options: RefineOptions,
+    db_path: Path,
+    timer: StageTimer,
+    mask_dir: Path | None = None,
 ) -> tuple[dict[str, int], list[PinholeCamera], dict[str, pycolmap.Camera], list[str]]:
     """Database with the feed-forward cameras and SIFT of every image.
 
@@ -281,7 +287,7 @@ def _prepare_database(
     with timer.stage("feature_extraction"):
         copied = copy_features(options.reuse_features_from, db_path, names) if options.reuse_features_from else []
         if len(copied) < len(names):
-            extract_sift(db_path, image_dir, [n for n in names if n not in copied], options.sift)
+            extract_sift(db_path, image_dir, [n for n in names if n not in copied], options.sift, mask_dir=mask_dir)
     if copied:
         logger.info("reused SIFT features of %d images from %s", len(copied), options.reuse_features_from)
     return image_ids, cameras, {n: colmap_cameras[camera_of[n]] for n in names}, copied
@@ -395,9 +401,9 @@ def _screen(db_path: Path, prediction: Prediction, verified: list, options: Refi
 
 
 def extract_refine_features(
-    image_dir: Path, names: Sequence[str], sift: SiftOptions, out_dir: Path, threads: Callable[[], int] | None = None
+    capture: Capture, sift: SiftOptions, out_dir: Path, threads: Callable[[], int] | None = None
 ) -> Path:
-    """SIFT of ``names`` (``image_dir``) into a fresh COLMAP database, ``out_dir/sift/database.db``, for the
+    """SIFT of the capture's photos (and masks) into a fresh COLMAP database, ``out_dir/sift/database.db``, for the
     refinement to reuse (:attr:`RefineOptions.reuse_features_from`); returns its path. ``threads``: see
     :func:`extract_sift`.
 
@@ -406,17 +412,21 @@ def extract_refine_features(
     """
     db_path = Path(out_dir) / "sift" / "database.db"
     db_path.parent.mkdir(parents=True, exist_ok=True)
-    create_database(db_path, Path(image_dir), list(names), camera_model=CameraModel.PINHOLE, single_camera=False)
-    extract_sift(db_path, Path(image_dir), list(names), sift, threads=threads)
+    image_dir, names = capture.image_dir, list(capture.names)
+    create_database(db_path, image_dir, names, camera_model=CameraModel.PINHOLE, single_camera=False)
+    extract_sift(db_path, image_dir, names, sift, threads=threads, mask_dir=capture.mask_dir)
     return db_path
 
 
-def run_refine(image_dir: Path, prediction: Prediction, options: RefineOptions, out_dir: Path) -> RefineResult:
+def run_refine(
+    image_dir: Path, prediction: Prediction, options: RefineOptions, out_dir: Path, mask_dir: Path | None = None
+) -> RefineResult:
     """Refine the feed-forward cameras; writes the refined model to ``out_dir/refine/model`` (work files beside it;
     the run's ``sparse/0``, the final cameras, is written from it by the pipeline).
 
     Args:
         image_dir: folder holding the images named in ``prediction.names``.
+        mask_dir: COLMAP's masks of those images (``<name>.png``, 0: no features there); None: none.
         prediction: feed-forward cameras (cam_from_world, OpenCV) and depth, original-photo pixels.
     Returns:
         :class:`RefineResult` with poses in the prediction's world frame. Weak frames are flagged, not
@@ -432,7 +442,9 @@ def run_refine(image_dir: Path, prediction: Prediction, options: RefineOptions, 
     pycolmap.set_random_seed(options.seed)
     with timer.stage("pair_selection"):
         graph = overlap_graph(prediction, options.overlap)
-    image_ids, cameras, colmap_cameras, copied = _prepare_database(image_dir, prediction, options, db_path, timer)
+    image_ids, cameras, colmap_cameras, copied = _prepare_database(
+        image_dir, prediction, options, db_path, timer, mask_dir
+    )
     pairs = [(names[i], names[j]) for i, j in graph.pairs]
     with timer.stage("matching"):
         reused = _reuse_matches(db_path, graph, names, copied, options)
@@ -650,19 +662,19 @@ def refine_skip_reason(prediction: Prediction | None) -> str | None:
 
 
 def run_refine_reusing(
-    image_dir: Path,
+    capture: Capture,
     prediction: Prediction,
     colmap: ColmapResult | Skipped,
     sift: Path | Skipped,
     options: RefineOptions,
     out_dir: Path,
-    *,
-    fixed_intrinsics: bool = False,
 ) -> RefineResult:
-    """:func:`run_refine`, reusing SIFT already extracted (unless ``options`` name features to reuse): the
-    COLMAP cross-check's database (SIFT once, used twice), else quick mode's ``sift`` extracted beside the
-    inference, else none (the refinement extracts its own). ``fixed_intrinsics``: the prediction holds the
-    user's intrinsics (``--intrinsics``), which the adjustment keeps as they are (pinhole, focal fixed)."""
+    """:func:`run_refine` on a capture's photos (and masks), reusing SIFT already extracted (unless ``options``
+    name features to reuse): the COLMAP cross-check's database (SIFT once, used twice), else quick mode's
+    ``sift`` extracted beside the inference, else none (the refinement extracts its own). Intrinsics the user
+    gave to hold fixed (``--intrinsics``; the prediction holds them) the adjustment keeps as they are
+    (pinhole, focal fixed)."""
+    fixed_intrinsics = bool(capture.known_cameras) and capture.intrinsics_fixed
     if fixed_intrinsics:
         bundle = dataclasses.replace(options.bundle, refine_focal_length=False, refine_principal_point=False)
         options = dataclasses.replace(options, bundle=bundle, square_pixels=False)
@@ -670,4 +682,4 @@ def run_refine_reusing(
         options = dataclasses.replace(options, reuse_features_from=colmap.database_path)
     elif options.reuse_features_from is None and isinstance(sift, Path):
         options = dataclasses.replace(options, reuse_features_from=sift)
-    return run_refine(image_dir, prediction, options, out_dir)
+    return run_refine(capture.image_dir, prediction, options, out_dir, capture.mask_dir)

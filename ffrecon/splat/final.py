@@ -35,17 +35,22 @@ def splat_final_cameras(
 ) -> SplatResult:
     """The run's splat on the final cameras, in ``work``."""
     images = capture.read_images(list(final.indices))
+    masks = capture.read_masks(list(final.indices))
     cameras = final.cameras
     if final.distortion is not None:  # the rasteriser is a pinhole camera: train on undistorted photos
+        if masks is not None:  # undistorted the same way, carried as the image's 4th channel
+            images = [np.dstack([im, np.where(m, 255, 0).astype(np.uint8)]) for im, m in zip(images, masks)]
         pairs = [undistort_image(im, c, d) for im, c, d in zip(images, cameras, final.distortion)]
         images, cameras = [p[0] for p in pairs], tuple(p[1] for p in pairs)
+        if masks is not None:
+            masks, images = [im[..., 3] > 127 for im in images], [im[..., :3] for im in images]
     if final.source is not CameraSource.COLMAP and isinstance(ff, FeedForwardResult):
         args = (ff.prediction.subset(final.indices), images, final.cam_from_world, cameras, options, work)
-        return run_splat_from_prediction(*args, unconfirmed=final.unconfirmed)
+        return run_splat_from_prediction(*args, unconfirmed=final.unconfirmed, masks=masks)
     if not isinstance(colmap, ColmapResult):
         raise AssertionError(f"final cameras from {final.source} without the result they come from")
     xyz, rgb = seed_from_reconstruction(colmap.reconstruction)  # COLMAP's cameras: its points
-    return run_splat(images, final.names, final.cam_from_world, cameras, xyz, rgb, options, work)
+    return run_splat(images, final.names, final.cam_from_world, cameras, xyz, rgb, options, work, masks=masks)
 
 
 def with_curves(options: SplatOptions) -> SplatOptions:
@@ -78,6 +83,6 @@ def splat_from_colmap_points(
     full[list(final.indices)] = final.cam_from_world
     to_final = compare_poses(colmap.cam_from_world, full, names, colmap.registered).errors.est_to_ref
     xyz, rgb = seed_from_reconstruction(colmap.reconstruction)
-    images = capture.read_images(list(final.indices))
+    images, masks = capture.read_images(list(final.indices)), capture.read_masks(list(final.indices))
     args = (images, final.names, final.cam_from_world, final.cameras, to_final.apply(xyz), rgb)
-    return run_splat(*args, options, work / "seed_comparison")
+    return run_splat(*args, options, work / "seed_comparison", masks=masks)

@@ -185,7 +185,15 @@ def scene_scale(cam_from_world: np.ndarray, points: np.ndarray) -> float:
 
 
 def photometric_loss(rendered: torch.Tensor, target: torch.Tensor, ssim_weight: float) -> torch.Tensor:
-    """``(1 - w) L1 + w (1 - SSIM)`` of ``[H, W, 3]`` images."""
+    """``(1 - w) L1 + w (1 - SSIM)`` of ``[H, W, 3]`` images.
+
+    A ``[H, W, 4]`` target carries a mask (``--masks``; 1 use, 0 ignore) in its 4th channel: the render
+    takes the target's own colour where it is 0, so those pixels add no error and no gradient, to the L1
+    term and to every SSIM window alike.
+    """
+    if target.shape[-1] == 4:
+        weight, target = target[..., 3:], target[..., :3]
+        rendered = weight * rendered + (1 - weight) * target
     l1 = (rendered - target).abs().mean()
     if ssim_weight == 0:
         return l1

@@ -237,16 +237,23 @@ class SplatResult:
 
 
 def image_metrics(rendered: torch.Tensor, truth: torch.Tensor) -> tuple[float, float]:
-    """PSNR (dB) and SSIM of ``[H, W, 3]`` images in [0, 1].
+    """PSNR (dB) and SSIM of ``[H, W, 3]`` images in [0, 1]; a ``[H, W, 4]`` ``truth`` carries a mask (1 use,
+    0 ignore) in its 4th channel: the PSNR is of the pixels used, the SSIM of the render with the truth's
+    own colour where the mask is 0.
 
     SSIM as the 3DGS evaluation computes it (11x11 Gaussian window, sigma 1.5, zero padding), with the
     training loss's compiled kernel (:func:`~ffrecon.splat.ssim.ssim_mean`; it matches kornia's SSIM
     inside the 5-pixel border, where kornia reflects instead, tests/splat/test_optimize.py): 43 ms a
     640x480 view against kornia's 117 ms, and the held-out views are scored every 100 iterations.
     """
-    a = rendered.detach().clamp(0, 1).permute(2, 0, 1).float()
+    rendered = rendered.detach().clamp(0, 1)
+    weight = torch.ones_like(rendered[..., :1])
+    if truth.shape[-1] == 4:
+        weight, truth = truth[..., 3:].float(), truth[..., :3]
+        rendered = weight * rendered + (1 - weight) * truth
+    a = rendered.permute(2, 0, 1).float()
     b = truth.permute(2, 0, 1).float()
-    mse = float(torch.mean((a - b) ** 2))
+    mse = float(((a - b) ** 2 * weight.permute(2, 0, 1)).sum() / (3 * weight.sum()).clamp_min(1e-9))
     psnr = 10 * np.log10(1.0 / max(mse, 1e-12))
     with torch.no_grad():
         ssim = float(ssim_mean(a.contiguous(), b.contiguous()))
@@ -263,8 +270,21 @@ def color_corrected(rendered: torch.Tensor, truth: torch.Tensor) -> torch.Tensor
     True
     """
     source = rendered.clamp(0, 1)
+    if truth.shape[-1] == 4:  # a mask in the 4th channel: fit on the pixels used
+        used = truth[..., 3] > 0.5
+        transform = fit_color_transform(source.detach()[used], truth[..., :3][used]).to(source)
+        return apply_color_transform(source, transform).clamp(0, 1)
     transform = fit_color_transform(source, truth).to(source)
     return apply_color_transform(source, transform).clamp(0, 1)
+
+
+def with_masks(images: Sequence[np.ndarray], masks: Sequence[np.ndarray] | None) -> list[np.ndarray]:
+    """``[H, W, 4]`` uint8: each RGB image with its mask (255 use, 0 ignore) as a 4th channel, which the loss
+    and the scores read (:func:`~ffrecon.splat.optimize.photometric_loss`, :func:`image_metrics`); the
+    images as they are without masks."""
+    if masks is None:
+        return list(images)
+    return [np.dstack([im, np.where(m, 255, 0).astype(np.uint8)]) for im, m in zip(images, masks)]
 
 
 def split_views(num: int, holdout_every: int) -> tuple[list[int], list[int]]:
@@ -347,6 +367,8 @@ def run_splat(
     seed_rgb: np.ndarray,
     options: SplatOptions,
     out_dir: Path,
+    *,
+    masks: Sequence[np.ndarray] | None = None,
 ) -> SplatResult:
     """Optimise, clean and export a Gaussian splat from an explicit seed; measure it on held-out views.
 
@@ -356,7 +378,10 @@ def run_splat(
         cam_from_world: ``[N, 3, 4]`` OpenCV poses; cameras: per frame pinhole intrinsics.
         seed_xyz: ``[M, 3]`` world points; seed_rgb: ``[M, 3]`` float colours in [0, 1]. To keep the
             held-out PSNR honest, they should come from the training views of :func:`split_views` only.
+        masks: per frame ``[H, W]`` bool (True: use the pixel; ``--masks``), or None: the loss and the held-out
+            scores ignore the pixels they leave out.
     """
+    images = with_masks(images, masks)
     split = split_views(len(images), options.holdout_every)
     with torch_threads(cpu_threads(options.optimize.threads)):
         return _splat(images, names, cam_from_world, cameras, seed_xyz, seed_rgb, split, options, out_dir, StageTimer())
@@ -371,6 +396,7 @@ def run_splat_from_prediction(
     out_dir: Path,
     *,
     unconfirmed: Sequence[int] = (),
+    masks: Sequence[np.ndarray] | None = None,
 ) -> SplatResult:
     """The splat stage seeded from feed-forward depth: split the views, seed from the training views, optimise.
 
@@ -387,6 +413,7 @@ def run_splat_from_prediction(
     ``depth_prior_below`` frames and some frame unconfirmed, the depth maps are also a prior in the loss
     (``optimize.depth_weight``).
     """
+    images = with_masks(images, masks)  # the prediction's depth is already masked (no seed from there)
     split = split_views(len(images), options.holdout_every)
     _validate_views(images, prediction.names, cam_from_world, cameras)
     timer = StageTimer()
@@ -424,7 +451,7 @@ def prediction_seed(
     """
     pred = dataclasses.replace(prediction, cam_from_world=cam_from_world, cameras=tuple(cameras))
     small = [
-        im if im.shape[:2] == d.shape else cv2.resize(im, d.shape[::-1], interpolation=cv2.INTER_AREA)
+        im[..., :3] if im.shape[:2] == d.shape else cv2.resize(im[..., :3], d.shape[::-1], interpolation=cv2.INTER_AREA)
         for im, d in zip(images, pred.depth)
     ]
     return seed_from_prediction(
@@ -620,7 +647,9 @@ def _validate_views(images, names, cam_from_world, cameras, seed=None) -> None:
     intrinsics = np.array([[c.fx, c.fy, c.cx, c.cy] for c in cameras])
     require_finite("splat", cam_from_world=cam_from_world, intrinsics=intrinsics, fix=CAMERAS_FIX)
     for name, image, cam in zip(names, images, cameras):
-        check_shape(f"image {name}", image, (cam.height, cam.width, 3))
+        check_shape(f"image {name}", image, (cam.height, cam.width, image.shape[-1] if image.ndim == 3 else 3))
+        if image.shape[-1] not in (3, 4):
+            raise InputError(f"image {name} has {image.shape[-1]} channels", "pass RGB images (and masks apart)")
 
 
 CAMERAS_FIX = (
@@ -679,7 +708,7 @@ def _evaluate_heldout(
             stem = Path(names[i]).stem
             paths = tuple(
                 _write_png(renders_dir / f"{stem}_{kind}.png", img)
-                for kind, img in (("truth", images[i]), ("seed", views["seed"]), ("splat", views["cleaned"]))
+                for kind, img in (("truth", images[i][..., :3]), ("seed", views["seed"]), ("splat", views["cleaned"]))
             )
             render_paths.append((names[i], *paths))
     return tuple(metrics), tuple(render_paths)
