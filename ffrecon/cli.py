@@ -116,6 +116,14 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
         "and stay fixed in the bundle adjustment",
     )
     p.add_argument(
+        "--poses",
+        type=Path,
+        default=None,
+        metavar="MODEL_OR_JSON",
+        help="known poses: a COLMAP model folder or a nerfstudio transforms.json, by photo name (three or more); "
+        "they replace the model's (reported beside them) and hold the bundle adjustment's camera centres near them",
+    )
+    p.add_argument(
         "--masks",
         type=Path,
         default=None,
@@ -404,6 +412,7 @@ def _run_options(args: argparse.Namespace, ground_truth: Path | None = None):
             max_image_size=args.max_image_size,
             intrinsics=args.intrinsics,
             masks=args.masks,
+            poses=args.poses,
         ),
         intrinsics_prior=args.intrinsics_prior,
     )

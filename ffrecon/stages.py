@@ -25,7 +25,7 @@ CAPTURE = Stage(
     ("source",),
     lambda s, o, c: run_capture(s.source, o.capture, s.work),
     lambda o: o.capture,
-    files=lambda s, o: (o.capture.intrinsics, o.capture.masks),
+    files=lambda s, o: (o.capture.intrinsics, o.capture.masks, o.capture.poses),
     outputs=("images",),
     check=lambda capture, o: splat.check_splat_fits([f.size_wh for f in capture.frames], o.splat),
 )
@@ -93,14 +93,12 @@ COMPARISONS = Stage(
     ("capture", "feedforward", "colmap", "refine"),
     lambda s, o, c: run_comparisons(
         s.capture.names,
-        pose_estimates(s.prediction, s.colmap, s.refine),
-        load_references(o.ground_truth, o.reference, s.capture.names),
+        pose_estimates(s.model_poses, s.colmap, s.refine),
+        load_references(o.ground_truth, o.reference, s.capture.names, s.capture.known_poses),
     ),
     lambda o: (o.ground_truth, o.reference),
     label="pose comparison",
-    skip=lambda s, o: (
-        s.why_not() or comparison_skip_reason(s.prediction, s.colmap, s.refine, o.ground_truth, o.reference)
-    ),
+    skip=lambda s, o: s.why_not() or comparison_skip_reason(s.model_poses, s.colmap, s.refine, s.references(o)),
     files=lambda s, o: (o.ground_truth, o.reference),
 )
 FINAL = Stage(  # the final cameras and sparse/0: cheap, so made every time from the results they come from

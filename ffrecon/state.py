@@ -14,6 +14,8 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from ffrecon.capture import Capture
 from ffrecon.concurrency import CoreShare, run_beside
 from ffrecon.export.stage import ExportsResult
@@ -57,6 +59,18 @@ class RunState:
     def views(self) -> int:
         """The number of frames captured."""
         return len(self.capture.frames)
+
+    @property
+    def model_poses(self) -> np.ndarray | None:
+        """The model's own poses (those it gave where the user's replaced them), None without a model."""
+        if not isinstance(self.feedforward, FeedForwardResult):
+            return None
+        own = self.feedforward.model_poses
+        return self.feedforward.prediction.cam_from_world if own is None else own
+
+    def references(self, options: RunOptions) -> bool:
+        """Cameras to score the run against were given: ground truth, a reference model or --poses."""
+        return bool(options.ground_truth or options.reference or self.capture.known_poses)
 
     @property
     def prediction(self) -> Prediction | None:

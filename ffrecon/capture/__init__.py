@@ -26,6 +26,7 @@ from ffrecon.capture.video import extract_video_frames
 from ffrecon.checks import check_number
 from ffrecon.errors import FFReconError, InputError, ResourceError
 from ffrecon.formats.intrinsics import KnownIntrinsics, read_intrinsics
+from ffrecon.formats.poses import read_poses
 from ffrecon.types import Frame, PinholeCamera, capped_size
 
 log = logging.getLogger("ffrecon.capture")
@@ -68,6 +69,10 @@ class CaptureOptions:
     # Applied to SIFT extraction, the model's depth (no fused points, no dense evidence there) and the splat's
     # loss and scores; written as OUT/masks/<name>.png and named in transforms.json.
     masks: Path | None = None
+    # Known poses (--poses: a COLMAP model or a transforms.json, ffrecon.formats.poses), by photo name, three or
+    # more: they replace the model's poses (moved into its frame by a Sim(3) on the camera centres; the model's
+    # own are kept and compared with them) and hold the bundle adjustment's camera centres near them.
+    poses: Path | None = None
 
     def __post_init__(self) -> None:
         check_number("capture video_frames", self.video_frames, low=2, integer=True, flag="--video-frames")
@@ -105,6 +110,8 @@ class Capture:
     intrinsics_fixed: bool = True  # the known cameras are fixed (else starting values the adjustment refines)
     known_file: Path | None = None  # the file they came from (--intrinsics)
     mask_dir: Path | None = None  # OUT/masks: a mask per frame, <name>.png at its size, 255 keep / 0 ignore
+    known_poses: tuple[np.ndarray | None, ...] = ()  # per frame the given cam_from_world [3, 4] (None: not given)
+    poses_file: Path | None = None  # the file or folder they came from (--poses)
 
     def read_masks(self, indices: Sequence[int] | None = None) -> list[np.ndarray] | None:
         """``[H_i, W_i]`` bool masks (True: use the pixel) of the frames at ``indices``; None without masks."""
@@ -359,6 +366,7 @@ def run_capture(source: Path, options: CaptureOptions, out_dir: Path) -> Capture
         intrinsics = read_intrinsics(options.intrinsics)
         originals = loaded.original_sizes_wh or [f.size_wh for f in loaded.frames]
         known = tuple(_known_camera(intrinsics, f, o) for f, o in zip(loaded.frames, originals))
+    poses = _known_poses(options.poses, names) if options.poses is not None else ()
     mask_dir = None
     if options.masks is not None:
         originals = loaded.original_sizes_wh or [f.size_wh for f in loaded.frames]
@@ -376,7 +384,21 @@ def run_capture(source: Path, options: CaptureOptions, out_dir: Path) -> Capture
         intrinsics_fixed=not options.intrinsics_prior,
         known_file=options.intrinsics,
         mask_dir=mask_dir,
+        known_poses=poses,
+        poses_file=options.poses,
     )
+
+
+def _known_poses(path: Path, names: list[str]) -> tuple[np.ndarray | None, ...]:
+    """Per frame the given pose (None where the file has none); an :class:`InputError` below three."""
+    known = read_poses(path)
+    poses = tuple(known.get(n) for n in names)
+    if sum(p is not None for p in poses) < 3:
+        raise InputError(
+            f"--poses {path} has the poses of {sum(p is not None for p in poses)} of these photos",
+            "give the poses of three photos or more, under the photos' file names",
+        )
+    return poses
 
 
 def _known_camera(intrinsics: KnownIntrinsics, frame: Frame, original_wh: tuple[int, int]) -> PinholeCamera:

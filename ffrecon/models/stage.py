@@ -19,6 +19,8 @@ from ffrecon.colmap_io import reconstruction_from_cameras, write_reconstruction
 from ffrecon.concurrency import CoreShare
 from ffrecon.errors import InputError, ModelError
 from ffrecon.formats.pointcloud import FuseOptions, fuse_prediction, write_depth_maps
+from ffrecon.geometry.alignment import umeyama
+from ffrecon.geometry.poses import camera_centers
 from ffrecon.models.adapters import adapter_for
 from ffrecon.models.memory import default_chunk_size
 from ffrecon.models.multiview import MultiviewOptions, predict_multiview
@@ -51,6 +53,8 @@ class FeedForwardResult:
     assumptions: str = ""  # what decoding had to assume (monocular depth), for the report
     # The model's own intrinsics where the user gave them (--intrinsics): the prediction holds the given ones.
     model_cameras: tuple[PinholeCamera, ...] = ()
+    # The model's own poses where the user gave poses (--poses): the prediction holds the given ones.
+    model_poses: np.ndarray | None = None  # [N, 3, 4] cam_from_world
 
     def to_report(self) -> dict:
         m = self.prediction.model
@@ -207,6 +211,10 @@ def run_feedforward(
         model_cameras = prediction.cameras
         prediction = dataclasses.replace(prediction, cameras=_known_at(capture.known_cameras, model_cameras))
         _log_given(prediction, model_cameras)
+    model_poses = None
+    if capture.known_poses:  # the user's poses replace the model's, moved into its frame (kept for the report)
+        model_poses = prediction.cam_from_world
+        prediction = dataclasses.replace(prediction, cam_from_world=given_poses_in(model_poses, capture.known_poses))
     masks = capture.read_masks()
     if masks is not None:  # masked pixels carry no confidence: no fused point, seed or dense evidence from them
         prediction = masked_prediction(prediction, masks)
@@ -223,7 +231,25 @@ def run_feedforward(
         model.providers,
         _assumptions(model.info(), capture),
         model_cameras,
+        model_poses,
     )
+
+
+def given_poses_in(model_poses: np.ndarray, given: tuple[np.ndarray | None, ...]) -> np.ndarray:
+    """The given poses (None: keep the model's) in the model's world frame and scale: moved by the Sim(3)
+    that best maps the given camera centres onto the model's (Umeyama), so depth maps and poses agree."""
+    have = [k for k, p in enumerate(given) if p is not None]
+    poses = np.stack([given[k] for k in have])
+    sim = umeyama(camera_centers(poses), camera_centers(model_poses[have]))
+    out = np.array(model_poses, np.float64, copy=True)
+    out[have] = sim.transform_cam_from_world(poses)
+    log.info(
+        "the given poses replace the model's for %d of %d frames (moved into its frame: scale %.4g)",
+        len(have),
+        len(given),
+        sim.scale,
+    )
+    return out
 
 
 def masked_prediction(prediction: Prediction, masks: list[np.ndarray]) -> Prediction:

@@ -21,7 +21,7 @@ from ffrecon.geometry.poses import up_from_cameras
 from ffrecon.sfm.compare import PoseComparison, compare_poses
 from ffrecon.sfm.crosscheck import ColmapResult
 from ffrecon.sfm.refine import RefineResult
-from ffrecon.types import Prediction, Skipped
+from ffrecon.types import Skipped
 
 # Reference poses by label: (cam_from_world [N, 3, 4], has a pose [N] bool), over the run's names.
 References = dict[str, tuple[np.ndarray, np.ndarray]]
@@ -68,9 +68,18 @@ def check_references(ground_truth: Path | None, reference: Path | None) -> None:
         raise InputError(f"--reference {ref} has no registered images to score the cameras against", fix)
 
 
-def load_references(ground_truth: Path | None, reference: Path | None, names: Sequence[str]) -> References:
-    """Ground truth of a synthetic scene folder and/or a reference COLMAP model, over ``names``."""
+def load_references(
+    ground_truth: Path | None,
+    reference: Path | None,
+    names: Sequence[str],
+    given: Sequence[np.ndarray | None] = (),
+) -> References:
+    """Ground truth of a synthetic scene folder, a reference COLMAP model and/or the poses the user gave
+    (``--poses``: per frame, None where not given), over ``names``."""
     refs: References = {}
+    if any(p is not None for p in given):
+        have = np.array([p is not None for p in given])
+        refs["given poses"] = (np.stack([np.eye(3, 4) if p is None else p for p in given]), have)
     if ground_truth is not None:
         truth_names, truth_poses = ground_truth_poses(Path(ground_truth))
         index = {n: k for k, n in enumerate(truth_names)}
@@ -118,12 +127,12 @@ def run_comparisons(names: Sequence[str], estimates: References, references: Ref
 
 
 def pose_estimates(
-    prediction: Prediction | None, colmap: ColmapResult | Skipped, refine: RefineResult | Skipped
+    model_poses: np.ndarray | None, colmap: ColmapResult | Skipped, refine: RefineResult | Skipped
 ) -> References:
-    """The run's cameras to compare, by label: the model's, COLMAP's (two images or more) and the refined."""
+    """The run's cameras to compare, by label: the model's own, COLMAP's (two images or more) and the refined."""
     estimates: References = {}
-    if prediction is not None:
-        estimates["feed-forward"] = (prediction.cam_from_world, np.ones(len(prediction.names), bool))
+    if model_poses is not None:
+        estimates["feed-forward"] = (model_poses, np.ones(len(model_poses), bool))
     if isinstance(colmap, ColmapResult) and colmap.num_registered >= 2:
         estimates["COLMAP"] = (colmap.cam_from_world, colmap.registered)
     if isinstance(refine, RefineResult):
@@ -132,16 +141,12 @@ def pose_estimates(
 
 
 def comparison_skip_reason(
-    prediction: Prediction | None,
-    colmap: ColmapResult | Skipped,
-    refine: RefineResult | Skipped,
-    ground_truth: Path | None,
-    reference: Path | None,
+    model_poses: np.ndarray | None, colmap: ColmapResult | Skipped, refine: RefineResult | Skipped, references: bool
 ) -> str | None:
-    """Why there is nothing to compare (fewer than two sets of cameras and no reference), or None."""
-    if len(pose_estimates(prediction, colmap, refine)) >= 2 or ground_truth is not None or reference is not None:
+    """Why there is nothing to compare (fewer than two sets of cameras and no ``references`` given), or None."""
+    if len(pose_estimates(model_poses, colmap, refine)) >= 2 or references:
         return None
-    if prediction is None:
+    if model_poses is None:
         return "no model, and no ground truth or --reference: COLMAP's cameras are the only ones"
     state = "did not run" if isinstance(colmap, Skipped) else "registered fewer than two images"
     return f"no reference cameras: the COLMAP cross-check {state} and no ground truth or --reference"

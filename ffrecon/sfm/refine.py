@@ -116,10 +116,14 @@ class RefineOptions:
     min_matches: int = 50  # verified matches summed over the frame's pairs
     min_observations: int = 40
     seed: int = 0
+    # With given poses (--poses): the adjustment keeps the camera centres near them, with this std (a fraction
+    # of the extent of the centres), instead of letting the feed-forward ones move freely.
+    given_pose_std: float = 0.002
 
     def __post_init__(self) -> None:
         for name in ("min_features", "min_matches", "min_observations"):
             check_number(f"RefineOptions.{name}", getattr(self, name), low=0, integer=True)
+        check_number("RefineOptions.given_pose_std", self.given_pose_std, low=0, low_open=True)
 
     @classmethod
     def quick(cls, **overrides) -> RefineOptions:
@@ -675,6 +679,9 @@ def run_refine_reusing(
     gave to hold fixed (``--intrinsics``; the prediction holds them) the adjustment keeps as they are
     (pinhole, focal fixed)."""
     fixed_intrinsics = bool(capture.known_cameras) and capture.intrinsics_fixed
+    if capture.known_poses:  # the prediction holds the given poses: position priors keep the centres near them
+        bundle = dataclasses.replace(options.bundle, use_pose_priors=True, prior_position_std=options.given_pose_std)
+        options = dataclasses.replace(options, bundle=bundle)
     if fixed_intrinsics:
         bundle = dataclasses.replace(options.bundle, refine_focal_length=False, refine_principal_point=False)
         options = dataclasses.replace(options, bundle=bundle, square_pixels=False)
