@@ -89,23 +89,8 @@ def _add_model_call_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--threads", type=int, default=None, help="CPU threads for inference, >= 1 (default: all)")
 
 
-def _add_run_options(p: argparse.ArgumentParser) -> None:
-    """Options of ``run`` and ``demo``; their defaults live in the stage options classes alone, and so do
-    their checks (each class's ``__post_init__``: a bad value is an InputError naming the flag)."""
-    from ffrecon.capture import CaptureOptions
-    from ffrecon.sfm.gates import GateOptions
-
-    _add_output_folder_options(p)
-    _add_model_call_options(p)
-    p.add_argument(
-        "--max-image-size",
-        type=int,
-        default=None,
-        metavar="N",
-        help="long side in pixels of the frames every stage works on; larger photos are downscaled at capture "
-        f"(default {_field_default(CaptureOptions, 'max_image_size')}, as 3DGS; 0 keeps full size, which costs "
-        "memory and time: docs/benchmarks.md)",
-    )
+def _add_known_input_options(p: argparse.ArgumentParser) -> None:
+    """What the user knows about the capture: intrinsics, poses, masks."""
     p.add_argument(
         "--intrinsics",
         type=Path,
@@ -136,6 +121,26 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="with --intrinsics: starting values the bundle adjustment refines, not fixed ones",
     )
+
+
+def _add_run_options(p: argparse.ArgumentParser) -> None:
+    """Options of ``run`` and ``demo``; their defaults live in the stage options classes alone, and so do
+    their checks (each class's ``__post_init__``: a bad value is an InputError naming the flag)."""
+    from ffrecon.capture import CaptureOptions
+    from ffrecon.sfm.gates import GateOptions
+
+    _add_output_folder_options(p)
+    _add_model_call_options(p)
+    p.add_argument(
+        "--max-image-size",
+        type=int,
+        default=None,
+        metavar="N",
+        help="long side in pixels of the frames every stage works on; larger photos are downscaled at capture "
+        f"(default {_field_default(CaptureOptions, 'max_image_size')}, as 3DGS; 0 keeps full size, which costs "
+        "memory and time: docs/benchmarks.md)",
+    )
+    _add_known_input_options(p)
     p.add_argument(
         "--quick",
         action="store_true",
