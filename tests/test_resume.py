@@ -14,7 +14,8 @@ import pycolmap
 import pytest
 from plyfile import PlyData
 
-import ffrecon.stages as stages
+import ffrecon.sfm.crosscheck as crosscheck
+import ffrecon.splat.final as splat_final
 from ffrecon.cli import main
 from ffrecon.errors import Interrupted
 from ffrecon.models.multiview import MultiviewOptions
@@ -58,7 +59,7 @@ def test_interrupted_splat_resumes_with_only_the_splat_recomputed(demo12, uninte
         raise KeyboardInterrupt
 
     with monkeypatch.context() as patch:
-        patch.setattr(stages, "run_splat_from_prediction", interrupt)
+        patch.setattr(splat_final, "run_splat_from_prediction", interrupt)
         with pytest.raises(Interrupted) as caught:
             run(demo12.images, out, demo12.model, _options(overwrite=True, command="ffrecon run x"))
     err = caught.value
@@ -121,7 +122,7 @@ def test_interrupted_cross_check_keeps_the_feedforward_stage_that_ran_beside_it(
         raise KeyboardInterrupt
 
     with monkeypatch.context() as patch:
-        patch.setattr(stages, "run_colmap", interrupt)
+        patch.setattr(crosscheck, "run_colmap", interrupt)
         with pytest.raises(Interrupted) as caught:
             run(demo12.images, out, demo12.model, RunOptions(**no_splat, command="ffrecon run x"))
     assert caught.value.stage == "colmap" and caught.value.kept == ["capture", "feedforward"]
