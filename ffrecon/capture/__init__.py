@@ -12,6 +12,7 @@ import cv2
 import numpy as np
 from tqdm.auto import tqdm
 
+from ffrecon.capture.fisheye import undistort_fisheye
 from ffrecon.capture.images import (
     IMAGE_EXTENSIONS,
     VIDEO_EXTENSIONS,
@@ -371,6 +372,8 @@ def run_capture(source: Path, options: CaptureOptions, out_dir: Path) -> Capture
     if options.masks is not None:
         originals = loaded.original_sizes_wh or [f.size_wh for f in loaded.frames]
         mask_dir = write_masks(Path(options.masks), loaded.frames, originals, Path(out_dir) / "masks")
+    if known:
+        _undistort_fisheyes(intrinsics, loaded.frames, known, image_dir, mask_dir)
     return Capture(
         tuple(loaded.frames),
         image_dir,
@@ -387,6 +390,25 @@ def run_capture(source: Path, options: CaptureOptions, out_dir: Path) -> Capture
         known_poses=poses,
         poses_file=options.poses,
     )
+
+
+def _undistort_fisheyes(
+    intrinsics: KnownIntrinsics,
+    frames: Sequence[Frame],
+    cameras: tuple[PinholeCamera, ...],
+    image_dir: Path,
+    mask_dir: Path | None,
+) -> None:
+    """Frames whose given camera is a fisheye become pinhole frames of the same K (:mod:`.fisheye`)."""
+    done = []
+    for frame, camera in zip(frames, cameras):
+        lens = intrinsics.fisheye_of(frame.name)
+        if lens is not None:
+            mask = None if mask_dir is None else mask_dir / f"{frame.name}.png"
+            undistort_fisheye(image_dir / frame.name, camera, lens, mask)
+            done.append(frame.name)
+    if done:
+        log.info("%d fisheye frames undistorted to pinhole frames of the same K", len(done))
 
 
 def _known_poses(path: Path, names: list[str]) -> tuple[np.ndarray | None, ...]:

@@ -3,8 +3,10 @@
 Either one camera for every photo (a ``cameras.txt`` with one line: ``CAMERA_ID MODEL WIDTH HEIGHT
 PARAMS...``), or one per photo (the photo's file name in place of the id: ``NAME MODEL WIDTH HEIGHT
 PARAMS...``). Models: ``SIMPLE_PINHOLE`` (f, cx, cy), ``PINHOLE`` (fx, fy, cx, cy), and COLMAP's lens
-models with zero distortion (``SIMPLE_RADIAL``, ``RADIAL``, ``OPENCV``). Values are in the pixels of the
-given ``WIDTH x HEIGHT`` and follow COLMAP's pixel-centre rule; they are scaled to each frame as captured.
+models with zero distortion (``SIMPLE_RADIAL``, ``RADIAL``, ``OPENCV``), and ``OPENCV_FISHEYE`` (fx, fy,
+cx, cy, k1..k4: the capture undistorts those photos to pinhole frames of the same K,
+:func:`ffrecon.capture.fisheye.undistort_fisheye`). Values are in the pixels of the given ``WIDTH x HEIGHT``
+and follow COLMAP's pixel-centre rule; they are scaled to each frame as captured.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ _MODELS = {
     "SIMPLE_RADIAL": (4, 0, 0, 1, 2, 3),
     "RADIAL": (5, 0, 0, 1, 2, 3),
     "OPENCV": (8, 0, 1, 2, 3, 4),
+    "OPENCV_FISHEYE": (8, 0, 1, 2, 3, 4),  # k1..k4 of OpenCV's fisheye model: the capture undistorts the photos
 }
 FIX = "write one line per camera as in COLMAP's cameras.txt: ID (or the photo's name) MODEL WIDTH HEIGHT PARAMS"
 
@@ -33,6 +36,14 @@ class KnownIntrinsics:
     path: Path
     shared: PinholeCamera | None
     per_image: tuple[tuple[str, PinholeCamera], ...] = ()
+    # OPENCV_FISHEYE lenses, (k1, k2, k3, k4) by photo name ("" for the shared camera); the camera is then the
+    # fisheye's fx, fy, cx, cy.
+    fisheye: tuple[tuple[str, tuple[float, float, float, float]], ...] = ()
+
+    def fisheye_of(self, name: str) -> tuple[float, float, float, float] | None:
+        """The fisheye lens of photo ``name``, None for a pinhole."""
+        lenses = dict(self.fisheye)
+        return lenses.get("") if self.shared is not None else lenses.get(name)
 
     def camera(self, name: str, size_wh: tuple[int, int]) -> PinholeCamera:
         """The camera of photo ``name`` scaled to ``size_wh`` (the frame as captured); an :class:`InputError`
@@ -50,7 +61,7 @@ class KnownIntrinsics:
         return camera if (sx, sy) == (1.0, 1.0) else camera.scaled(sx, sy)
 
 
-def _camera(tokens: list[str], where: str) -> PinholeCamera:
+def _camera(tokens: list[str], where: str) -> tuple[PinholeCamera, tuple[float, ...] | None]:
     model = tokens[1].upper()
     if model not in _MODELS:
         raise InputError(f"{where}: camera model {tokens[1]} is not one ffrecon takes", f"use one of {list(_MODELS)}")
@@ -62,7 +73,8 @@ def _camera(tokens: list[str], where: str) -> PinholeCamera:
         raise InputError(f"{where}: WIDTH HEIGHT and the parameters must be numbers", FIX) from None
     if len(params) != count:
         raise InputError(f"{where}: {model} takes {count} parameters, the line has {len(params)}", FIX)
-    if any(params[lens:]):
+    fisheye = tuple(params[lens:]) if model == "OPENCV_FISHEYE" else None
+    if any(params[lens:]) and fisheye is None:
         raise InputError(
             f"{where}: the lens has distortion ({model} {params[lens:]}); known distortion is not taken yet",
             "undistort the photos (colmap image_undistorter) and give their pinhole camera",
@@ -70,7 +82,7 @@ def _camera(tokens: list[str], where: str) -> PinholeCamera:
     values = [params[fx], params[fy], params[cx], params[cy]]
     if min(width, height) < 1 or not all(v > 0 for v in values) or not all(abs(v) < 1e7 for v in values):
         raise InputError(f"{where}: a size or parameter is not a positive, finite number", FIX)
-    return PinholeCamera(width, height, *values)
+    return PinholeCamera(width, height, *values), fisheye
 
 
 def read_intrinsics(path: Path) -> KnownIntrinsics:
@@ -83,13 +95,16 @@ def read_intrinsics(path: Path) -> KnownIntrinsics:
     rows = [(k + 1, line.split()) for k, line in enumerate(lines) if line.strip() and not line.lstrip().startswith("#")]
     if not rows:
         raise InputError(f"--intrinsics {path} holds no camera", FIX)
-    cameras = [(tokens[0], _camera(tokens, f"--intrinsics {path}, line {k}")) for k, tokens in rows]
+    parsed = [(tokens[0], *_camera(tokens, f"--intrinsics {path}, line {k}")) for k, tokens in rows]
+    cameras = [(key, camera) for key, camera, _ in parsed]
     by_id = [key.isdigit() for key, _ in cameras]
     if all(by_id) and len(cameras) == 1:
-        return KnownIntrinsics(path, cameras[0][1])
+        lens = parsed[0][2]
+        return KnownIntrinsics(path, cameras[0][1], fisheye=(("", lens),) if lens is not None else ())
     if any(by_id):
         raise InputError(
             f"--intrinsics {path}: {len(cameras)} cameras by id, and nothing says which photo has which",
             "give one camera for all photos, or name each photo in place of the id",
         )
-    return KnownIntrinsics(path, None, tuple(cameras))
+    lenses = tuple((key, lens) for key, _, lens in parsed if lens is not None)
+    return KnownIntrinsics(path, None, tuple(cameras), fisheye=lenses)

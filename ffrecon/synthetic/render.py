@@ -220,7 +220,13 @@ def shade(
 
 
 def camera_rays(
-    cam_from_world: np.ndarray, K: np.ndarray, height: int, width: int, offsets: np.ndarray
+    cam_from_world: np.ndarray,
+    K: np.ndarray,
+    height: int,
+    width: int,
+    offsets: np.ndarray,
+    *,
+    fisheye: bool = False,
 ) -> tuple[np.ndarray, np.ndarray]:
     """World-frame ray directions through sub-pixel positions, scaled so that ``t`` is z-depth.
 
@@ -228,13 +234,20 @@ def camera_rays(
         cam_from_world: ``[3, 4]`` OpenCV pose.
         K: ``[3, 3]``, COLMAP pixel convention.
         offsets: ``[P, 2]`` (dx, dy) added to each pixel centre.
+        fisheye: an equidistant fisheye (COLMAP's and OpenCV's fisheye model with k1..k4 = 0): a pixel at
+            normalised radius r sees the ray at angle r from the optical axis (a pinhole: atan(r)).
     Returns:
         ``(origin [3], dirs [P, H, W, 3])``.
     """
     rot = cam_from_world[:, :3]
     origin = -rot.T @ cam_from_world[:, 3]
     uv = pixel_centers(height, width)[None] + offsets[:, None, None, :]
-    d_cam = np.stack([(uv[..., 0] - K[0, 2]) / K[0, 0], (uv[..., 1] - K[1, 2]) / K[1, 1], np.ones(uv.shape[:-1])], -1)
+    x, y = (uv[..., 0] - K[0, 2]) / K[0, 0], (uv[..., 1] - K[1, 2]) / K[1, 1]
+    if fisheye:  # angle r from the axis: the pinhole direction at radius tan(r), kept below 90 degrees
+        r = np.hypot(x, y)
+        stretch = np.tan(np.minimum(r, np.radians(89.0))) / np.maximum(r, 1e-12)
+        x, y = x * np.where(r > 1e-12, stretch, 1.0), y * np.where(r > 1e-12, stretch, 1.0)
+    d_cam = np.stack([x, y, np.ones(uv.shape[:-1])], -1)
     return origin, d_cam @ rot  # R^T d, row-vector form
 
 

@@ -72,6 +72,9 @@ class SceneOptions:
     width: int = 320
     height: int = 240
     fov_x_deg: float = 60.0
+    # An equidistant fisheye (COLMAP's OPENCV_FISHEYE with k1..k4 = 0) of fov_x_deg across the width instead
+    # of a pinhole: 120 deg on 320x240 is about 150 deg across the diagonal. The camera's K is the fisheye's.
+    fisheye: bool = False
     path: CameraPath = CameraPath.ORBIT
     texture: Texture = Texture.RICH
     blur_sigma_px: float = 0.0  # Gaussian blur on every frame, pixels
@@ -181,7 +184,8 @@ def _wide_centers(num_frames: int, seed: int) -> np.ndarray:
 
 def make_camera(options: SceneOptions) -> PinholeCamera:
     """Square-pixel pinhole with the principal point exactly at the image centre."""
-    focal = options.width / 2 / np.tan(np.radians(options.fov_x_deg) / 2)
+    half = np.radians(options.fov_x_deg) / 2
+    focal = options.width / 2 / (half if options.fisheye else np.tan(half))
     return PinholeCamera(
         options.width, options.height, float(focal), float(focal), options.width / 2, options.height / 2
     )
@@ -230,7 +234,7 @@ def make_scene(options: SceneOptions = SceneOptions()) -> SyntheticScene:
     depth = np.empty((options.num_frames, h, w), np.float32)
     offsets = np.concatenate([np.zeros((1, 2)), _SUPERSAMPLE_OFFSETS])  # centre ray first: depth
     for i, cam_from_world in enumerate(poses):
-        origin, dirs = render.camera_rays(cam_from_world, camera.K, h, w, offsets)
+        origin, dirs = render.camera_rays(cam_from_world, camera.K, h, w, offsets, fisheye=options.fisheye)
         flat = dirs.reshape(-1, 3)
         t, surface = render.intersect(geometry, origin, flat)
         depth[i] = t[: h * w].reshape(h, w)
