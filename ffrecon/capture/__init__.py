@@ -158,6 +158,13 @@ class Capture:
             "focal_prior_px": [f.focal_prior_px for f in self.frames],
             "skipped": [{"name": n, "reason": r} for n, r in self.skipped],
             "quality": self.quality.to_report(),
+            "given": {  # what the user gave besides the photos (--intrinsics, --poses, --masks)
+                "intrinsics": None if self.known_file is None else str(self.known_file),
+                "intrinsics_fixed": self.intrinsics_fixed if self.known_cameras else None,
+                "poses": None if self.poses_file is None else str(self.poses_file),
+                "num_poses": sum(p is not None for p in self.known_poses),
+                "masks": self.mask_dir is not None,
+            },
         }
 
 

@@ -129,6 +129,18 @@ def _capture(report: dict, run_dir: Path) -> tuple[list[dict], str]:
     return rows, note + _gallery(thumbs, flagged=frozenset(captions[n] for n in issues))
 
 
+def _given_inputs(given: dict) -> str:
+    """`` · given: ...`` naming what the user gave besides the photos (escaped), or nothing."""
+    parts = []
+    if given.get("intrinsics"):
+        parts.append(f"intrinsics {given['intrinsics']} ({'fixed' if given.get('intrinsics_fixed') else 'priors'})")
+    if given.get("poses"):
+        parts.append(f"{given.get('num_poses')} poses from {given['poses']}")
+    if given.get("masks"):
+        parts.append("masks (masks/)")
+    return f" · given: {html.escape('; '.join(parts))}" if parts else ""
+
+
 def _given_intrinsics(given: dict | None) -> str:
     """One line: the given focal length beside the model's own estimate and the final one."""
     if not given:
@@ -545,7 +557,8 @@ def render_html(report: dict, run_dir: Path) -> str:
     parts = [
         "<!doctype html><html><head><meta charset='utf-8'><title>ffrecon report</title>"
         f"<style>{_CSS}</style></head><body>",
-        f"<h1>ffrecon report</h1><p class='muted'>{created} · input {_fmt(inputs.get('source'))}</p>",
+        f"<h1>ffrecon report</h1><p class='muted'>{created} · input {_fmt(inputs.get('source'))}"
+        f"{_given_inputs(inputs.get('given') or {})}</p>",
     ]
     verdict = report["verdict"]
     banner = "ok" if verdict["status"] == "ok" else "bad"
