@@ -106,7 +106,12 @@ def _add_known_input_options(p: argparse.ArgumentParser) -> None:
         default=None,
         metavar="MODEL_OR_JSON",
         help="known poses: a COLMAP model folder or a nerfstudio transforms.json, by photo name (three or more); "
-        "they replace the model's (reported beside them) and hold the bundle adjustment's camera centres near them",
+        "they replace the model's (reported beside them) and stay fixed in the bundle adjustment",
+    )
+    p.add_argument(
+        "--poses-prior",
+        action="store_true",
+        help="with --poses: priors the bundle adjustment keeps the camera centres near, not fixed poses",
     )
     p.add_argument(
         "--masks",
@@ -419,6 +424,7 @@ def _run_options(args: argparse.Namespace, ground_truth: Path | None = None):
             masks=args.masks,
             poses=args.poses,
         ),
+        poses_prior=args.poses_prior,
         intrinsics_prior=args.intrinsics_prior,
     )
     splat = SplatOptions(

@@ -33,14 +33,14 @@ def _in_user_world(cam_from_world: np.ndarray) -> np.ndarray:
     return np.concatenate([r, t[:, :, None]], axis=2)
 
 
-def test_given_poses_replace_the_models_and_hold_the_refinement(demo12, tmp_path):
+@pytest.mark.parametrize("prior", [False, True], ids=["fixed", "prior"])
+def test_given_poses_replace_the_models_and_hold_the_refinement(demo12, tmp_path, prior):
     scene = load_scene(demo12.scene_dir)
     given = tmp_path / "transforms.json"
     poses = _in_user_world(scene.cam_from_world)
     write_transforms(given, [f"images/{n}" for n in scene.names], poses, [scene.camera] * len(scene.names))
-    options = RunOptions(
-        capture=CaptureOptions(poses=given), splat=SplatOptions(enabled=False), ground_truth=demo12.scene_dir
-    )
+    capture = CaptureOptions(poses=given, poses_prior=prior)
+    options = RunOptions(capture=capture, splat=SplatOptions(enabled=False), ground_truth=demo12.scene_dir)
     result = run(demo12.images, tmp_path / "out", demo12.model, options)
     assert result.exit_code == 0
     model_vs_given = result.comparisons.by_label("feed-forward", "given poses").errors
@@ -51,6 +51,12 @@ def test_given_poses_replace_the_models_and_hold_the_refinement(demo12, tmp_path
     assert truth.median_rotation_deg < 0.1
     report = json.loads((tmp_path / "out" / "report.json").read_text())
     assert "feedforward_vs_given_poses" in report["pose_errors"]
+    if not prior:  # fixed: the refined cameras are the given ones (in the model's frame), to rounding
+        assert result.refine.registered.all()
+        np.testing.assert_allclose(
+            result.refine.cam_from_world, result.feedforward.prediction.cam_from_world, atol=1e-6
+        )
+        assert np.nanmax(refined.per_image_rotation_deg) < 1e-4 and refined.ate_relative < 1e-6
 
 
 def test_a_colmap_model_and_a_transforms_json_give_the_same_poses(demo12, tmp_path):

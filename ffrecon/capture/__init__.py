@@ -72,8 +72,10 @@ class CaptureOptions:
     masks: Path | None = None
     # Known poses (--poses: a COLMAP model or a transforms.json, ffrecon.formats.poses), by photo name, three or
     # more: they replace the model's poses (moved into its frame by a Sim(3) on the camera centres; the model's
-    # own are kept and compared with them) and hold the bundle adjustment's camera centres near them.
+    # own are kept and compared with them); the bundle adjustment holds them fixed (with ``poses_prior``: keeps
+    # the camera centres near them).
     poses: Path | None = None
+    poses_prior: bool = False  # the given poses are priors (centres held near them), not fixed
 
     def __post_init__(self) -> None:
         check_number("capture video_frames", self.video_frames, low=2, integer=True, flag="--video-frames")
@@ -113,6 +115,7 @@ class Capture:
     mask_dir: Path | None = None  # OUT/masks: a mask per frame, <name>.png at its size, 255 keep / 0 ignore
     known_poses: tuple[np.ndarray | None, ...] = ()  # per frame the given cam_from_world [3, 4] (None: not given)
     poses_file: Path | None = None  # the file or folder they came from (--poses)
+    poses_fixed: bool = True  # the given poses stay as given (else priors the adjustment moves a little)
 
     def read_masks(self, indices: Sequence[int] | None = None) -> list[np.ndarray] | None:
         """``[H_i, W_i]`` bool masks (True: use the pixel) of the frames at ``indices``; None without masks."""
@@ -396,6 +399,7 @@ def run_capture(source: Path, options: CaptureOptions, out_dir: Path) -> Capture
         mask_dir=mask_dir,
         known_poses=poses,
         poses_file=options.poses,
+        poses_fixed=not options.poses_prior,
     )
 
 

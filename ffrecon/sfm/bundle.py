@@ -124,10 +124,17 @@ def _pose_priors(
 class _Adjuster:
     """One bundle-adjustment configuration, applied repeatedly to a changing model."""
 
-    def __init__(self, options: BundleOptions, prior_centers: dict[int, np.ndarray] | None, prior_std: float) -> None:
+    def __init__(
+        self,
+        options: BundleOptions,
+        prior_centers: dict[int, np.ndarray] | None,
+        prior_std: float,
+        constant: frozenset[int] = frozenset(),
+    ) -> None:
         self.options = options
         self.prior_centers = prior_centers
         self.prior_std = prior_std
+        self.constant = constant  # image ids whose poses stay as they are (given poses, held fixed)
         self.count = 0
         self.last: pycolmap.BundleAdjustmentSummary | None = None
         self.refine_distortion = False  # switched on for the fine pass
@@ -156,7 +163,12 @@ class _Adjuster:
             config.add_image(image_id)
         if config.num_residuals(rec) == 0:
             return False
-        if self.prior_centers is not None:
+        fixed = [i for i in rec.reg_image_ids() if i in self.constant]
+        for image_id in fixed:
+            config.set_constant_rig_from_world_pose(rec.image(image_id).frame_id)
+        if len(fixed) >= 2:  # two fixed poses or more fix the gauge themselves
+            adjuster = pycolmap.create_default_bundle_adjuster(ba, config, rec)
+        elif self.prior_centers is not None:
             priors = _pose_priors(rec, self.prior_centers, self.prior_std)
             prior_options = pycolmap.PosePriorBundleAdjustmentOptions()
             prior_options.alignment_ransac.random_seed = 0
@@ -280,6 +292,7 @@ def refine_tracks(
     options: BundleOptions,
     *,
     min_observations: int,
+    fixed: Collection[str] = (),
 ) -> tuple[pycolmap.Reconstruction, BundleSummary | None, list[tuple[str, int]]]:
     """Triangulate and bundle-adjust ``rec`` (image ids equal to the database's).
 
@@ -289,14 +302,15 @@ def refine_tracks(
     ``min_observations`` at the end are deregistered and flagged. With ``options.refine_distortion``
     the fine pass runs twice, with and without the radial terms, and the lens model that pays is kept.
     Returns ``(rec, summary, [(name, observations) of the weak frames])`` (``rec`` may be a new
-    object); the summary is None if no adjustment ran.
+    object); the summary is None if no adjustment ran. ``fixed``: frames whose poses (given ones) every
+    adjustment holds constant and that are never registered again.
     """
     cache = _database_cache(db_path)
     names = {image.image_id: image.name for image in rec.images.values()}
     for image in list(rec.images.values()):
         if image.name not in usable and image.has_pose:
             rec.deregister_frame(image.frame_id)
-    adjust = _adjuster_for(rec, options)
+    adjust = _adjuster_for(rec, options, frozenset(i for i, n in names.items() if n in set(fixed)))
     retry = _coarse_pass(cache, rec, adjust, options, min_observations)
     radial = any(camera.model.name == "SIMPLE_RADIAL" for camera in rec.cameras.values())
     trial = pycolmap.Reconstruction(rec) if options.refine_distortion and radial else None
@@ -388,7 +402,9 @@ def _coarse_pass(
         max_iterations=options.coarse_max_iterations,
         end_adjusted=False,
     )
-    retry = [i for i in rec.reg_image_ids() if rec.image(i).num_points3D < min_observations]
+    retry = [
+        i for i in rec.reg_image_ids() if rec.image(i).num_points3D < min_observations and i not in adjust.constant
+    ]
     for image_id in retry:
         mapper.observation_manager.deregister_frame(rec.image(image_id).frame_id)
     mapper.end_reconstruction(False)
@@ -426,12 +442,15 @@ def _database_cache(db_path: Path) -> pycolmap.DatabaseCache:
         db.close()
 
 
-def _adjuster_for(rec: pycolmap.Reconstruction, options: BundleOptions) -> _Adjuster:
+def _adjuster_for(
+    rec: pycolmap.Reconstruction, options: BundleOptions, constant: frozenset[int] = frozenset()
+) -> _Adjuster:
     """The bundle adjuster for ``rec``: position priors at the current (feed-forward) camera centres when
-    ``options.use_pose_priors`` and there are three or more frames, with a std relative to their extent."""
+    ``options.use_pose_priors`` and there are three or more frames, with a std relative to their extent;
+    ``constant`` image ids keep their poses (then no priors)."""
     centers = {i: rec.image(i).projection_center() for i in rec.reg_image_ids()}
-    if not (options.use_pose_priors and len(centers) >= 3):
-        return _Adjuster(options, None, 0.0)
+    if constant or not (options.use_pose_priors and len(centers) >= 3):
+        return _Adjuster(options, None, 0.0, constant)
     pts = np.array(list(centers.values()))
     prior_std = options.prior_position_std * float(np.linalg.norm(pts.max(0) - pts.min(0)))
     return _Adjuster(options, centers, prior_std)

@@ -423,7 +423,12 @@ def extract_refine_features(
 
 
 def run_refine(
-    image_dir: Path, prediction: Prediction, options: RefineOptions, out_dir: Path, mask_dir: Path | None = None
+    image_dir: Path,
+    prediction: Prediction,
+    options: RefineOptions,
+    out_dir: Path,
+    mask_dir: Path | None = None,
+    fixed: frozenset[str] = frozenset(),
 ) -> RefineResult:
     """Refine the feed-forward cameras; writes the refined model to ``out_dir/refine/model`` (work files beside it;
     the run's ``sparse/0``, the final cameras, is written from it by the pipeline).
@@ -431,6 +436,8 @@ def run_refine(
     Args:
         image_dir: folder holding the images named in ``prediction.names``.
         mask_dir: COLMAP's masks of those images (``<name>.png``, 0: no features there); None: none.
+        fixed: frames whose poses (the user's, ``--poses``) stay as the prediction holds them: never reseeded,
+            relocalised or registered again, constant in every adjustment.
         prediction: feed-forward cameras (cam_from_world, OpenCV) and depth, original-photo pixels.
     Returns:
         :class:`RefineResult` with poses in the prediction's world frame. Weak frames are flagged, not
@@ -454,13 +461,13 @@ def run_refine(
         reused = _reuse_matches(db_path, graph, names, copied, options)
         verified = _match_unguided(db_path, pairs, reused, options, work / "pairs.txt")
     with timer.stage("screening"):
-        screened = _screen(db_path, prediction, verified, options)
+        screened = tuple(s for s in _screen(db_path, prediction, verified, options) if names[s.index] not in fixed)
         start = reseeded(prediction, screened)
     with timer.stage("matching"):
         guidance = _guide(db_path, start, pairs, verified, options, work / "pairs.txt")
     stats = feature_stats(db_path, names)
     flagged, rec, summary, dense, relocalized, stats = _adjust_with_dense(
-        image_dir, start, graph, image_ids, (cameras, colmap_cameras), db_path, stats, options, timer
+        image_dir, start, graph, image_ids, (cameras, colmap_cameras), db_path, stats, options, timer, fixed
     )
     refined_names = {img.name for img in rec.images.values() if img.has_pose} if summary is not None else set()
     provenance = dict(
@@ -481,18 +488,22 @@ def run_refine(
     with timer.stage("export"):
         ff_from_refined = _export_in_ff_frame(rec, prediction, image_dir, model_dir)
     result = _refined_result(rec, prediction, ff_from_refined, model_dir, timings=timer.freeze(), **provenance)
+    _log_refined(result)
+    return result
+
+
+def _log_refined(result: RefineResult) -> None:
     logger.info(
         "refined %d/%d frames, %d points, %.2f px reprojection error (%.1f s)",
         int(result.registered.sum()),
-        len(names),
+        len(result.names),
         len(result.points_xyz),
         result.mean_reprojection_error_px,
         result.timings.total_s,
     )
-    return result
 
 
-def _adjust_with_dense(image_dir, prediction, graph, image_ids, camera_sets, db_path, stats, options, timer):
+def _adjust_with_dense(image_dir, prediction, graph, image_ids, camera_sets, db_path, stats, options, timer, fixed):
     """Bundle adjustment with dense evidence: first for the frames SIFT leaves short of matches; then,
     once, for the frames the adjustment still left out (too few observations): those placed again
     from their neighbours' renderings get dense evidence from that pose, the others (not short the
@@ -507,17 +518,20 @@ def _adjust_with_dense(image_dir, prediction, graph, image_ids, camera_sets, db_
             dense = add_dense_evidence(db_path, image_dir, prediction, short, graph.reach(), options.dense)
         stats = feature_stats(db_path, names)
     flagged, rec, summary = _adjust(
-        prediction, image_ids, cameras, colmap_cameras, db_path, stats, dense, options, timer
+        prediction, image_ids, cameras, colmap_cameras, db_path, stats, dense, options, timer, fixed
     )
     if not (options.dense.enabled and flagged):
         return flagged, rec, summary, dense, (), stats
     with timer.stage("dense_evidence"):
-        start, more, found = _second_chance(image_dir, prediction, graph, rec, db_path, flagged, short, options)
+        left = [w for w in flagged if w.name not in fixed]  # given poses are not placed again
+        start, more, found = _second_chance(image_dir, prediction, graph, rec, db_path, left, short, options)
     if more is None:
         return flagged, rec, summary, dense, found, stats
     dense = more if dense is None else dense.merged(more)
     stats = feature_stats(db_path, names)
-    flagged, rec, summary = _adjust(start, image_ids, cameras, colmap_cameras, db_path, stats, dense, options, timer)
+    flagged, rec, summary = _adjust(
+        start, image_ids, cameras, colmap_cameras, db_path, stats, dense, options, timer, fixed
+    )
     return flagged, rec, summary, dense, found, stats
 
 
@@ -557,7 +571,9 @@ def _model_poses_kept(rec: pycolmap.Reconstruction, prediction: Prediction, max_
     return [k for k, c in zip(index, change) if c <= max_change_deg]
 
 
-def _adjust(prediction, image_ids, cameras, colmap_cameras, db_path, stats, dense, options: RefineOptions, timer):
+def _adjust(
+    prediction, image_ids, cameras, colmap_cameras, db_path, stats, dense, options: RefineOptions, timer, fixed=()
+):
     """Triangulate and bundle-adjust the feed-forward cameras on the database's matches: ``(flagged, rec, summary)``
     (summary None when fewer than two frames were usable)."""
     flagged = _weak_by_features(stats, options)
@@ -571,7 +587,8 @@ def _adjust(prediction, image_ids, cameras, colmap_cameras, db_path, stats, dens
     bundle = dataclasses.replace(options.bundle, ignore_two_view_tracks=False) if pairwise else options.bundle
     with timer.stage("triangulation_and_bundle_adjustment"), colmap_log_level():
         if len(usable) >= 2:
-            rec, summary, weak = refine_tracks(rec, db_path, usable, bundle, min_observations=options.min_observations)
+            obs = options.min_observations
+            rec, summary, weak = refine_tracks(rec, db_path, usable, bundle, min_observations=obs, fixed=fixed)
             flagged += [WeakFrame(n, WeakReason.FEW_OBSERVATIONS, k, options.min_observations) for n, k in weak]
     return flagged, rec, summary
 
@@ -679,7 +696,8 @@ def run_refine_reusing(
     gave to hold fixed (``--intrinsics``; the prediction holds them) the adjustment keeps as they are
     (pinhole, focal fixed)."""
     fixed_intrinsics = bool(capture.known_cameras) and capture.intrinsics_fixed
-    if capture.known_poses:  # the prediction holds the given poses: position priors keep the centres near them
+    given = frozenset(n for n, p in zip(capture.names, capture.known_poses) if p is not None)
+    if given and not capture.poses_fixed:  # the prediction holds the given poses: priors keep the centres near
         bundle = dataclasses.replace(options.bundle, use_pose_priors=True, prior_position_std=options.given_pose_std)
         options = dataclasses.replace(options, bundle=bundle)
     if fixed_intrinsics:
@@ -689,4 +707,5 @@ def run_refine_reusing(
         options = dataclasses.replace(options, reuse_features_from=colmap.database_path)
     elif options.reuse_features_from is None and isinstance(sift, Path):
         options = dataclasses.replace(options, reuse_features_from=sift)
-    return run_refine(capture.image_dir, prediction, options, out_dir, capture.mask_dir)
+    fixed = given if capture.poses_fixed else frozenset()
+    return run_refine(capture.image_dir, prediction, options, out_dir, capture.mask_dir, fixed)
