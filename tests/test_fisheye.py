@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from ffrecon.capture import CaptureOptions
-from ffrecon.capture.fisheye import undistort_fisheye
+from ffrecon.capture.lens import undistort_lens
 from ffrecon.pipeline import RunOptions, run
 from ffrecon.splat.stage import SplatOptions
 from ffrecon.synthetic import SceneOptions, make_scene, write_scene
@@ -25,7 +25,7 @@ def test_the_undistorted_fisheye_frame_is_the_pinhole_view(tmp_path):
     pinhole = make_scene(SceneOptions(num_frames=1, fov_x_deg=same_k, seed=3))
     path = tmp_path / "frame.png"
     cv2.imwrite(str(path), cv2.cvtColor(fisheye.images[0], cv2.COLOR_RGB2BGR))
-    undistort_fisheye(path, fisheye.camera, (0.0, 0.0, 0.0, 0.0))
+    undistort_lens(path, fisheye.camera, ("fisheye", (0.0, 0.0, 0.0, 0.0)))
     undistorted = cv2.cvtColor(cv2.imread(str(path)), cv2.COLOR_BGR2RGB).astype(float)
     before = np.abs(fisheye.images[0].astype(float) - pinhole.images[0]).mean()
     after = np.abs(undistorted - pinhole.images[0]).mean()

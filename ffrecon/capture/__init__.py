@@ -12,7 +12,6 @@ import cv2
 import numpy as np
 from tqdm.auto import tqdm
 
-from ffrecon.capture.fisheye import undistort_fisheye
 from ffrecon.capture.images import (
     IMAGE_EXTENSIONS,
     VIDEO_EXTENSIONS,
@@ -21,6 +20,7 @@ from ffrecon.capture.images import (
     list_images,
     load_photo,
 )
+from ffrecon.capture.lens import undistort_lens
 from ffrecon.capture.masks import write_masks
 from ffrecon.capture.quality import CaptureQuality, FrameMeasures, QualityOptions, assess_capture, measure_frame
 from ffrecon.capture.video import extract_video_frames
@@ -383,7 +383,7 @@ def run_capture(source: Path, options: CaptureOptions, out_dir: Path) -> Capture
         originals = loaded.original_sizes_wh or [f.size_wh for f in loaded.frames]
         mask_dir = write_masks(Path(options.masks), loaded.frames, originals, Path(out_dir) / "masks")
     if known:
-        _undistort_fisheyes(intrinsics, loaded.frames, known, image_dir, mask_dir)
+        _undistort_lenses(intrinsics, loaded.frames, known, image_dir, mask_dir)
     return Capture(
         tuple(loaded.frames),
         image_dir,
@@ -403,23 +403,23 @@ def run_capture(source: Path, options: CaptureOptions, out_dir: Path) -> Capture
     )
 
 
-def _undistort_fisheyes(
+def _undistort_lenses(
     intrinsics: KnownIntrinsics,
     frames: Sequence[Frame],
     cameras: tuple[PinholeCamera, ...],
     image_dir: Path,
     mask_dir: Path | None,
 ) -> None:
-    """Frames whose given camera is a fisheye become pinhole frames of the same K (:mod:`.fisheye`)."""
+    """Frames whose given camera has a lens become pinhole frames of the same K (:mod:`.lens`)."""
     done = []
     for frame, camera in zip(frames, cameras):
-        lens = intrinsics.fisheye_of(frame.name)
+        lens = intrinsics.lens_of(frame.name)
         if lens is not None:
             mask = None if mask_dir is None else mask_dir / f"{frame.name}.png"
-            undistort_fisheye(image_dir / frame.name, camera, lens, mask)
+            undistort_lens(image_dir / frame.name, camera, lens, mask)
             done.append(frame.name)
     if done:
-        log.info("%d fisheye frames undistorted to pinhole frames of the same K", len(done))
+        log.info("%d frames with a given lens undistorted to pinhole frames of the same K", len(done))
 
 
 def _known_poses(path: Path, names: list[str]) -> tuple[np.ndarray | None, ...]:

@@ -2,11 +2,11 @@
 
 Either one camera for every photo (a ``cameras.txt`` with one line: ``CAMERA_ID MODEL WIDTH HEIGHT
 PARAMS...``), or one per photo (the photo's file name in place of the id: ``NAME MODEL WIDTH HEIGHT
-PARAMS...``). Models: ``SIMPLE_PINHOLE`` (f, cx, cy), ``PINHOLE`` (fx, fy, cx, cy), and COLMAP's lens
-models with zero distortion (``SIMPLE_RADIAL``, ``RADIAL``, ``OPENCV``), and ``OPENCV_FISHEYE`` (fx, fy,
-cx, cy, k1..k4: the capture undistorts those photos to pinhole frames of the same K,
-:func:`ffrecon.capture.fisheye.undistort_fisheye`). Values are in the pixels of the given ``WIDTH x HEIGHT``
-and follow COLMAP's pixel-centre rule; they are scaled to each frame as captured.
+PARAMS...``). Models: ``SIMPLE_PINHOLE`` (f, cx, cy), ``PINHOLE`` (fx, fy, cx, cy), and the lens models
+``SIMPLE_RADIAL`` (f, cx, cy, k), ``RADIAL`` (f, cx, cy, k1, k2), ``OPENCV`` (fx, fy, cx, cy, k1, k2, p1,
+p2) and ``OPENCV_FISHEYE`` (fx, fy, cx, cy, k1..k4): the capture undistorts photos with a lens to pinhole
+frames of the same K (:func:`ffrecon.capture.lens.undistort_lens`). Values are in the pixels of the given
+``WIDTH x HEIGHT`` and follow COLMAP's pixel-centre rule; they are scaled to each frame as captured.
 """
 
 from __future__ import annotations
@@ -24,8 +24,22 @@ _MODELS = {
     "SIMPLE_RADIAL": (4, 0, 0, 1, 2, 3),
     "RADIAL": (5, 0, 0, 1, 2, 3),
     "OPENCV": (8, 0, 1, 2, 3, 4),
-    "OPENCV_FISHEYE": (8, 0, 1, 2, 3, 4),  # k1..k4 of OpenCV's fisheye model: the capture undistorts the photos
+    "OPENCV_FISHEYE": (8, 0, 1, 2, 3, 4),  # k1..k4 of OpenCV's fisheye model
 }
+Lens = tuple[str, tuple[float, float, float, float]]  # ("fisheye", k1..k4) or ("opencv", (k1, k2, p1, p2))
+
+
+def _lens(model: str, coefficients: list[float]) -> Lens | None:
+    """The lens of a camera line: OpenCV's fisheye model (a fisheye even with k1..k4 = 0: an equidistant lens)
+    or its radial-tangential one; None for a pinhole (no distortion)."""
+    if model == "OPENCV_FISHEYE":
+        return "fisheye", tuple(coefficients)
+    if not any(coefficients):
+        return None
+    padded = (coefficients + [0.0, 0.0, 0.0, 0.0])[:4]  # SIMPLE_RADIAL (k), RADIAL (k1, k2), OPENCV (k1, k2, p1, p2)
+    return "opencv", (padded[0], padded[1], padded[2], padded[3])
+
+
 FIX = "write one line per camera as in COLMAP's cameras.txt: ID (or the photo's name) MODEL WIDTH HEIGHT PARAMS"
 
 
@@ -36,13 +50,12 @@ class KnownIntrinsics:
     path: Path
     shared: PinholeCamera | None
     per_image: tuple[tuple[str, PinholeCamera], ...] = ()
-    # OPENCV_FISHEYE lenses, (k1, k2, k3, k4) by photo name ("" for the shared camera); the camera is then the
-    # fisheye's fx, fy, cx, cy.
-    fisheye: tuple[tuple[str, tuple[float, float, float, float]], ...] = ()
+    # Lenses with distortion by photo name ("" for the shared camera); the camera is then the lens's fx, fy, cx, cy.
+    lenses: tuple[tuple[str, Lens], ...] = ()
 
-    def fisheye_of(self, name: str) -> tuple[float, float, float, float] | None:
-        """The fisheye lens of photo ``name``, None for a pinhole."""
-        lenses = dict(self.fisheye)
+    def lens_of(self, name: str) -> Lens | None:
+        """The lens of photo ``name``, None for a pinhole."""
+        lenses = dict(self.lenses)
         return lenses.get("") if self.shared is not None else lenses.get(name)
 
     def camera(self, name: str, size_wh: tuple[int, int]) -> PinholeCamera:
@@ -61,7 +74,7 @@ class KnownIntrinsics:
         return camera if (sx, sy) == (1.0, 1.0) else camera.scaled(sx, sy)
 
 
-def _camera(tokens: list[str], where: str) -> tuple[PinholeCamera, tuple[float, ...] | None]:
+def _camera(tokens: list[str], where: str) -> tuple[PinholeCamera, Lens | None]:
     model = tokens[1].upper()
     if model not in _MODELS:
         raise InputError(f"{where}: camera model {tokens[1]} is not one ffrecon takes", f"use one of {list(_MODELS)}")
@@ -73,16 +86,10 @@ def _camera(tokens: list[str], where: str) -> tuple[PinholeCamera, tuple[float, 
         raise InputError(f"{where}: WIDTH HEIGHT and the parameters must be numbers", FIX) from None
     if len(params) != count:
         raise InputError(f"{where}: {model} takes {count} parameters, the line has {len(params)}", FIX)
-    fisheye = tuple(params[lens:]) if model == "OPENCV_FISHEYE" else None
-    if any(params[lens:]) and fisheye is None:
-        raise InputError(
-            f"{where}: the lens has distortion ({model} {params[lens:]}); known distortion is not taken yet",
-            "undistort the photos (colmap image_undistorter) and give their pinhole camera",
-        )
     values = [params[fx], params[fy], params[cx], params[cy]]
     if min(width, height) < 1 or not all(v > 0 for v in values) or not all(abs(v) < 1e7 for v in values):
         raise InputError(f"{where}: a size or parameter is not a positive, finite number", FIX)
-    return PinholeCamera(width, height, *values), fisheye
+    return PinholeCamera(width, height, *values), _lens(model, params[lens:])
 
 
 def read_intrinsics(path: Path) -> KnownIntrinsics:
@@ -100,11 +107,11 @@ def read_intrinsics(path: Path) -> KnownIntrinsics:
     by_id = [key.isdigit() for key, _ in cameras]
     if all(by_id) and len(cameras) == 1:
         lens = parsed[0][2]
-        return KnownIntrinsics(path, cameras[0][1], fisheye=(("", lens),) if lens is not None else ())
+        return KnownIntrinsics(path, cameras[0][1], lenses=(("", lens),) if lens is not None else ())
     if any(by_id):
         raise InputError(
             f"--intrinsics {path}: {len(cameras)} cameras by id, and nothing says which photo has which",
             "give one camera for all photos, or name each photo in place of the id",
         )
     lenses = tuple((key, lens) for key, _, lens in parsed if lens is not None)
-    return KnownIntrinsics(path, None, tuple(cameras), fisheye=lenses)
+    return KnownIntrinsics(path, None, tuple(cameras), lenses=lenses)
