@@ -27,9 +27,11 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 import onnx
 
+from ffrecon.checks import check_number
 from ffrecon.geometry.poses import camera_centers, compose_poses, invert_pose
 from ffrecon.geometry.projection import pixel_centers
 from ffrecon.geometry.rotations import axis_angle_to_matrix, matrix_to_quat_xyzw
@@ -62,6 +64,14 @@ class SimulationOptions:
     bad_rotation_deg: float = 20.0  # rotation error of the bad frames (their centre error is 5x too)
     target_size: int = 518  # network width of preprocess_vggt (CROP mode) the model is built for
     seed: int = 0
+    # > 1: depth and confidence are stored at 1/depth_stride of the network resolution (area averages) and
+    # upsampled bilinearly in the graph, so the model is about depth_stride^2 smaller: at 1 a frame stores
+    # 1.6 MB (a thousand frames would pass protobuf's 2 GB limit), at 4 about 0.1 MB. Edges blur over
+    # depth_stride network pixels.
+    depth_stride: int = 1
+
+    def __post_init__(self) -> None:
+        check_number("SimulationOptions.depth_stride", self.depth_stride, low=1, high=16, integer=True)
 
 
 @dataclass(frozen=True)
@@ -203,7 +213,16 @@ def simulate(
     K_net = K.copy()
     K_net[:, 0] *= t.scale_x
     K_net[:, 1] *= t.scale_y
+    if options.depth_stride > 1:
+        net_depth, net_conf = (_area_downsampled(a, options.depth_stride) for a in (net_depth, net_conf))
     return truth, _stored_arrays(batch, cam_from_world, K_net, net_depth, net_conf)
+
+
+def _area_downsampled(maps: np.ndarray, stride: int) -> np.ndarray:
+    """``[N, H, W]`` maps area-averaged to ``[N, ceil(H / stride), ceil(W / stride)]``."""
+    h, w = maps.shape[1:]
+    size = (-(-w // stride), -(-h // stride))
+    return np.stack([cv2.resize(m, size, interpolation=cv2.INTER_AREA) for m in maps]).astype(np.float32)
 
 
 def _fill_unknown(depth: np.ndarray, conf: np.ndarray | None, known: np.ndarray) -> None:
@@ -286,10 +305,24 @@ def build_simulated_vggt(
     return truth
 
 
+def _full_resolution(g: GraphBuilder, flat: str, stored_hw: tuple[int, int], size_hw: tuple[int, int]) -> str:
+    """``[S, Hn * Wn]``: per-frame maps stored flat at ``stored_hw``, bilinearly upsampled to the network's
+    ``size_hw`` when smaller (see ``SimulationOptions.depth_stride``)."""
+    if tuple(stored_hw) == tuple(size_hw):
+        return flat
+    maps = g.op("Reshape", [flat, g.const(np.array([-1, 1, *stored_hw], np.int64))])
+    first_two = g.op(
+        "Slice", [g.op("Shape", [maps]), g.const(np.array([0], np.int64)), g.const(np.array([2], np.int64))]
+    )
+    sizes = g.op("Concat", [first_two, g.const(np.array(size_hw, np.int64))], axis=0)
+    up = g.op("Resize", [maps, "", "", sizes], mode="linear", coordinate_transformation_mode="half_pixel")
+    return g.op("Reshape", [up, g.const(np.array([-1, size_hw[0] * size_hw[1]], np.int64))])
+
+
 def _build_graph(arrays: dict) -> onnx.ModelProto:
     """The ONNX graph described in the module docstring, from :func:`simulate`'s ``arrays``."""
     hn, wn = arrays["size_hw"]
-    n, p = len(arrays["depth"]), hn * wn
+    n = len(arrays["depth"])
     g = GraphBuilder("ffrecon_simulated_vggt")
     x = g.input("input_images", ["S", 3, hn, wn])
     idx = _frame_index(g, x, arrays["signatures"], (hn, wn))  # [S] index of the scene frame
@@ -303,8 +336,8 @@ def _build_graph(arrays: dict) -> onnx.ModelProto:
         gather("quat_xyzw", arrays["quat_xyzw"]),
     )
     fov, inv_f = gather("fov_hw", arrays["fov_hw"]), gather("inv_focal", arrays["inv_focal"])
-    depth = gather("depth", arrays["depth"].reshape(n, p))
-    conf = gather("conf", arrays["conf"].reshape(n, p))
+    depth = _full_resolution(g, gather("depth", arrays["depth"].reshape(n, -1)), arrays["depth"].shape[1:], (hn, wn))
+    conf = _full_resolution(g, gather("conf", arrays["conf"].reshape(n, -1)), arrays["conf"].shape[1:], (hn, wn))
     zero = g.const(np.array(0, np.int64))
     rot0, center0, quat0 = (g.op("Gather", [v, zero], axis=0) for v in (rot, centers, quat))
     quat_rel = _quat_relative_to_first(g, quat, quat0)

@@ -7,6 +7,7 @@ import onnx
 import onnxruntime as ort
 import pytest
 
+from ffrecon.errors import InputError
 from ffrecon.geometry.metrics import pose_errors
 from ffrecon.geometry.poses import camera_centers
 from ffrecon.geometry.projection import unproject_depth
@@ -142,3 +143,27 @@ def test_zero_error_model_returns_ground_truth(tmp_path):
     np.testing.assert_allclose(K[:, 0, 0] * scene.options.width / 518, scene.camera.fx, rtol=1e-5)
     with pytest.raises(ValueError, match="bad_frames"):
         build_simulated_vggt(scene, tmp_path / "bad.onnx", SimulationOptions(bad_frames=(3,)))
+
+
+def test_depth_stored_at_a_stride_is_upsampled_in_the_graph(tmp_path):
+    """``depth_stride`` 4: a model about 16 times smaller whose depth and confidence are the full-resolution
+    ones away from depth edges (bilinear upsampling of area averages), for the long-capture benchmarks."""
+    scene = make_scene(SceneOptions(num_frames=4, width=320, height=240, seed=2))
+    outs = {}
+    for stride in (1, 4):
+        path = tmp_path / f"s{stride}.onnx"
+        build_simulated_vggt(scene, path, SimulationOptions(seed=1, depth_stride=stride))
+        session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+        batch, _ = preprocess_vggt(list(scene.images))
+        values = session.run(None, {"input_images": batch})
+        stored = {t.name: len(t.raw_data) for t in onnx.load(str(path)).graph.initializer}
+        per_frame = sum(size for name, size in stored.items() if name.split("_")[0] in ("depth", "conf"))
+        outs[stride] = (dict(zip([o.name for o in session.get_outputs()], values)), per_frame)
+    (full, full_bytes), (strided, strided_bytes) = outs[1], outs[4]
+    assert 0 < strided_bytes < full_bytes / 14  # what grows with the frames: depth and confidence
+    assert strided["depth"].shape == full["depth"].shape
+    np.testing.assert_allclose(strided["pose_enc"][..., 7:], full["pose_enc"][..., 7:], rtol=1e-6)  # same focal
+    relative = np.abs(strided["depth"] / full["depth"] - 1)
+    assert np.median(relative) < 0.005 and np.quantile(relative, 0.9) < 0.05
+    with pytest.raises(InputError, match="depth_stride"):
+        SimulationOptions(depth_stride=0)
