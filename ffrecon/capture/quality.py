@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+from tqdm.auto import tqdm
 
 WORK_SIDE = 640  # frames are measured downscaled (INTER_AREA) to this long side
 # Light smoothing before the derivatives: without it, 8-bit rounding and sensor noise dominate the
@@ -143,7 +144,7 @@ def _best_neighbour_matches(measures: Sequence[FrameMeasures], neighbours: int) 
     matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
     n = len(measures)
     best = [-1] * n
-    for i in range(n):
+    for i in tqdm(range(n), desc="capture overlap check", unit="img", disable=None if n > 1 else True):
         for j in range(max(0, i - neighbours), min(n, i + neighbours + 1)):
             if j != i:
                 best[i] = max(best[i], _orb_inliers(measures[i], measures[j], matcher))
