@@ -14,7 +14,7 @@ from pathlib import Path
 
 from ffrecon import __version__
 from ffrecon.concurrency import interrupts_deferred
-from ffrecon.errors import FFReconError, Interrupted
+from ffrecon.errors import FFReconError, InputError, Interrupted
 
 log = logging.getLogger("ffrecon")
 
@@ -87,6 +87,33 @@ def _add_model_call_options(p: argparse.ArgumentParser) -> None:
         help="preprocessing mode (default: the model family's reference; VGGT: crop or pad, DA3: resize or crop)",
     )
     p.add_argument("--threads", type=int, default=None, help="CPU threads for inference, >= 1 (default: all)")
+    _add_ray_options(p)
+
+
+def _add_ray_options(p: argparse.ArgumentParser) -> None:
+    """The model's chunks on Ray (defaults: RayOptions')."""
+    p.add_argument(
+        "--ray",
+        nargs="?",
+        const="",
+        default=None,
+        metavar="ADDRESS",
+        help="run the model's chunks on Ray workers (pip install 'ffrecon[distributed]'): alone, a local Ray "
+        "instance; with an address ('auto', 'ray://HEAD:10001'), that cluster (docs/pipeline.md)",
+    )
+    p.add_argument(
+        "--ray-workers",
+        type=int,
+        default=None,
+        help="with --ray: model sessions (default: as many as the cluster's CPUs allow, one per chunk at most)",
+    )
+    p.add_argument(
+        "--ray-gpus",
+        type=float,
+        default=None,
+        help="with --ray: GPUs per model session (1 on a GPU cluster: onnxruntime runs on CUDA there; "
+        "default: none, the CPU)",
+    )
 
 
 def _add_known_input_options(p: argparse.ArgumentParser) -> None:
@@ -402,6 +429,17 @@ def _given(**values) -> dict:
     return {k: v for k, v in values.items() if v is not None}
 
 
+def _ray_options(args: argparse.Namespace):
+    from ffrecon.models.distributed import RayOptions
+
+    if args.ray is None:
+        for flag, value in (("--ray-workers", args.ray_workers), ("--ray-gpus", args.ray_gpus)):
+            if value is not None:
+                raise InputError(f"{flag} is given without --ray", "add --ray (and a cluster address if any)")
+        return None
+    return RayOptions(address=args.ray or None, **_given(workers=args.ray_workers, gpus_per_worker=args.ray_gpus))
+
+
 def _run_options(args: argparse.Namespace, ground_truth: Path | None = None):
     from ffrecon.capture import CaptureOptions
     from ffrecon.export.stage import ExportOptions
@@ -437,7 +475,7 @@ def _run_options(args: argparse.Namespace, ground_truth: Path | None = None):
     return dataclasses.replace(
         preset,
         capture=capture,
-        feedforward=FeedForwardOptions(multiview=multiview, **_given(threads=args.threads)),
+        feedforward=FeedForwardOptions(multiview=multiview, ray=_ray_options(args), **_given(threads=args.threads)),
         colmap=dataclasses.replace(preset.colmap, enabled=preset.colmap.enabled and not args.no_colmap),
         gates=GateOptions(**_given(min_registration_ratio=args.min_registration)),
         refine=dataclasses.replace(preset.refine, enabled=not args.no_refine),

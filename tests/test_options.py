@@ -11,6 +11,7 @@ from PIL import Image
 
 from ffrecon.cli import main
 from ffrecon.errors import InputError
+from ffrecon.models.distributed import RayOptions
 from ffrecon.models.global_alignment import AlignmentOptions
 from ffrecon.models.multiview import MultiviewOptions
 from ffrecon.models.stage import FeedForwardOptions
@@ -54,6 +55,8 @@ CLI_CASES = {
     ),
     "threads -4": ("--threads", ["--threads", "-4"], lambda t: FeedForwardOptions(threads=-4)),
     "threads 0": ("--threads", ["--threads", "0"], lambda t: FeedForwardOptions(threads=0)),
+    "ray-workers 0": ("--ray-workers", ["--ray", "--ray-workers", "0"], lambda t: RayOptions(workers=0)),
+    "ray-gpus -1": ("--ray-gpus", ["--ray", "--ray-gpus", "-1"], lambda t: RayOptions(gpus_per_worker=-1.0)),
     "chunk-size 0": ("--chunk-size", ["--chunk-size", "0"], lambda t: MultiviewOptions(chunk_size=0)),
     "chunk-size -1": ("--chunk-size", ["--chunk-size", "-1"], lambda t: MultiviewOptions(chunk_size=-1)),
     "chunk-overlap 0": ("--chunk-overlap", ["--chunk-overlap", "0"], lambda t: MultiviewOptions(chunk_overlap=0)),

@@ -53,6 +53,42 @@ class MultiviewOptions:
         check_number("MultiviewOptions.align_points_per_frame", self.align_points_per_frame, low=1, integer=True)
 
 
+@dataclass(frozen=True)
+class ChunkLayout:
+    """How the frames were split into model calls and what ran them, for the report."""
+
+    size: int  # frames per call
+    overlap: int  # frames shared by consecutive calls
+    frames: tuple[tuple[int, int], ...]  # per call, its first and last frame index
+    engine: str = "local"  # "local" (this process) or "ray"
+    address: str = ""  # Ray's cluster ("local": an instance this run started)
+    workers: int = 1  # model sessions
+    nodes: int = 1  # machines
+    chunk_workers: tuple[str, ...] = ()  # per call, the host:pid that ran it (Ray)
+
+    @staticmethod
+    def of(chunks: Sequence[Sequence[int]], size: int, overlap: int, **engine) -> ChunkLayout:
+        return ChunkLayout(size, overlap, tuple((int(c[0]), int(c[-1])) for c in chunks), **engine)
+
+    def to_report(self) -> dict:
+        out = {"size": self.size, "overlap": self.overlap, "calls": [list(f) for f in self.frames]}
+        out |= {"engine": self.engine, "workers": self.workers}
+        if self.engine == "ray":
+            out |= {"address": self.address, "nodes": self.nodes, "chunk_workers": list(self.chunk_workers)}
+        return out
+
+
+def preprocess_mode(adapter: MultiviewAdapter, options: MultiviewOptions) -> PreprocessMode:
+    """The preprocessing asked for, or the family's reference one; a :class:`ModelError` if it has no such mode."""
+    mode = options.mode or adapter.modes[0]
+    if mode not in adapter.modes:
+        raise ModelError(
+            f"{adapter.family.value} models have no '{mode.value}' preprocessing",
+            f"use --preprocess {' or '.join(m.value for m in adapter.modes)}",
+        )
+    return mode
+
+
 def plan_chunks(num_frames: int, chunk_size: int, overlap: int) -> list[list[int]]:
     """Frame indices per model call; consecutive chunks share ``overlap`` frames.
 
@@ -89,24 +125,36 @@ def predict_multiview(
     """
     if adapter is None:
         from ffrecon.models.vggt import ADAPTER as adapter
-    mode = options.mode or adapter.modes[0]
-    if mode not in adapter.modes:
-        raise ModelError(
-            f"{adapter.family.value} models have no '{mode.value}' preprocessing",
-            f"use --preprocess {' or '.join(m.value for m in adapter.modes)}",
-        )
-    chunk_size = options.chunk_size or FALLBACK_CHUNK_SIZE
-    chunks = plan_chunks(len(images), chunk_size, min(options.chunk_overlap, chunk_size - 1))
-    parts = []
-    for chunk in tqdm(chunks, desc="feed-forward", unit="chunk", disable=None):
-        batch, transforms = adapter.preprocess([images[k] for k in chunk], mode)
-        outputs = infer(batch)
-        part = adapter.decode(outputs, transforms, [names[k] for k in chunk], model, options.max_depth_side)
-        validate_prediction(
-            part, camera_outputs=adapter.camera_outputs
-        )  # before merging: bad cameras poison the chunk Sim(3)
-        parts.append(part)
+    mode = preprocess_mode(adapter, options)
+    chunks = plan_chunks(len(images), *chunking(options))
+    parts = [
+        predict_chunk([images[k] for k in chunk], [names[k] for k in chunk], infer, model, mode, adapter, options)
+        for chunk in tqdm(chunks, desc="feed-forward", unit="chunk", disable=None)
+    ]
     return merge_chunks(parts, chunks, options.align_points_per_frame)
+
+
+def chunking(options: MultiviewOptions) -> tuple[int, int]:
+    """``(chunk_size, chunk_overlap)`` as the model calls use them (the overlap capped at the size less one)."""
+    size = options.chunk_size or FALLBACK_CHUNK_SIZE
+    return size, min(options.chunk_overlap, size - 1)
+
+
+def predict_chunk(
+    images: Sequence[np.ndarray],
+    names: Sequence[str],
+    infer: Callable[[np.ndarray], dict[str, np.ndarray]],
+    model: ModelInfo,
+    mode: PreprocessMode,
+    adapter: MultiviewAdapter,
+    options: MultiviewOptions,
+) -> Prediction:
+    """One model call on one chunk's frames, decoded and validated (before merging: bad cameras poison the
+    chunk Sim(3)). Chunks are independent until :func:`merge_chunks`, so this also runs on other workers."""
+    batch, transforms = adapter.preprocess(list(images), mode)
+    part = adapter.decode(infer(batch), transforms, list(names), model, options.max_depth_side)
+    validate_prediction(part, camera_outputs=adapter.camera_outputs)
+    return part
 
 
 def _sample_points(pred: Prediction, k: int, mask: np.ndarray, max_points: int) -> tuple[np.ndarray, np.ndarray]:

@@ -165,6 +165,20 @@ class OnnxModel:
             ) from exc
         return dict(zip(names, values))
 
+    def run_checked(self, image_input: str, feeds: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """:meth:`run`, first checking the batch against sizes the export baked in (a clearer error than
+        onnxruntime's)."""
+        fixed = self.fixed_size_hw(image_input)
+        got = tuple(feeds[image_input].shape[-2:])
+        if fixed is not None and got != fixed:
+            raise ModelError(
+                f"{self.path.name} was exported for {fixed[1]}x{fixed[0]} inputs, "
+                f"but these photos preprocess to {got[1]}x{got[0]}",
+                "re-export the model for these photos (`ffrecon export-model ... --photos DIR`, or "
+                f"--height {got[0]} --width {got[1]}), or use photos of the aspect ratio it was exported for",
+            )
+        return self.run(feeds)
+
 
 def _matches(family: ModelFamily, in_names: set[str], out_names: set[str]) -> bool:
     inputs, outputs = SIGNATURES[family]

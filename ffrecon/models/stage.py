@@ -17,13 +17,22 @@ from ffrecon.capture import Capture
 from ffrecon.checks import check_number
 from ffrecon.colmap_io import reconstruction_from_cameras, write_reconstruction
 from ffrecon.concurrency import CoreShare
-from ffrecon.errors import InputError, ModelError
+from ffrecon.errors import InputError
 from ffrecon.formats.pointcloud import FuseOptions, fuse_prediction, write_depth_maps
 from ffrecon.geometry.alignment import umeyama
 from ffrecon.geometry.poses import camera_centers
 from ffrecon.models.adapters import adapter_for
+from ffrecon.models.distributed import RayOptions
 from ffrecon.models.memory import default_chunk_size
-from ffrecon.models.multiview import MultiviewOptions, predict_multiview
+from ffrecon.models.multiview import (
+    ChunkLayout,
+    MultiviewOptions,
+    chunking,
+    merge_chunks,
+    plan_chunks,
+    predict_multiview,
+    preprocess_mode,
+)
 from ffrecon.models.pairwise import PairwiseOptions
 from ffrecon.models.runner import OnnxModel, cpu_threads
 from ffrecon.types import ModelFamily, ModelInfo, PinholeCamera, Prediction
@@ -38,6 +47,7 @@ class FeedForwardOptions:
     multiview: MultiviewOptions = field(default_factory=MultiviewOptions)
     pairwise: PairwiseOptions = field(default_factory=PairwiseOptions)
     fuse: FuseOptions = field(default_factory=FuseOptions)
+    ray: RayOptions | None = None  # run the model's chunks on Ray (local instance or cluster); None: in this process
 
     def __post_init__(self) -> None:
         check_number("FeedForwardOptions.threads", self.threads, low=1, integer=True, allow_none=True, flag="--threads")
@@ -55,6 +65,7 @@ class FeedForwardResult:
     model_cameras: tuple[PinholeCamera, ...] = ()
     # The model's own poses where the user gave poses (--poses): the prediction holds the given ones.
     model_poses: np.ndarray | None = None  # [N, 3, 4] cam_from_world
+    chunks: ChunkLayout | None = None  # multi-view families: how the frames were split into model calls
 
     def to_report(self) -> dict:
         m = self.prediction.model
@@ -76,6 +87,7 @@ class FeedForwardResult:
                 for n, c in zip(self.prediction.names, self.prediction.cameras)
             ],
             **({"model_cameras": _model_cameras(self.prediction, self.model_cameras)} if self.model_cameras else {}),
+            **({"chunks": self.chunks.to_report()} if self.chunks is not None else {}),
         }
 
 
@@ -106,41 +118,59 @@ def _assumptions(model: ModelInfo, capture: Capture) -> str:
     )
 
 
-def predict(model: OnnxModel, capture: Capture, images: list[np.ndarray], options: FeedForwardOptions) -> Prediction:
+@dataclass(frozen=True)
+class ModelPass:
+    prediction: Prediction  # validated
+    chunks: ChunkLayout | None = None  # multi-view families: the model calls
+
+
+def predict(model: OnnxModel, capture: Capture, images: list[np.ndarray], options: FeedForwardOptions) -> ModelPass:
     """Run the model's family adapter on every frame of the capture; the result is validated."""
     names = list(capture.names)
+    if options.ray is not None and model.family in (ModelFamily.PAIRWISE, ModelFamily.MONODEPTH):
+        log.warning("--ray runs a multi-view model's chunks; this %s model runs here", model.family.value)
     if model.family is ModelFamily.PAIRWISE:
         prediction = _predict_pairwise(model, images, names, options)
         validate_prediction(
             prediction, camera_outputs="pts3d/pts3d_in_other_view (after global alignment)", depth_outputs="pts3d"
         )
-        return prediction
+        return ModelPass(prediction)
     if model.family is ModelFamily.MONODEPTH:
-        from ffrecon.models import monodepth
+        return ModelPass(_predict_monodepth(model, capture, images, names, options))
+    return _predict_multiview(model, images, names, options)
 
-        if len(images) != 1:
-            raise InputError(
-                f"{model.path.name} is a monocular depth model (one image in, depth out), "
-                f"but the input has {len(images)} images",
-                "pass one photo, or use a multi-view model (VGGT, Depth Anything 3, Pi3) "
-                "or a pairwise one (DUSt3R, MASt3R) for several",
-            )
-        adapter = monodepth.ADAPTER
-        infer = lambda batch: _run_checked(model, adapter.input_name, {adapter.input_name: batch})  # noqa: E731
-        prediction = monodepth.predict_monodepth(
-            images[0],
-            names[0],
-            infer,
-            model.info(),
-            focal_px=capture.frames[0].focal_prior_px,
-            max_depth_side=options.multiview.max_depth_side,
+
+def _predict_monodepth(
+    model: OnnxModel, capture: Capture, images: list[np.ndarray], names: list[str], options: FeedForwardOptions
+) -> Prediction:
+    from ffrecon.models import monodepth
+
+    if len(images) != 1:
+        raise InputError(
+            f"{model.path.name} is a monocular depth model (one image in, depth out), "
+            f"but the input has {len(images)} images",
+            "pass one photo, or use a multi-view model (VGGT, Depth Anything 3, Pi3) "
+            "or a pairwise one (DUSt3R, MASt3R) for several",
         )
-        validate_prediction(
-            prediction, camera_outputs="(EXIF focal or the stated guess)", depth_outputs="predicted_depth"
-        )
-        return prediction
+    adapter = monodepth.ADAPTER
+    infer = lambda batch: model.run_checked(adapter.input_name, {adapter.input_name: batch})  # noqa: E731
+    prediction = monodepth.predict_monodepth(
+        images[0],
+        names[0],
+        infer,
+        model.info(),
+        focal_px=capture.frames[0].focal_prior_px,
+        max_depth_side=options.multiview.max_depth_side,
+    )
+    validate_prediction(prediction, camera_outputs="(EXIF focal or the stated guess)", depth_outputs="predicted_depth")
+    return prediction
+
+
+def _predict_multiview(
+    model: OnnxModel, images: list[np.ndarray], names: list[str], options: FeedForwardOptions
+) -> ModelPass:
+    """Chunked model calls, in this process or on Ray's workers (``options.ray``), merged here."""
     adapter = adapter_for(model.family)
-    infer = lambda batch: _run_checked(model, adapter.input_name, {adapter.input_name: batch})  # noqa: E731
     mv_options = options.multiview
     if mv_options.chunk_size is None:
         size_hw = tuple(adapter.preprocess(images[:1], mv_options.mode or adapter.modes[0])[0].shape[-2:])
@@ -148,7 +178,16 @@ def predict(model: OnnxModel, capture: Capture, images: list[np.ndarray], option
         mv_options = dataclasses.replace(
             mv_options, chunk_size=chunk, chunk_overlap=min(mv_options.chunk_overlap, chunk - 1)
         )
-    return predict_multiview(images, names, infer, model.info(), mv_options, adapter)
+    chunks = plan_chunks(len(images), *chunking(mv_options))
+    if options.ray is not None:
+        from ffrecon.models.distributed import predict_chunks_ray
+
+        mode = preprocess_mode(adapter, mv_options)
+        ray = predict_chunks_ray(model.info(), images, names, chunks, mode, mv_options, options.ray)
+        return ModelPass(merge_chunks(ray.parts, chunks, mv_options.align_points_per_frame), ray.layout)
+    infer = lambda batch: model.run_checked(adapter.input_name, {adapter.input_name: batch})  # noqa: E731
+    prediction = predict_multiview(images, names, infer, model.info(), mv_options, adapter)
+    return ModelPass(prediction, ChunkLayout.of(chunks, *chunking(mv_options)))
 
 
 def _predict_pairwise(model: OnnxModel, images: list, names: list, options: FeedForwardOptions) -> Prediction:
@@ -158,7 +197,7 @@ def _predict_pairwise(model: OnnxModel, images: list, names: list, options: Feed
     fixed = model.fixed_size_hw("view1")
     if fixed is not None and pw_options.size_hw is None:  # exports bake H and W in: resize to them
         pw_options = dataclasses.replace(pw_options, size_hw=fixed)
-    infer = lambda v1, v2: _run_checked(model, "view1", {"view1": v1, "view2": v2})  # noqa: E731
+    infer = lambda v1, v2: model.run_checked("view1", {"view1": v1, "view2": v2})  # noqa: E731
     if len(images) > 1:
         return pairwise.predict_pairwise(images, names, infer, model.info(), pw_options)
     # One photo: pair it with itself (what DUSt3R's own demo does) and keep the first view.
@@ -167,20 +206,6 @@ def _predict_pairwise(model: OnnxModel, images: list, names: list, options: Feed
     return Prediction(
         both.names[:1], both.cam_from_world[:1], both.cameras[:1], both.depth[:1], both.depth_conf[:1], both.model
     )
-
-
-def _run_checked(model: OnnxModel, image_input: str, feeds: dict) -> dict:
-    """Run, first checking the batch against sizes the export baked in (a clearer error than onnxruntime's)."""
-    fixed = model.fixed_size_hw(image_input)
-    got = tuple(feeds[image_input].shape[-2:])
-    if fixed is not None and got != fixed:
-        raise ModelError(
-            f"{model.path.name} was exported for {fixed[1]}x{fixed[0]} inputs, "
-            f"but these photos preprocess to {got[1]}x{got[0]}",
-            "re-export the model for these photos (`ffrecon export-model ... --photos DIR`, or "
-            f"--height {got[0]} --width {got[1]}), or use photos of the aspect ratio it was exported for",
-        )
-    return model.run(feeds)
 
 
 def run_feedforward(
@@ -205,7 +230,8 @@ def run_feedforward(
         len(capture.frames),
     )
     images = capture.read_images()  # held only while this stage runs
-    prediction = predict(model, capture, images, options)
+    model_pass = predict(model, capture, images, options)
+    prediction = model_pass.prediction
     model_cameras = ()
     if capture.known_cameras:  # the user's intrinsics replace the model's estimate (kept for the report)
         model_cameras = prediction.cameras
@@ -232,6 +258,7 @@ def run_feedforward(
         _assumptions(model.info(), capture),
         model_cameras,
         model_poses,
+        model_pass.chunks,
     )
 
 
