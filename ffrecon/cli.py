@@ -155,6 +155,29 @@ def _add_known_input_options(p: argparse.ArgumentParser) -> None:
     )
 
 
+def _add_pairing_options(p: argparse.ArgumentParser) -> None:
+    """Which pairs COLMAP's cross-check matches (defaults: ColmapOptions')."""
+    from ffrecon.sfm.colmap_options import ColmapOptions, PairingMode
+
+    p.add_argument(
+        "--pairing",
+        choices=[m.value for m in PairingMode],
+        default=None,
+        help="pairs the COLMAP cross-check matches: exhaustive, sequential (video order, frames 2^k apart; loop "
+        "closure with --vocab-tree), spatial (GPS), vocab_tree (retrieval), model (the pairs the model's cameras "
+        "and depth say overlap, loop candidates included; COLMAP still verifies and maps on its own); "
+        f"default {_field_default(ColmapOptions, 'pairing').value}: exhaustive up to "
+        f"{_field_default(ColmapOptions, 'exhaustive_max_images')} photos, then model with a model, else sequential",
+    )
+    p.add_argument(
+        "--vocab-tree",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="a COLMAP vocabulary tree (from colmap.github.io) for vocab_tree pairing and sequential loop closure",
+    )
+
+
 def _add_run_options(p: argparse.ArgumentParser) -> None:
     """Options of ``run`` and ``demo``; their defaults live in the stage options classes alone, and so do
     their checks (each class's ``__post_init__``: a bad value is an InputError naming the flag)."""
@@ -180,6 +203,7 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
         "matches of the pairs they say overlap (faster; nothing independent checks the cameras)",
     )
     p.add_argument("--no-colmap", action="store_true", help="skip the COLMAP cross-check")
+    _add_pairing_options(p)
     p.add_argument("--no-refine", action="store_true", help="skip the bundle-adjustment refinement")
     p.add_argument("--no-splat", action="store_true", help="skip the Gaussian splat")
     p.add_argument("--force", action="store_true", help="go on past failed verification gates")
@@ -429,6 +453,19 @@ def _given(**values) -> dict:
     return {k: v for k, v in values.items() if v is not None}
 
 
+def _colmap_options(args: argparse.Namespace, preset):
+    from ffrecon.sfm.colmap_options import PairingMode
+
+    return dataclasses.replace(
+        preset,
+        enabled=preset.enabled and not args.no_colmap,
+        **_given(
+            pairing=None if args.pairing is None else PairingMode(args.pairing),
+            vocab_tree_path=args.vocab_tree,
+        ),
+    )
+
+
 def _ray_options(args: argparse.Namespace):
     from ffrecon.models.distributed import RayOptions
 
@@ -476,7 +513,7 @@ def _run_options(args: argparse.Namespace, ground_truth: Path | None = None):
         preset,
         capture=capture,
         feedforward=FeedForwardOptions(multiview=multiview, ray=_ray_options(args), **_given(threads=args.threads)),
-        colmap=dataclasses.replace(preset.colmap, enabled=preset.colmap.enabled and not args.no_colmap),
+        colmap=_colmap_options(args, preset.colmap),
         gates=GateOptions(**_given(min_registration_ratio=args.min_registration)),
         refine=dataclasses.replace(preset.refine, enabled=not args.no_refine),
         splat=splat,

@@ -10,7 +10,7 @@ from ffrecon.final_cameras import final_cameras
 from ffrecon.models.stage import feedforward_skip_reason, run_feedforward_sharing
 from ffrecon.sfm import refine
 from ffrecon.sfm.comparisons import comparison_skip_reason, load_references, pose_estimates, run_comparisons
-from ffrecon.sfm.crosscheck import run_colmap_on
+from ffrecon.sfm.crosscheck import pairs_from_model, run_colmap_on
 from ffrecon.sfm.evidence import evidence_skip_reason, judge_refined_cameras
 from ffrecon.sfm.gates import gate_poses
 from ffrecon.splat import stage as splat
@@ -41,7 +41,7 @@ FEEDFORWARD = Stage(
 COLMAP = Stage(
     "colmap",
     ("capture",),
-    lambda s, o, c: run_colmap_on(s.capture, o.colmap, s.work / "crosscheck", step=c.step),
+    lambda s, o, c: run_colmap_on(s.capture, o.colmap, s.work / "crosscheck", step=c.step, prediction=s.prediction),
     lambda o: o.colmap,
     label="colmap cross-check",
     skip=lambda s, o: (
@@ -49,6 +49,8 @@ COLMAP = Stage(
         or s.why_not(enabled=o.colmap.enabled, flag="--no-colmap")
     ),
     outputs=("crosscheck",),
+    # with the model's pairs (--pairing model; long captures by default) it runs after the model, not beside it
+    after=lambda s, o: ("feedforward",) if pairs_from_model(o.colmap, s.views, model=s.model is not None) else (),
 )
 SIFT = Stage(  # quick mode: the refinement's SIFT, extracted beside the inference as COLMAP's is in the full run
     "sift",

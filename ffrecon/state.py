@@ -118,6 +118,12 @@ class Stage:
     recorded: bool = True  # False: cheap, runs every time (no record, not timed)
     asked: Callable[[RunOptions], bool] = lambda options: True  # False: not run, the field stays None
     check: Callable[[object, RunOptions], None] = lambda result, options: None  # raises to stop the run
+    # Results of stages beside it that it reads too when the options (and the capture) ask for them: then
+    # those run first, not beside it, and their keys make its own.
+    after: Callable[[RunState, RunOptions], tuple[str, ...]] = lambda state, options: ()
+
+    def all_reads(self, state: RunState, options: RunOptions) -> tuple[str, ...]:
+        return self.reads + self.after(state, options)
 
 
 @dataclass(frozen=True)
@@ -147,7 +153,11 @@ class StagePlan:
                 state = self._skipped(state, stage, reason)
             else:
                 pending.append(stage)
-        if len(pending) == 2 and self.options.concurrent:
+        if (
+            len(pending) == 2
+            and self.options.concurrent
+            and pending[0].name not in pending[1].after(state, self.options)
+        ):
             return self._beside(state, *pending)
         for stage in pending:
             state = self._set(state, stage, *self._result(state, stage, self.runner, Share()))
@@ -155,7 +165,7 @@ class StagePlan:
 
     def _key_inputs(self, state: RunState, stage: Stage) -> list[str]:
         files = [file_key(p) for p in stage.files(state, self.options) if p is not None]
-        return [self.keys[name] for name in stage.reads] + files
+        return [self.keys[name] for name in stage.all_reads(state, self.options)] + files
 
     def _result(self, state: RunState, stage: Stage, runner: StageRunner, share: Share) -> tuple[object, str]:
         inputs, options = self._key_inputs(state, stage), stage.options(self.options)

@@ -10,6 +10,7 @@ from pathlib import Path
 
 from ffrecon.checks import check_number
 from ffrecon.sfm.features import CameraModel, SiftOptions
+from ffrecon.sfm.overlap import OverlapOptions
 from ffrecon.sfm.two_view import TwoViewOptions
 
 
@@ -21,13 +22,19 @@ class MapperKind(enum.Enum):
 
 
 class PairingMode(enum.Enum):
-    AUTO = "auto"  # exhaustive up to ``exhaustive_max_images``, then vocabulary tree if given, else sequential
+    # exhaustive up to ``exhaustive_max_images``; past that the model's pairs when a model runs, else a vocabulary
+    # tree if given, else sequential
+    AUTO = "auto"
     EXHAUSTIVE = "exhaustive"
     # video order: each frame against its ``sequential_overlap`` successors and successors 2^k apart
     # (quadratic overlap); with ``vocab_tree_path`` also against similar-looking frames (loop detection)
     SEQUENTIAL = "sequential"
     SPATIAL = "spatial"  # nearest GPS positions (needs position priors in the database, e.g. from EXIF)
     VOCAB_TREE = "vocab_tree"  # image retrieval; needs ``vocab_tree_path``
+    # The pairs the feed-forward geometry predicts to overlap (ffrecon.sfm.overlap, as the refinement's, loop
+    # candidates included): COLMAP still matches, verifies and maps on its own; only the choice of pairs is the
+    # model's. The cross-check then waits for the model instead of running beside it.
+    MODEL = "model"
 
 
 class CameraSharing(enum.Enum):
@@ -43,6 +50,7 @@ class ColmapOptions:
     exhaustive_max_images: int = 150
     sequential_overlap: int = 10
     vocab_tree_path: Path | None = None  # COLMAP vocabulary tree: retrieval pairing, loop detection
+    model_pairs: OverlapOptions = OverlapOptions()  # how MODEL pairing picks pairs from the model's geometry
     mapper: MapperKind = MapperKind.AUTO
     camera_model: CameraModel = CameraModel.SIMPLE_RADIAL
     camera_sharing: CameraSharing = CameraSharing.AUTO

@@ -41,12 +41,14 @@ from ffrecon.sfm.features import (
     feature_stats,
     focal_prior_flags,
     image_sizes_wh,
+    match_pairs,
     matching_options,
     threads_at_most,
 )
 from ffrecon.sfm.mapping import MapperRun, map_images, two_view_run
+from ffrecon.sfm.overlap import overlap_graph
 from ffrecon.timing import StageTimer, Timings
-from ffrecon.types import PinholeCamera
+from ffrecon.types import PinholeCamera, Prediction
 
 logger = logging.getLogger("ffrecon.sfm")
 
@@ -118,11 +120,23 @@ class ColmapResult:
         }
 
 
-def resolve_pairing(options: ColmapOptions, num_images: int) -> PairingMode:
+def resolve_pairing(options: ColmapOptions, num_images: int, *, model: bool = False) -> PairingMode:
+    """The pairing the cross-check uses on ``num_images`` photos; ``model``: a feed-forward model runs.
+
+    >>> resolve_pairing(ColmapOptions(), 500, model=True), resolve_pairing(ColmapOptions(), 500)
+    (<PairingMode.MODEL: 'model'>, <PairingMode.SEQUENTIAL: 'sequential'>)
+    """
+    if options.pairing is PairingMode.MODEL and not model:
+        raise InputError(
+            "model pairing (--pairing model) chooses COLMAP's pairs from the model's cameras, but no model runs",
+            "pass --model, or another --pairing (exhaustive, sequential)",
+        )
     if options.pairing is not PairingMode.AUTO:
         return options.pairing
     if num_images <= options.exhaustive_max_images:
         return PairingMode.EXHAUSTIVE
+    if model:
+        return PairingMode.MODEL
     return PairingMode.VOCAB_TREE if options.vocab_tree_path is not None else PairingMode.SEQUENTIAL
 
 
@@ -194,10 +208,14 @@ def _sequential_pairing(options: ColmapOptions) -> pycolmap.SequentialPairingOpt
     return pairing
 
 
-def _match(db_path: Path, mode: PairingMode, options: ColmapOptions) -> None:
+def _match(
+    db_path: Path, mode: PairingMode, options: ColmapOptions, model_pairs: Sequence[tuple[str, str]] | None
+) -> None:
     matching, verification = matching_options(options.sift)
     common = dict(matching_options=matching, verification_options=verification, device=pycolmap.Device.cpu)
-    if mode is PairingMode.EXHAUSTIVE:
+    if mode is PairingMode.MODEL:
+        match_pairs(db_path, model_pairs or (), options.sift, db_path.parent / "model_pairs.txt")
+    elif mode is PairingMode.EXHAUSTIVE:
         pycolmap.match_exhaustive(str(db_path), **common)
     elif mode is PairingMode.SEQUENTIAL:
         pycolmap.match_sequential(str(db_path), pairing_options=_sequential_pairing(options), **common)
@@ -242,6 +260,7 @@ def run_colmap(
     focal_prior_px: float | Sequence[float | None] | None,
     step: Callable[[], int] | None = None,
     mask_dir: Path | None = None,
+    model_pairs: Sequence[tuple[str, str]] | None = None,
 ) -> ColmapResult:
     """COLMAP on ``names`` in ``image_dir``; writes ``out_dir/database.db`` and ``out_dir/sparse/0``.
 
@@ -261,13 +280,15 @@ def run_colmap(
     names = tuple(names)
     timer = StageTimer()
     db_path = out_dir / "database.db"
-    pairing = resolve_pairing(options, len(names))
+    pairing = resolve_pairing(options, len(names), model=model_pairs is not None)
     if pairing is PairingMode.VOCAB_TREE or (pairing is PairingMode.SEQUENTIAL and options.vocab_tree_path):
         _check_vocab_tree(options, "loop detection" if pairing is PairingMode.SEQUENTIAL else "retrieval pairing")
     priors = _as_priors(focal_prior_px, len(names))
     sizes = image_sizes_wh(image_dir, names)
     shared = resolve_camera_sharing(options.camera_sharing, sizes, priors)
-    stats = _features_and_matches(db_path, image_dir, names, options, pairing, priors, shared, timer, step, mask_dir)
+    stats = _features_and_matches(
+        db_path, image_dir, names, options, (pairing, model_pairs), priors, shared, timer, step, mask_dir
+    )
     if step is not None:
         step()  # mapping keeps its own threads (options.mapper_num_threads)
     with timer.stage("mapping"), colmap_log_level():
@@ -294,14 +315,17 @@ def run_colmap(
     if best is None:
         logger.warning("COLMAP built no model from %d images (%d verified pairs)", len(names), stats.num_pairs_verified)
         return _no_model_result(names, **provenance)
-    result = _model_result(best, names, model_dir, **provenance)
+    return _logged(_model_result(best, names, model_dir, **provenance))
+
+
+def _logged(result: ColmapResult) -> ColmapResult:
     logger.info(
         "COLMAP (%s) registered %d/%d images, %d points, %.2f px reprojection error (%.1f s)",
         "ffrecon's two-view reconstruction of its verified matches"
         if result.mapper is MapperKind.TWO_VIEW
         else f"{result.mapper.value} mapper",
         result.num_registered,
-        len(names),
+        len(result.names),
         result.num_points,
         result.mean_reprojection_error_px,
         result.timings.total_s,
@@ -314,14 +338,15 @@ def _features_and_matches(
     image_dir: Path,
     names: tuple[str, ...],
     options: ColmapOptions,
-    pairing: PairingMode,
+    pairing: tuple[PairingMode, Sequence[tuple[str, str]] | None],
     focal_prior_px: list[float | None],
     shared_camera: bool,
     timer: StageTimer,
     step: Callable[[], int] | None = None,
     mask_dir: Path | None = None,
 ) -> FeatureStats:
-    """Create the database (cameras with the focal priors), extract SIFT and match with ``pairing``.
+    """Create the database (cameras with the focal priors), extract SIFT and match with ``pairing`` (the mode,
+    and the model's pairs for MODEL).
 
     ``step`` (see :func:`run_colmap`) gives the threads of each of the two steps as it starts.
     """
@@ -339,13 +364,13 @@ def _features_and_matches(
         len(names),
         "one shared" if shared_camera else "one per image",
         sum(f is not None for f in focal_prior_px),
-        pairing.value,
+        pairing[0].value,
         options.mapper.value,
     )
     with timer.stage("feature_extraction"):
         extract_sift(db_path, image_dir, names, options.sift, threads=step, mask_dir=mask_dir)
     with timer.stage("matching"), colmap_log_level():
-        _match(db_path, pairing, _with_threads(options, step))
+        _match(db_path, pairing[0], _with_threads(options, step), pairing[1])
     return feature_stats(db_path, names)
 
 
@@ -401,13 +426,35 @@ def _model_result(best: pycolmap.Reconstruction, names: tuple[str, ...], model_d
     )
 
 
+def pairs_from_model(options: ColmapOptions, num_images: int, *, model: bool) -> bool:
+    """Whether the cross-check matches the pairs the model chooses (and so runs after it, not beside it)."""
+    return resolve_pairing(options, num_images, model=model) is PairingMode.MODEL
+
+
 def run_colmap_on(
-    capture: Capture, options: ColmapOptions, out_dir: Path, *, step: Callable[[], int] | None = None
+    capture: Capture,
+    options: ColmapOptions,
+    out_dir: Path,
+    *,
+    step: Callable[[], int] | None = None,
+    prediction: Prediction | None = None,
 ) -> ColmapResult:
     """:func:`run_colmap` on a capture's photos. The focal prior of each photo is the given intrinsics' (the
     user's, ``--intrinsics``), else its EXIF focal where known (else COLMAP's own guess), never the model's:
-    the cross-check must stay independent evidence of the model's cameras."""
+    the cross-check must stay independent evidence of the model's cameras. ``prediction``: the model's, when
+    the pairing takes its pairs (:func:`pairs_from_model`); the only thing the cross-check takes from it."""
     priors, masks = capture.focal_priors_px, capture.mask_dir
+    pairs = None
+    if prediction is not None and pairs_from_model(options, len(capture.names), model=True):
+        chosen = overlap_graph(prediction, options.model_pairs).pairs
+        pairs = [(capture.names[i], capture.names[j]) for i, j in chosen]
     return run_colmap(
-        capture.image_dir, capture.names, options, out_dir, focal_prior_px=priors, step=step, mask_dir=masks
+        capture.image_dir,
+        capture.names,
+        options,
+        out_dir,
+        focal_prior_px=priors,
+        step=step,
+        mask_dir=masks,
+        model_pairs=pairs,
     )

@@ -27,6 +27,10 @@ class OverlapOptions:
     min_pairs_per_image: int = 4  # the best pairs of each image are matched whatever their overlap ...
     min_any_overlap: float = 0.02  # ... if they overlap at all
     fallback_neighbours: int = 2  # a frame with no pair reaching min_overlap also gets this many neighbours by index
+    # Loop candidates: each frame also keeps its best pairs reaching min_overlap with frames at least
+    # ``loop_min_gap`` apart in capture order (a revisit), however many nearer neighbours overlap more.
+    loop_pairs_per_image: int = 2
+    loop_min_gap: int = 30
     min_depth_conf: float = 1.0  # depth pixels below this confidence are not used
     max_depth_ratio: float = 0.15  # |z_projected / z_j - 1| above this: occluded in j
     samples_per_image: int = 1500
@@ -35,7 +39,9 @@ class OverlapOptions:
     def __post_init__(self) -> None:
         for name in ("min_overlap", "min_any_overlap"):
             check_number(f"OverlapOptions.{name}", getattr(self, name), low=0, high=1)
-        for name in ("max_pairs_per_image", "min_pairs_per_image", "fallback_neighbours"):
+        names = ("max_pairs_per_image", "min_pairs_per_image", "fallback_neighbours", "loop_pairs_per_image")
+        check_number("OverlapOptions.loop_min_gap", self.loop_min_gap, low=1, integer=True)
+        for name in names:
             check_number(f"OverlapOptions.{name}", getattr(self, name), low=0, integer=True)
         check_number("OverlapOptions.samples_per_image", self.samples_per_image, low=1, integer=True)
         check_number("OverlapOptions.min_depth_conf", self.min_depth_conf, low=0)
@@ -120,7 +126,8 @@ def select_pairs(overlap: np.ndarray, options: OverlapOptions = OverlapOptions()
         order = np.argsort(-score[i], kind="stable")
         good = [j for j in order if score[i, j] >= options.min_overlap][: options.max_pairs_per_image]
         best = [j for j in order[: options.min_pairs_per_image] if score[i, j] >= options.min_any_overlap]
-        chosen[i, good + best] = True
+        loops = [j for j in order if abs(i - j) >= options.loop_min_gap and score[i, j] >= options.min_overlap]
+        chosen[i, good + best + loops[: options.loop_pairs_per_image]] = True
     chosen |= chosen.T
     # A frame the prediction places apart from the others (no pair reaches min_overlap: maybe a badly
     # predicted pose) also gets its neighbours in input order, the likeliest overlaps of ordered captures.

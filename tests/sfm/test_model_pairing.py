@@ -1,0 +1,51 @@
+"""Issue 25: COLMAP's cross-check on the pairs the model chooses (--pairing model; long captures by default)."""
+
+import json
+
+import pycolmap
+
+from ffrecon.cli import main
+from ffrecon.geometry.metrics import pose_errors
+from ffrecon.pipeline import RunOptions, run
+from ffrecon.sfm.colmap_options import ColmapOptions, PairingMode
+from ffrecon.sfm.crosscheck import resolve_pairing
+from ffrecon.sfm.refine import RefineOptions
+from ffrecon.splat.stage import SplatOptions
+from ffrecon.synthetic.scene import load_scene
+
+
+def test_auto_pairing_takes_the_models_pairs_past_the_exhaustive_limit():
+    options = ColmapOptions(exhaustive_max_images=10)
+    assert resolve_pairing(options, 10, model=True) is PairingMode.EXHAUSTIVE
+    assert resolve_pairing(options, 11, model=True) is PairingMode.MODEL
+    assert resolve_pairing(options, 11, model=False) is PairingMode.SEQUENTIAL
+
+
+def test_crosscheck_on_model_pairs_matches_fewer_pairs_and_registers_every_frame(tmp_path, demo12):
+    """The 12-frame demo: the model's pairs are a subset of all 66, COLMAP still registers every frame and its
+    cameras stay at the exhaustive run's accuracy against the truth; the cross-check then runs after the model."""
+    runs = {}
+    for pairing in (PairingMode.EXHAUSTIVE, PairingMode.MODEL):
+        options = RunOptions(
+            colmap=ColmapOptions(pairing=pairing),
+            refine=RefineOptions(enabled=False),
+            splat=SplatOptions(enabled=False),
+        )
+        runs[pairing] = run(demo12.images, tmp_path / pairing.value, demo12.model, options)
+    truth = load_scene(demo12.scene_dir)
+    exhaustive, model = runs[PairingMode.EXHAUSTIVE].colmap, runs[PairingMode.MODEL].colmap
+    assert model.pairing is PairingMode.MODEL and model.registered.all()
+    assert model.features.num_pairs_matched < exhaustive.features.num_pairs_matched == 66
+    errors = [pose_errors(r.cam_from_world, truth.cam_from_world) for r in (exhaustive, model)]
+    assert errors[1].auc[5] >= errors[0].auc[5] - 0.02 and errors[1].auc[5] > 0.95
+    report = json.loads((tmp_path / "model" / "report.json").read_text())
+    assert report["colmap"]["pairing"] == "model"
+    assert report["timings"]["colmap"]["concurrent_with"] is None, "it read the model's result: not beside it"
+    listed = (tmp_path / "model" / "crosscheck" / "model_pairs.txt").read_text().split("\n")
+    assert len([line for line in listed if line]) == model.features.num_pairs_matched
+    assert pycolmap.Reconstruction(tmp_path / "model" / "crosscheck" / "sparse" / "0").num_reg_images() == 12
+
+
+def test_model_pairing_without_a_model_says_so(tmp_path, demo12, capsys):
+    code = main(["run", str(demo12.images), "-o", str(tmp_path / "out"), "--pairing", "model", "-q"])
+    assert code == 2 and "--pairing model" in capsys.readouterr().err
