@@ -11,6 +11,7 @@ from pathlib import Path
 from ffrecon.checks import check_number
 from ffrecon.sfm.features import CameraModel, SiftOptions
 from ffrecon.sfm.overlap import OverlapOptions
+from ffrecon.sfm.retrieval import RetrievalOptions
 from ffrecon.sfm.two_view import TwoViewOptions
 
 
@@ -27,7 +28,8 @@ class PairingMode(enum.Enum):
     AUTO = "auto"
     EXHAUSTIVE = "exhaustive"
     # video order: each frame against its ``sequential_overlap`` successors and successors 2^k apart
-    # (quadratic overlap); with ``vocab_tree_path`` also against similar-looking frames (loop detection)
+    # (quadratic overlap), and against similar-looking frames (loop candidates): by COLMAP's vocabulary tree
+    # with ``vocab_tree_path``, else by VLAD over the frames' own SIFT (``retrieval``, ffrecon.sfm.retrieval)
     SEQUENTIAL = "sequential"
     SPATIAL = "spatial"  # nearest GPS positions (needs position priors in the database, e.g. from EXIF)
     VOCAB_TREE = "vocab_tree"  # image retrieval; needs ``vocab_tree_path``
@@ -51,6 +53,8 @@ class ColmapOptions:
     sequential_overlap: int = 10
     vocab_tree_path: Path | None = None  # COLMAP vocabulary tree: retrieval pairing, loop detection
     model_pairs: OverlapOptions = OverlapOptions()  # how MODEL pairing picks pairs from the model's geometry
+    # SEQUENTIAL without a vocabulary tree: loop candidates from VLAD over the frames' own SIFT
+    retrieval: RetrievalOptions = RetrievalOptions()
     mapper: MapperKind = MapperKind.AUTO
     camera_model: CameraModel = CameraModel.SIMPLE_RADIAL
     camera_sharing: CameraSharing = CameraSharing.AUTO

@@ -47,6 +47,7 @@ from ffrecon.sfm.features import (
 )
 from ffrecon.sfm.mapping import MapperRun, map_images, two_view_run
 from ffrecon.sfm.overlap import overlap_graph
+from ffrecon.sfm.retrieval import retrieval_pairs
 from ffrecon.timing import StageTimer, Timings
 from ffrecon.types import PinholeCamera, Prediction
 
@@ -209,8 +210,13 @@ def _sequential_pairing(options: ColmapOptions) -> pycolmap.SequentialPairingOpt
 
 
 def _match(
-    db_path: Path, mode: PairingMode, options: ColmapOptions, model_pairs: Sequence[tuple[str, str]] | None
-) -> None:
+    db_path: Path,
+    mode: PairingMode,
+    options: ColmapOptions,
+    names: Sequence[str],
+    model_pairs: Sequence[tuple[str, str]] | None,
+) -> int:
+    """Match with ``mode``; returns how many loop candidates retrieval added (sequential without a tree)."""
     matching, verification = matching_options(options.sift)
     common = dict(matching_options=matching, verification_options=verification, device=pycolmap.Device.cpu)
     if mode is PairingMode.MODEL:
@@ -219,6 +225,11 @@ def _match(
         pycolmap.match_exhaustive(str(db_path), **common)
     elif mode is PairingMode.SEQUENTIAL:
         pycolmap.match_sequential(str(db_path), pairing_options=_sequential_pairing(options), **common)
+        if options.vocab_tree_path is None:
+            loops = retrieval_pairs(db_path, names, options.retrieval)
+            if loops:
+                match_pairs(db_path, loops, options.sift, db_path.parent / "loop_pairs.txt")
+            return len(loops)
     elif mode is PairingMode.SPATIAL:
         db = pycolmap.Database.open(str(db_path))
         has_priors = db.num_pose_priors() > 0
@@ -238,6 +249,7 @@ def _match(
         pycolmap.match_vocabtree(str(db_path), pairing_options=pairing, **common)
     else:
         raise ValueError(f"unresolved pairing mode {mode}")
+    return 0
 
 
 def _as_priors(focal_prior_px: float | Sequence[float | None] | None, n: int) -> list[float | None]:
@@ -370,8 +382,8 @@ def _features_and_matches(
     with timer.stage("feature_extraction"):
         extract_sift(db_path, image_dir, names, options.sift, threads=step, mask_dir=mask_dir)
     with timer.stage("matching"), colmap_log_level():
-        _match(db_path, pairing[0], _with_threads(options, step), pairing[1])
-    return feature_stats(db_path, names)
+        loops = _match(db_path, pairing[0], _with_threads(options, step), names, pairing[1])
+    return dataclasses.replace(feature_stats(db_path, names), num_loop_candidates=loops)
 
 
 def _with_threads(options: ColmapOptions, step: Callable[[], int] | None) -> ColmapOptions:

@@ -69,11 +69,13 @@ class FeatureStats:
     num_inlier_matches: np.ndarray  # [N] int, verified matches summed over those pairs
     num_pairs_matched: int  # image pairs that went through matching
     num_pairs_verified: int
+    num_loop_candidates: int = 0  # of the matched pairs, those retrieval added (ffrecon.sfm.retrieval)
 
     def to_report(self) -> dict:
         return {
             "num_pairs_matched": self.num_pairs_matched,
             "num_pairs_verified": self.num_pairs_verified,
+            "num_loop_candidates": self.num_loop_candidates,
             "per_image": {
                 name: {"keypoints": int(k), "verified_pairs": int(p), "inlier_matches": int(m)}
                 for name, k, p, m in zip(
