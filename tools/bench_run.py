@@ -71,6 +71,12 @@ def _parser() -> argparse.ArgumentParser:
         default=None,
         help="exported .onnx files to run instead of the simulated model (rows labelled by file name)",
     )
+    parser.add_argument(
+        "--depth-stride",
+        type=int,
+        default=1,
+        help="the simulated model stores depth at 1/N resolution (SimulationOptions.depth_stride; 4 for 1,000 frames)",
+    )
     parser.add_argument("--no-colmap-alone", action="store_true", help="skip the COLMAP-alone row (no xCOLMAP)")
     parser.add_argument("--colmap-only", nargs=2, type=Path, metavar=("IMAGES", "OUT"), help=argparse.SUPPRESS)
     parser.add_argument("--truth", type=Path, default=None, help=argparse.SUPPRESS)  # scene folder, for the child
@@ -203,14 +209,15 @@ def colmap_child(images: Path, out: Path, scene_dir: Path | None) -> None:
 # --- the parent: scenes, runs, rows -------------------------------------------------------------------
 
 
-def prepare(frames: int, width: int, height: int, seed: int):
+def prepare(frames: int, width: int, height: int, seed: int, depth_stride: int = 1):
     """The scene and simulated model (cached), and the seconds it took."""
     from ffrecon.demo import DemoOptions, prepare_demo
     from ffrecon.synthetic import SceneOptions
 
     start = time.perf_counter()
     scene = SceneOptions(num_frames=frames, width=width, height=height, seed=seed)
-    inputs = prepare_demo(DemoOptions(scene=scene))
+    simulation = {"bad_frames": [7]} | ({"depth_stride": depth_stride} if depth_stride != 1 else {})
+    inputs = prepare_demo(DemoOptions(scene=scene, simulation=simulation))
     return inputs, time.perf_counter() - start
 
 
@@ -327,12 +334,34 @@ def run_ffrecon(inputs, mode: str, work: Path, reference: Path, args, model: Pat
         row["error"] = _tail(log)
         return row
     row.update(report_row(json.loads((out / "report.json").read_text()), wall))
+    if (out / "sparse" / "0").is_dir():
+        row["loop_drift_pct"] = loop_drift_pct(out / "sparse" / "0", inputs.scene_dir)
     return row
+
+
+def loop_drift_pct(model_dir: Path, scene_dir: Path) -> float | None:
+    """The loop's drift in % of the path length: how far the distance between the first and the last frame
+    (which revisits it: the scenes' orbit is one full loop) is from the truth, after a Sim(3) of all centres."""
+    import pycolmap
+
+    from ffrecon.colmap_io import cam_from_world_by_name
+    from ffrecon.geometry.alignment import umeyama
+    from ffrecon.geometry.poses import camera_centers
+
+    truth = json.loads((scene_dir / "ground_truth.json").read_text())
+    names = [f["name"] for f in truth["frames"]]
+    poses, registered = cam_from_world_by_name(pycolmap.Reconstruction(model_dir), names)
+    if not (registered[0] and registered[-1]) or registered.sum() < 3:
+        return None
+    ref = camera_centers(np.array([f["cam_from_world"] for f in truth["frames"]], np.float64))
+    est = umeyama(camera_centers(poses[registered]), ref[registered]).apply(camera_centers(poses[registered]))
+    gap = abs(np.linalg.norm(est[0] - est[-1]) - np.linalg.norm(ref[0] - ref[-1]))
+    return float(100 * gap / np.linalg.norm(np.diff(ref, axis=0), axis=1).sum())
 
 
 def bench_frames(frames: int, args, root: Path) -> list[dict]:
     """Every method on one scene of ``frames`` frames; the rows carry ``frames``."""
-    inputs, prep_s = prepare(frames, args.width, args.height, args.seed)
+    inputs, prep_s = prepare(frames, args.width, args.height, args.seed, args.depth_stride)
     size = f"{args.width}x{args.height}"
     print(f"\n{frames} frames of {size}: scene and model ready in {prep_s:.1f} s ({inputs.scene_dir})")
     work = root / f"n{frames}"
@@ -388,6 +417,8 @@ def print_table(rows: list[dict]) -> None:
         notes += [f"{e} {a['registered']} AUC@5 {_num(a['auc5'], '.3f', 0)}" for e, a in others.items()]
         if r.get("skipped"):
             notes.append(f"skipped: {', '.join(r['skipped'])}")
+        if r.get("loop_drift_pct") is not None:
+            notes.append(f"loop drift {r['loop_drift_pct']:.3f}% of the path")
         if notes:
             print(f"  {r['method']}: {'; '.join(notes)}")
 

@@ -16,7 +16,9 @@ from ffrecon.sfm.two_view import TwoViewOptions
 
 
 class MapperKind(enum.Enum):
-    AUTO = "auto"  # incremental; then the global mapper too when incremental leaves images out
+    # incremental (global from ``global_first_images`` images on), then the other one too when the first
+    # leaves images out
+    AUTO = "auto"
     INCREMENTAL = "incremental"
     GLOBAL = "global"  # GLOMAP, merged into COLMAP 4
     TWO_VIEW = "two_view"  # ffrecon's own, from COLMAP's verified geometry of two photos (sfm/two_view.py)
@@ -56,6 +58,9 @@ class ColmapOptions:
     # SEQUENTIAL without a vocabulary tree: loop candidates from VLAD over the frames' own SIFT
     retrieval: RetrievalOptions = RetrievalOptions()
     mapper: MapperKind = MapperKind.AUTO
+    # AUTO maps this many images or more with the global mapper first: on one orbit with the model's pairs,
+    # incremental took 16 s at 120 images and 161 s at 400, global 31 s and 160 s (tools/bench_pairing.py)
+    global_first_images: int = 400
     camera_model: CameraModel = CameraModel.SIMPLE_RADIAL
     camera_sharing: CameraSharing = CameraSharing.AUTO
     sift: SiftOptions = SiftOptions()
@@ -71,7 +76,7 @@ class ColmapOptions:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        for name in ("exhaustive_max_images", "min_points_per_image"):
+        for name in ("exhaustive_max_images", "min_points_per_image", "global_first_images"):
             check_number(f"ColmapOptions.{name}", getattr(self, name), low=0, integer=True)
         check_number("ColmapOptions.sequential_overlap", self.sequential_overlap, low=1, integer=True)
         # COLMAP takes whole seconds, and 0 there means no bound

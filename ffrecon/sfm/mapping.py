@@ -144,11 +144,15 @@ def map_images(
 ) -> tuple[pycolmap.Reconstruction | None, MapperRun | None, tuple[MapperRun, ...]]:
     """Run the mapper(s) ``options.mapper`` asks for: ``(kept model, the run that built it, all runs)``.
 
-    AUTO runs the incremental mapper and, unless it registered every image in one model, the global
-    mapper too; the model with most registered images (then the lower error) is kept.
+    AUTO runs the incremental mapper (the global one from ``options.global_first_images`` images on) and,
+    unless it registered every image in one model, the other mapper too; the model with most registered
+    images (then the lower error) is kept.
     """
     if options.mapper is MapperKind.AUTO:
         kinds = (MapperKind.INCREMENTAL, MapperKind.GLOBAL)
+        if num_images >= options.global_first_images:
+            kinds = kinds[::-1]
+            logger.info("%d images: the global mapper first (ColmapOptions.global_first_images)", num_images)
     else:
         kinds = (options.mapper,)
     runs: list[MapperRun] = []

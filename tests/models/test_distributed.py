@@ -119,3 +119,12 @@ def test_run_with_ray_writes_the_local_runs_cameras_and_the_chunk_layout(tmp_pat
     chunks = report["feedforward"]["chunks"]
     assert chunks["engine"] == "ray" and chunks["address"] == "local" and chunks["workers"] == 2
     assert chunks["calls"] == [[0, 4], [3, 7], [6, 10], [9, 11]] and not ray.is_initialized()
+
+
+def test_no_cluster_at_the_address_is_an_input_error(scene_and_model):
+    scene, path = scene_and_model
+    ray.shutdown()
+    options = dataclasses.replace(CHUNKS, ray=RayOptions(address="auto"))  # no Ray instance runs here
+    with pytest.raises(InputError, match="cannot start or join Ray at auto") as caught:
+        predict(OnnxModel(path), _Capture(tuple(scene.names)), list(scene.images), options)
+    assert caught.value.exit_code == 2 and "ray status" in caught.value.fix

@@ -3,12 +3,15 @@
 import json
 
 import pycolmap
+import pytest
 
 from ffrecon.cli import main
 from ffrecon.geometry.metrics import pose_errors
 from ffrecon.pipeline import RunOptions, run
+from ffrecon.sfm import mapping
 from ffrecon.sfm.colmap_options import ColmapOptions, PairingMode
 from ffrecon.sfm.crosscheck import resolve_pairing
+from ffrecon.sfm.mapping import MapperRun
 from ffrecon.sfm.refine import RefineOptions
 from ffrecon.splat.stage import SplatOptions
 from ffrecon.synthetic.scene import load_scene
@@ -49,3 +52,18 @@ def test_crosscheck_on_model_pairs_matches_fewer_pairs_and_registers_every_frame
 def test_model_pairing_without_a_model_says_so(tmp_path, demo12, capsys):
     code = main(["run", str(demo12.images), "-o", str(tmp_path / "out"), "--pairing", "model", "-q"])
     assert code == 2 and "--pairing model" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(("num_images", "order"), [(399, ["incremental", "global"]), (400, ["global", "incremental"])])
+def test_auto_mapping_takes_the_global_mapper_first_on_long_captures(tmp_path, monkeypatch, num_images, order):
+    """Past ``global_first_images`` the global mapper runs first; the other runs only when it leaves images out."""
+    tried = []
+
+    def fake_mapper(kind, db_path, image_dir, work_dir, options, n):
+        tried.append(kind.value)
+        registered = n if len(tried) == 2 else n - 1  # the first leaves one image out, so both run
+        return [], MapperRun(kind, 1, registered, 100, 0.5, 0, 1.0)
+
+    monkeypatch.setattr(mapping, "_run_mapper", fake_mapper)
+    mapping.map_images(tmp_path / "db", tmp_path, tmp_path / "work", ColmapOptions(), num_images)
+    assert tried == order
