@@ -61,6 +61,7 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--modes", nargs="+", choices=("default", "quick"), default=["default", "quick"])
     parser.add_argument("--seed", type=int, default=1, help="scene and model seed (the demo's is 0)")
     parser.add_argument("--splat-seconds", type=float, default=None, help="passed to ffrecon run")
+    parser.add_argument("--no-splat", action="store_true", help="passed to ffrecon run (the pose stages alone)")
     parser.add_argument("--out", type=Path, default=None, help="work folder (default: a temporary one)")
     parser.add_argument("--keep", action="store_true", help="keep the runs' output folders")
     parser.add_argument("--json", type=Path, default=None, help="also save the results here")
@@ -264,6 +265,8 @@ def ffrecon_command(images: Path, model: Path, out: Path, reference: Path, mode:
         cmd.append("--quick")
     if args.splat_seconds is not None:
         cmd += ["--splat-seconds", str(args.splat_seconds)]
+    if args.no_splat:
+        cmd.append("--no-splat")
     return cmd
 
 
