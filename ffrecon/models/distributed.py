@@ -23,7 +23,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from ffrecon.checks import check_number
-from ffrecon.errors import FFReconError, InputError
+from ffrecon.errors import FFReconError, InputError, ModelError
 from ffrecon.models.adapters import PreprocessMode, adapter_for
 from ffrecon.models.multiview import ChunkLayout, MultiviewOptions, chunking, predict_chunk
 from ffrecon.models.runner import OnnxModel
@@ -32,6 +32,7 @@ from ffrecon.types import ModelInfo, Prediction
 log = logging.getLogger("ffrecon.models")
 
 INSTALL_FIX = "pip install 'ffrecon[distributed]' (Ray), or run without --ray"
+WORKER_FIX = "read the workers' logs (`ray logs`); out of memory: a smaller --chunk-size, or fewer --ray-workers"
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -40,8 +41,10 @@ class RayOptions:
     workers: int | None = None  # model sessions (actors); None: as many as Ray's CPUs (GPUs) allow, at most one a chunk
     cpus_per_worker: int = 1  # Ray CPUs per actor, and its onnxruntime threads
     gpus_per_worker: float = 0.0  # 1 on a GPU cluster: each actor gets a GPU (onnxruntime's CUDA provider)
+    wait_seconds: float = 3600.0  # longest wait for the next chunk to finish before the run stops (no hang)
 
     def __post_init__(self) -> None:
+        check_number("RayOptions.wait_seconds", self.wait_seconds, low=0, low_open=True)
         check_number("RayOptions.workers", self.workers, low=1, integer=True, allow_none=True, flag="--ray-workers")
         check_number("RayOptions.cpus_per_worker", self.cpus_per_worker, low=1, integer=True)
         check_number("RayOptions.gpus_per_worker", self.gpus_per_worker, low=0, flag="--ray-gpus")
@@ -101,12 +104,18 @@ def _connect(ray, options: RayOptions) -> bool:
 
 
 def _worker_count(ray, options: RayOptions, num_chunks: int) -> int:
-    if options.workers is not None:
-        return min(options.workers, num_chunks)
+    """Actors to start: as asked, else as many as the cluster's resources hold (one a chunk at most). An
+    :class:`InputError` when not even one fits (Ray would wait for it for ever)."""
     resources = ray.cluster_resources()
-    by_cpu = int(resources.get("CPU", 1) // options.cpus_per_worker)
+    by_cpu = int(resources.get("CPU", 0) // options.cpus_per_worker)
     by_gpu = int(resources.get("GPU", 0) // options.gpus_per_worker) if options.gpus_per_worker else by_cpu
-    return max(1, min(by_cpu, by_gpu, num_chunks))
+    if min(by_cpu, by_gpu) < 1:
+        raise InputError(
+            f"the Ray cluster has {resources.get('CPU', 0):g} CPUs and {resources.get('GPU', 0):g} GPUs: not enough "
+            f"for one model session ({options.cpus_per_worker} CPUs, {options.gpus_per_worker:g} GPUs)",
+            "add nodes with GPUs to the cluster, or leave --ray-gpus out to run the sessions on CPUs",
+        )
+    return min(options.workers or min(by_cpu, by_gpu), num_chunks)
 
 
 def predict_chunks_ray(
@@ -136,7 +145,7 @@ def predict_chunks_ray(
             )
             for i, chunk in enumerate(chunks)
         ]
-        results = _gather(ray, futures)
+        results = _gather(ray, futures, options.wait_seconds)
         where = tuple(w for _, w in results)
         address = "local" if started and options.address is None else str(options.address or "connected")
         engine = dict(engine="ray", address=address, workers=count, nodes=len({w.split(":")[0] for w in where}))
@@ -147,18 +156,25 @@ def predict_chunks_ray(
             ray.shutdown()
 
 
-def _gather(ray, futures: list) -> list:
-    """The futures' values in order, with a progress bar as they finish; a worker's ffrecon error is
-    raised as itself (Ray wraps it in a RayTaskError)."""
+def _gather(ray, futures: list, wait_seconds: float) -> list:
+    """The futures' values in order, with a progress bar as they finish. A worker's ffrecon error is raised
+    as itself (Ray wraps it in a RayTaskError); a dead worker, or no chunk finishing within
+    ``wait_seconds``, is a :class:`ModelError`."""
     pending = list(futures)
     with tqdm(total=len(futures), desc="feed-forward (ray)", unit="chunk", disable=None) as bar:
         while pending:
-            done, pending = ray.wait(pending, num_returns=1)
+            done, pending = ray.wait(pending, num_returns=1, timeout=wait_seconds)
+            if not done:
+                raise ModelError(
+                    f"no chunk finished on Ray within {wait_seconds:g} s ({len(pending)} of {len(futures)} left)",
+                    "check `ray status` (workers waiting for resources?) and the workers' logs (`ray logs`)",
+                )
             bar.update(len(done))
     try:
         return ray.get(futures)
     except ray.exceptions.RayTaskError as exc:
-        cause = getattr(exc, "cause", None)
-        if isinstance(cause, FFReconError):
-            raise cause from None
-        raise
+        if isinstance(getattr(exc, "cause", None), FFReconError):
+            raise exc.cause from None
+        raise ModelError(f"a Ray worker failed: {str(exc).splitlines()[0]}", WORKER_FIX) from exc
+    except ray.exceptions.RayError as exc:  # a worker that died (out of memory, node lost)
+        raise ModelError(f"a Ray worker was lost: {str(exc).splitlines()[0]}", WORKER_FIX) from exc

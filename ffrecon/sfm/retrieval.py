@@ -43,7 +43,7 @@ class RetrievalOptions:
         for name in ("words", "codebook_samples", "max_descriptors", "min_gap", "kmeans_iterations"):
             check_number(f"RetrievalOptions.{name}", getattr(self, name), low=1, integer=True)
         check_number("RetrievalOptions.pairs_per_image", self.pairs_per_image, low=0, integer=True)
-        check_number("RetrievalOptions.min_similarity", self.min_similarity, low=-1, high=1)
+        check_number("RetrievalOptions.min_similarity", self.min_similarity, low=0, high=1)
 
 
 def _root_sift(descriptors: np.ndarray) -> np.ndarray:

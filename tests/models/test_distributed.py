@@ -79,6 +79,18 @@ def test_a_workers_model_error_reads_as_ffrecons(tmp_path, scene_and_model, loca
     assert type(there.value) is type(here.value) and str(there.value) == str(here.value)
 
 
+def test_what_ray_cannot_place_or_finish_stops_the_run_instead_of_waiting(scene_and_model, local_ray):
+    """No GPU in the cluster for --ray-gpus: refused before any actor waits for one; no chunk back within
+    ``wait_seconds``: a ModelError, not a hang."""
+    scene, path = scene_and_model
+    model, capture, images = OnnxModel(path, threads=1), _Capture(tuple(scene.names)), list(scene.images)
+    with pytest.raises(InputError, match="0 GPUs: not enough") as caught:
+        predict(model, capture, images, dataclasses.replace(CHUNKS, ray=RayOptions(gpus_per_worker=1.0)))
+    assert "--ray-gpus" in caught.value.fix
+    with pytest.raises(ModelError, match="no chunk finished on Ray within 0.001 s"):
+        predict(model, capture, images, dataclasses.replace(CHUNKS, ray=RayOptions(workers=1, wait_seconds=0.001)))
+
+
 def test_without_ray_installed_the_message_says_how(monkeypatch, scene_and_model):
     scene, path = scene_and_model
     monkeypatch.setitem(sys.modules, "ray", None)  # import ray raises ImportError
