@@ -42,3 +42,30 @@ def cuda_free_memory_bytes() -> int | None:
         return int(float(out.split()[0]) * 2**20)
     except (OSError, ValueError, IndexError, subprocess.SubprocessError):
         return None
+
+
+def reset_peak_rss() -> bool:
+    """Reset this process's resident-memory high-water mark (Linux: ``5`` into ``/proc/self/clear_refs``), so
+    that :func:`peak_rss_bytes` reads the peak from now on; False where the kernel does not allow it (the
+    mark then keeps the whole process's peak)."""
+    try:
+        Path("/proc/self/clear_refs").write_text("5")
+        return True
+    except OSError:
+        return False
+
+
+def peak_rss_bytes() -> int | None:
+    """This process's resident-memory high-water mark (``VmHWM``; since :func:`reset_peak_rss`), or None."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    try:
+        import resource
+
+        return int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) * 1024  # kB on Linux
+    except (ImportError, OSError):
+        return None

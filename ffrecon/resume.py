@@ -34,6 +34,7 @@ from pathlib import Path
 from typing import TypeVar
 
 from ffrecon import __version__
+from ffrecon.machine import peak_rss_bytes, reset_peak_rss
 from ffrecon.records import RecordError, RecordFormatError, read_meta, read_result, write_record
 from ffrecon.timing import StageTimer
 
@@ -52,6 +53,9 @@ class StageTiming:
     reused: bool = False
     first_seconds: float | None = None  # what the stage took when it ran, for reused stages
     beside: str | None = None  # the stage that ran at the same time (see :class:`OverlapTiming`)
+    # The process's peak resident memory while it ran, in GB (with the stage beside it, if any); None for a
+    # reused stage and for the second of two stages side by side (the first's peak covers both).
+    peak_rss_gb: float | None = None
 
 
 @dataclass(frozen=True)
@@ -139,9 +143,10 @@ class StageRunner:
     ``reuse=False`` recomputes everything (records are still written, for a later resume).
     """
 
-    def __init__(self, run_dir: Path, *, reuse: bool) -> None:
+    def __init__(self, run_dir: Path, *, reuse: bool, measure_memory: bool = True) -> None:
         self.run_dir = Path(run_dir)
         self.reuse = reuse
+        self.measure_memory = measure_memory  # each stage's peak memory (one thread at a time may reset it)
         self.timings: list[StageTiming] = []
         self.finished: list[str] = []  # stages finished or reused in this run, in order
         self.current: str | None = None  # the stage running now (named when interrupted)
@@ -215,12 +220,14 @@ class StageRunner:
             return stored, key
         self.forget(stage, outputs)
         self.current = stage
+        measured = self.measure_memory and reset_peak_rss()
         with timer.stage(stage):
             result = fn()
         seconds = timer.freeze().total_s
+        peak = peak_rss_bytes() if measured else None
         self.current = None
         self._store(stage, key, result, seconds, options, inputs)
-        self.timings.append(StageTiming(stage, seconds))
+        self.timings.append(StageTiming(stage, seconds, peak_rss_gb=None if peak is None else peak / 2**30))
         self.finished.append(stage)
         return result, key
 
@@ -233,7 +240,7 @@ class StageRunner:
         order (so the order does not depend on which thread finished first); the stage it stopped in
         joins :attr:`current`; and the group's wall-clock time is recorded in :attr:`overlaps`.
         """
-        branch = StageRunner(self.run_dir, reuse=self.reuse)
+        branch = StageRunner(self.run_dir, reuse=self.reuse, measure_memory=False)
         first, start = len(self.timings), time.perf_counter()
         try:
             yield branch

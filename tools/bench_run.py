@@ -321,6 +321,10 @@ def report_row(report: dict, wall: float) -> dict:
             for t in (30, 60)
         },
         "providers": ((report.get("feedforward") or {}).get("model") or {}).get("providers"),
+        # each stage's peak resident memory (report.json; the first of two stages side by side holds both)
+        "stage_peak_gb": {
+            name: t["peak_rss_gb"] for name, t in report.get("timings", {}).items() if t.get("peak_rss_gb") is not None
+        },
     }
     row.update(_accuracy(report))
     return row
@@ -415,6 +419,9 @@ def print_table(rows: list[dict]) -> None:
             )
         if r.get("steps"):
             print(f"  {r['method']} steps: " + ", ".join(f"{k} {v:.2f}" for k, v in r["steps"].items()))
+        if r.get("stage_peak_gb"):
+            peaks = ", ".join(f"{k} {v:.2f}" for k, v in r["stage_peak_gb"].items())
+            print(f"  {r['method']} peak GB by stage: {peaks}")
         others = {e: a for e, a in r.get("accuracy", {}).items() if e != r.get("scored")}
         notes = [f"scored: {r['scored']} cameras"] if r.get("scored") else []
         notes += [f"{e} {a['registered']} AUC@5 {_num(a['auc5'], '.3f', 0)}" for e, a in others.items()]

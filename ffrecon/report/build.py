@@ -118,6 +118,7 @@ def _timings(results: RunResults) -> dict:
             "reused": t.reused,
             "first_seconds": t.first_seconds,
             "concurrent_with": t.beside,
+            "peak_rss_gb": t.peak_rss_gb,
         }
         for t in results.timings
     }

@@ -400,6 +400,8 @@ def _timings(report: dict, run_dir: Path) -> tuple[list[dict], str]:
     for stage, t in timings.items():
         status = "reused" if t["reused"] else "ran"
         row = {"stage": stage, "seconds": t["seconds"], "status": status, "when it ran (s)": t["first_seconds"]}
+        peak = t.get("peak_rss_gb")
+        row |= {"peak memory (GB)": None if peak is None else round(peak, 2)}
         rows.append(row | {"at the same time as": t.get("concurrent_with")})
     together = []
     for group in report.get("concurrent_stages", []):
