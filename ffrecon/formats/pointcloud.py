@@ -38,28 +38,64 @@ def fuse_prediction(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Confidence-filtered points of every frame in the world frame.
 
-    Returns ``(xyz [M, 3] float64 world, rgb [M, 3] float32 in [0, 1])``, voxel-downsampled.
+    Returns ``(xyz [M, 3] float64 world, rgb [M, 3] float32 in [0, 1])``, voxel-downsampled, the same points
+    as :func:`downsample` of every frame's points, but made in passes so that memory does not grow with the
+    frames: the points picked per frame are counted, then the voxel size is taken from an even sample of
+    them (as :func:`downsample` does), then each frame's points are made and reduced to that grid one frame
+    at a time. At 120 frames of 640x480, collecting them all first took the feed-forward stage from 1.29 to
+    2.41 GB for a 16 MB result.
     """
-    xyz_all, rgb_all = [], []
-    for k in range(len(prediction)):
-        valid = prediction.valid_mask(k, options.min_conf)
-        if valid.sum() == 0:
-            continue
-        conf = prediction.depth_conf[k]
-        valid &= conf >= np.quantile(conf[valid], options.conf_quantile)
-        h, w = valid.shape
-        colour = (
-            images[k] if images[k].shape[:2] == (h, w) else cv2.resize(images[k], (w, h), interpolation=cv2.INTER_AREA)
-        )
-        idx = np.flatnonzero(valid)
-        idx = idx[:: max(1, len(idx) // options.max_points_per_frame)]
-        uv = pixel_centers(h, w).reshape(-1, 2)[idx]
-        cam = prediction.depth_camera(k)
-        xyz_all.append(unproject_pixels(uv, prediction.depth[k].reshape(-1)[idx], cam.K, prediction.cam_from_world[k]))
-        rgb_all.append(colour.reshape(-1, 3)[idx].astype(np.float32) / 255.0)
-    if not xyz_all:
+    frames = [k for k in range(len(prediction)) if len(_picked(prediction, k, options))]
+    if not frames:
         return np.zeros((0, 3)), np.zeros((0, 3), np.float32)
-    return downsample(xyz_all, rgb_all, options)
+    total = sum(len(_picked(prediction, k, options)) for k in frames)
+    step = max(1, total // 1_000_000)
+    sample = np.concatenate([_frame_xyz(prediction, k, _picked(prediction, k, options)[::step]) for k in frames])
+    voxel = _voxel_size(sample, options)
+    if voxel <= 0:
+        parts = [_frame_points(prediction, images, k, _picked(prediction, k, options)) for k in frames]
+        return _cleaned(np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]), options)
+    parts = [
+        _voxel_means(*_frame_points(prediction, images, k, _picked(prediction, k, options)), voxel) for k in frames
+    ]
+    points, colours = _voxel_means(np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]), voxel)
+    return _cleaned(points, colours, options)
+
+
+def _picked(prediction: Prediction, k: int, options: FuseOptions) -> np.ndarray:
+    """Flat indices into frame ``k``'s depth grid of the pixels fused: valid, above the frame's confidence
+    quantile, evenly thinned to at most about ``max_points_per_frame``."""
+    valid = prediction.valid_mask(k, options.min_conf)
+    if valid.sum() == 0:
+        return np.zeros(0, np.int64)
+    conf = prediction.depth_conf[k]
+    valid &= conf >= np.quantile(conf[valid], options.conf_quantile)
+    idx = np.flatnonzero(valid)
+    return idx[:: max(1, len(idx) // options.max_points_per_frame)]
+
+
+def _frame_xyz(prediction: Prediction, k: int, idx: np.ndarray) -> np.ndarray:
+    """``[M, 3]`` world points of frame ``k``'s depth pixels ``idx``."""
+    h, w = prediction.depth[k].shape
+    uv = pixel_centers(h, w).reshape(-1, 2)[idx]
+    cam = prediction.depth_camera(k)
+    return unproject_pixels(uv, prediction.depth[k].reshape(-1)[idx], cam.K, prediction.cam_from_world[k])
+
+
+def _frame_points(
+    prediction: Prediction, images: Sequence[np.ndarray], k: int, idx: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """World points and colours (float32 in [0, 1]) of frame ``k``'s depth pixels ``idx``."""
+    h, w = prediction.depth[k].shape
+    image = images[k]
+    colour = image if image.shape[:2] == (h, w) else cv2.resize(image, (w, h), interpolation=cv2.INTER_AREA)
+    return _frame_xyz(prediction, k, idx), colour.reshape(-1, 3)[idx].astype(np.float32) / 255.0
+
+
+def _voxel_size(sample: np.ndarray, options: FuseOptions) -> float:
+    """The voxel: ``voxel_fraction`` of the diagonal of the points' 2-98 % extent."""
+    lo, hi = np.quantile(sample, [0.02, 0.98], axis=0)
+    return float(np.linalg.norm(hi - lo)) * options.voxel_fraction
 
 
 def downsample(
@@ -77,8 +113,7 @@ def downsample(
     """
     total = sum(len(x) for x in xyz)
     step = max(1, total // 1_000_000)
-    lo, hi = np.quantile(np.concatenate([x[::step] for x in xyz]), [0.02, 0.98], axis=0)  # on <= 2 M points
-    voxel = float(np.linalg.norm(hi - lo)) * options.voxel_fraction
+    voxel = _voxel_size(np.concatenate([x[::step] for x in xyz]), options)  # on <= 2 M points
     if voxel > 0:
         parts = [_voxel_means(x, c, voxel) for x, c in zip(xyz, rgb)]
         points, colours = _voxel_means(
@@ -86,6 +121,11 @@ def downsample(
         )
     else:
         points, colours = np.concatenate(xyz), np.concatenate(rgb)
+    return _cleaned(points, colours, options)
+
+
+def _cleaned(points: np.ndarray, colours: np.ndarray, options: FuseOptions) -> tuple[np.ndarray, np.ndarray]:
+    """Statistical outliers dropped (``options.remove_outliers``), with open3d."""
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
     cloud.colors = o3d.utility.Vector3dVector(np.clip(colours, 0, 1).astype(np.float64))
     if options.remove_outliers and len(cloud.points) > 50:

@@ -42,3 +42,29 @@ def test_the_fused_cloud_is_the_same_in_every_call():
         again = downsample(frames, colours)
         np.testing.assert_allclose(again[0], first[0], rtol=0, atol=1e-12)
         np.testing.assert_allclose(again[1], first[1], rtol=0, atol=1e-6)
+
+
+def test_fusing_frame_by_frame_gives_the_cloud_of_all_frames_at_once():
+    """fuse_prediction makes and reduces one frame's points at a time (bounded memory); the cloud is exactly
+    downsample() of every frame's points collected first."""
+    from ffrecon.formats.pointcloud import _frame_points, _picked, fuse_prediction
+    from ffrecon.types import ModelFamily, ModelInfo, PinholeCamera, Prediction
+
+    rng = np.random.default_rng(1)
+    n, h, w = 5, 60, 80
+    camera = PinholeCamera(w, h, 70.0, 70.0, w / 2, h / 2)
+    poses = np.tile(np.eye(3, 4), (n, 1, 1))
+    poses[:, 0, 3] = -0.1 * np.arange(n)  # a sideways walk
+    depth = tuple((2 + rng.uniform(0, 0.5, (h, w))).astype(np.float32) for _ in range(n))
+    conf = tuple((1 + rng.uniform(0, 5, (h, w))).astype(np.float32) for _ in range(n))
+    prediction = Prediction(
+        tuple(f"f{k}.png" for k in range(n)), poses, (camera,) * n, depth, conf, ModelInfo("m", ModelFamily.MULTIVIEW)
+    )
+    images = [rng.integers(0, 256, (h, w, 3), dtype=np.uint8) for _ in range(n)]
+    options = FuseOptions(max_points_per_frame=1000)
+    streamed = fuse_prediction(prediction, images, options)
+    frames = [_frame_points(prediction, images, k, _picked(prediction, k, options)) for k in range(n)]
+    at_once = downsample([f[0] for f in frames], [f[1] for f in frames], options)
+    assert len(streamed[0]) > 100
+    np.testing.assert_array_equal(streamed[0], at_once[0])
+    np.testing.assert_array_equal(streamed[1], at_once[1])
