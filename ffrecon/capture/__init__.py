@@ -97,6 +97,21 @@ class CaptureOptions:
         object.__setattr__(self, "max_image_size", int(self.max_image_size) if self.max_image_size else None)
 
 
+class FramesOnDemand(Sequence):
+    """``[H, W, 3]`` uint8 RGB upright images of frames, each read from disk when indexed (nothing is kept)."""
+
+    def __init__(self, frames: tuple[Frame, ...]) -> None:
+        self._frames = frames
+
+    def __len__(self) -> int:
+        return len(self._frames)
+
+    def __getitem__(self, index):  # an int gives an image, a slice a list of them
+        if isinstance(index, slice):
+            return [frame.read_rgb() for frame in self._frames[index]]
+        return self._frames[index].read_rgb()
+
+
 @dataclass(frozen=True)
 class Capture:
     """The loaded frames (paths and sizes, no pixels: see :meth:`read_images`) and their quality checks."""
@@ -142,6 +157,12 @@ class Capture:
         """Per frame, its long side over the input's (1.0: full size; below 1: downscaled at capture)."""
         originals = self.original_sizes_wh or tuple(f.size_wh for f in self.frames)
         return tuple(max(f.size_wh) / max(o) for f, o in zip(self.frames, originals))
+
+    def frames_on_demand(self, indices: Sequence[int] | None = None) -> FramesOnDemand:
+        """The frames at ``indices`` (all by default) as a sequence read from disk one at a time, when asked
+        for: a stage that goes through them in order holds one, not all (1,000 frames of 640x480 are 0.9 GB;
+        of 1600x1200, 5.8 GB)."""
+        return FramesOnDemand(tuple(self.frames[i] for i in (range(len(self.frames)) if indices is None else indices)))
 
     def read_images(self, indices: Sequence[int] | None = None) -> list[np.ndarray]:
         """``[H_i, W_i, 3]`` uint8 RGB upright images of the frames at ``indices`` (all by default), read from disk."""

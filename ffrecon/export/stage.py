@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -53,11 +53,12 @@ class ExportsResult:
 def fuse_with_final_cameras(
     prediction: Prediction,
     final: FinalCameras,
-    read_images: Callable[[list[int]], list[np.ndarray]],
+    read_images: Callable[[list[int]], Sequence[np.ndarray]],
     fuse: FuseOptions,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The depth maps of the final cameras' frames (frames left out, contradicted, stay out) fused again with
-    those cameras, so points.ply agrees with sparse/0. ``read_images(indices)`` reads the capture's photos."""
+    those cameras, so points.ply agrees with sparse/0. ``read_images(indices)`` gives the capture's photos
+    (read one at a time as the fusion goes: :meth:`~ffrecon.capture.Capture.frames_on_demand`)."""
     kept = prediction.subset(final.indices)
     moved = dataclasses.replace(kept, cam_from_world=final.cam_from_world, cameras=final.cameras)
     return fuse_prediction(moved, read_images(list(final.indices)), fuse)
@@ -117,7 +118,7 @@ def export_final_cameras(
     if final.source is CameraSource.COLMAP and isinstance(colmap, ColmapResult):
         points, what = seed_from_reconstruction(colmap.reconstruction), "COLMAP's sparse points"
     elif isinstance(ff, FeedForwardResult) and final.source is CameraSource.REFINED:
-        points = fuse_with_final_cameras(ff.prediction, final, capture.read_images, fuse)
+        points = fuse_with_final_cameras(ff.prediction, final, capture.frames_on_demand, fuse)
         what = "depth maps fused with the refined cameras"
     elif isinstance(ff, FeedForwardResult):
         points, what = (ff.points_xyz, ff.points_rgb), "depth maps fused with the model's cameras"

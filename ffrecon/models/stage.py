@@ -5,7 +5,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -124,13 +124,13 @@ class ModelPass:
     chunks: ChunkLayout | None = None  # multi-view families: the model calls
 
 
-def predict(model: OnnxModel, capture: Capture, images: list[np.ndarray], options: FeedForwardOptions) -> ModelPass:
+def predict(model: OnnxModel, capture: Capture, images: Sequence[np.ndarray], options: FeedForwardOptions) -> ModelPass:
     """Run the model's family adapter on every frame of the capture; the result is validated."""
     names = list(capture.names)
     if options.ray is not None and model.family in (ModelFamily.PAIRWISE, ModelFamily.MONODEPTH):
         log.warning("--ray runs a multi-view model's chunks; this %s model runs here", model.family.value)
-    if model.family is ModelFamily.PAIRWISE:
-        prediction = _predict_pairwise(model, images, names, options)
+    if model.family is ModelFamily.PAIRWISE:  # every pair reads its two photos: read each once, here
+        prediction = _predict_pairwise(model, list(images), names, options)
         validate_prediction(
             prediction, camera_outputs="pts3d/pts3d_in_other_view (after global alignment)", depth_outputs="pts3d"
         )
@@ -141,7 +141,7 @@ def predict(model: OnnxModel, capture: Capture, images: list[np.ndarray], option
 
 
 def _predict_monodepth(
-    model: OnnxModel, capture: Capture, images: list[np.ndarray], names: list[str], options: FeedForwardOptions
+    model: OnnxModel, capture: Capture, images: Sequence[np.ndarray], names: list[str], options: FeedForwardOptions
 ) -> Prediction:
     from ffrecon.models import monodepth
 
@@ -167,7 +167,7 @@ def _predict_monodepth(
 
 
 def _predict_multiview(
-    model: OnnxModel, images: list[np.ndarray], names: list[str], options: FeedForwardOptions
+    model: OnnxModel, images: Sequence[np.ndarray], names: list[str], options: FeedForwardOptions
 ) -> ModelPass:
     """Chunked model calls, in this process or on Ray's workers (``options.ray``), merged here."""
     adapter = adapter_for(model.family)
@@ -229,7 +229,7 @@ def run_feedforward(
         ", SIMULATED" if model.simulated else "",
         len(capture.frames),
     )
-    images = capture.read_images()  # held only while this stage runs
+    images = capture.frames_on_demand()  # each read when a model call or the fusion asks for it
     model_pass = predict(model, capture, images, options)
     prediction = model_pass.prediction
     model_cameras = ()
