@@ -7,15 +7,21 @@ import subprocess
 from pathlib import Path
 
 
-def available_memory_bytes() -> int:
-    """Memory available to a new allocation now (Linux ``MemAvailable``; else total physical memory)."""
+def _proc_bytes(path: str, field: str) -> int | None:
+    """A ``<field>: <n> kB`` line of a Linux /proc file, in bytes; None where it cannot be read."""
     try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemAvailable:"):
+        for line in Path(path).read_text().splitlines():
+            if line.startswith(f"{field}:"):
                 return int(line.split()[1]) * 1024
     except OSError:
         pass
-    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    return None
+
+
+def available_memory_bytes() -> int:
+    """Memory available to a new allocation now (Linux ``MemAvailable``; else total physical memory)."""
+    available = _proc_bytes("/proc/meminfo", "MemAvailable")
+    return available if available is not None else os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
 
 
 def cuda_free_memory_bytes() -> int | None:
@@ -57,12 +63,9 @@ def reset_peak_rss() -> bool:
 
 def peak_rss_bytes() -> int | None:
     """This process's resident-memory high-water mark (``VmHWM``; since :func:`reset_peak_rss`), or None."""
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith("VmHWM:"):
-                return int(line.split()[1]) * 1024
-    except OSError:
-        pass
+    peak = _proc_bytes("/proc/self/status", "VmHWM")
+    if peak is not None:
+        return peak
     try:
         import resource
 
