@@ -66,41 +66,101 @@ class OverlapGraph:
         return np.maximum(self.overlap, self.overlap.T)
 
 
-def _sample_points(prediction: Prediction, i: int, options: OverlapOptions, rng: np.random.Generator) -> np.ndarray:
-    """``[M, 3]`` world points from confident depth of frame i (random subset of the valid pixels)."""
+TILES = 4  # each frame's sampled points are grouped by a TILES x TILES grid of its image for the frustum test
+
+
+def _sample_points(
+    prediction: Prediction, i: int, options: OverlapOptions, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
+    """``([M, 3] world points, [M] image tile)`` from confident depth of frame i (random subset of the valid
+    pixels), ordered by tile (row-major over a ``TILES`` x ``TILES`` grid of the image)."""
     valid = np.flatnonzero(prediction.valid_mask(i, options.min_depth_conf).ravel())
     if len(valid) == 0:
-        return np.zeros((0, 3))
+        return np.zeros((0, 3)), np.zeros(0, np.int64)
     pick = (
         valid
         if len(valid) <= options.samples_per_image
         else rng.choice(valid, options.samples_per_image, replace=False)
     )
+    h, w = prediction.depth[i].shape
+    tile = (pick // w) * TILES // h * TILES + (pick % w) * TILES // w
+    pick = pick[np.argsort(tile, kind="stable")]
     cam = prediction.depth_camera(i)
     depth = prediction.depth[i].ravel()[pick].astype(np.float64)
-    uv = pixel_centers(*prediction.depth[i].shape).reshape(-1, 2)[pick]
+    uv = pixel_centers(h, w).reshape(-1, 2)[pick]
     rays = np.stack([(uv[:, 0] - cam.cx) / cam.fx, (uv[:, 1] - cam.cy) / cam.fy, np.ones(len(pick))], axis=1)
     pose = prediction.cam_from_world[i]
-    return (rays * depth[:, None] - pose[:, 3]) @ pose[:, :3]
+    return (rays * depth[:, None] - pose[:, 3]) @ pose[:, :3], np.sort(tile)
+
+
+@dataclass(frozen=True)
+class _Groups:
+    """The sampled points of every frame, grouped by frame and image tile: group g holds the points
+    ``start[g] : start[g] + count[g]`` of ``points``, of frame ``frame[g]``, inside the ball (centre, radius)."""
+
+    points: np.ndarray  # [M, 3]
+    frame: np.ndarray  # [G]
+    start: np.ndarray  # [G]
+    count: np.ndarray  # [G]
+    centre: np.ndarray  # [G, 3]
+    radius: np.ndarray  # [G]
+
+    @classmethod
+    def of(cls, samples: list[tuple[np.ndarray, np.ndarray]]) -> _Groups:
+        points = np.concatenate([p for p, _ in samples]) if samples else np.zeros((0, 3))
+        key = np.concatenate([i * TILES * TILES + t for i, (_, t) in enumerate(samples)]) if samples else []
+        key = np.asarray(key, np.int64)
+        first = np.flatnonzero(np.r_[True, key[1:] != key[:-1]]) if len(key) else np.zeros(0, np.int64)
+        count = np.diff(np.r_[first, len(key)])
+        owner = np.repeat(np.arange(len(first)), count)
+        centre = np.add.reduceat(points, first, axis=0) / count[:, None] if len(first) else np.zeros((0, 3))
+        distance = np.linalg.norm(points - centre[owner], axis=1)
+        radius = np.maximum.reduceat(distance, first) if len(first) else np.zeros(0)
+        return cls(points, key[first] // (TILES * TILES), first, count, centre, radius)
+
+    def rows(self, groups: np.ndarray) -> np.ndarray:
+        """The indices into ``points`` of ``groups``, in order."""
+        count = self.count[groups]
+        offset = np.repeat(self.start[groups] - np.r_[0, np.cumsum(count)[:-1]], count)
+        return offset + np.arange(count.sum())
+
+
+def _in_view(groups: _Groups, prediction: Prediction, j: int) -> np.ndarray:
+    """``[G]`` bool: the group's points may land in frame j's image.
+
+    A group's points lie in its ball; a ball wholly behind one of frame j's four image-border planes has no
+    point in the image (a point with ``0 <= u < w``, ``0 <= v < h`` at positive depth is on the inner side of
+    all four). The test never drops a group that could be seen, so the overlap is unchanged; it only saves
+    projections. (A few lines of numpy: open3d's frustum tests work on meshes and boxes, not on balls.)
+    """
+    cam = prediction.depth_camera(j)
+    h, w = prediction.depth[j].shape
+    pose = prediction.cam_from_world[j]
+    centre = groups.centre @ pose[:, :3].T + pose[:, 3]
+    normals = np.array([[cam.fx, 0, cam.cx], [-cam.fx, 0, w - cam.cx], [0, cam.fy, cam.cy], [0, -cam.fy, h - cam.cy]])
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)  # inner normals of the planes u = 0, w; v = 0, h
+    margin = groups.radius * (1 + 1e-9) + 1e-9 * (1 + np.abs(centre).max(1, initial=0.0))
+    return ((centre @ normals.T) >= -margin[:, None]).all(1)
 
 
 def overlap_matrix(prediction: Prediction, options: OverlapOptions = OverlapOptions()) -> np.ndarray:
     """``[N, N]`` overlap[i, j] in [0, 1]: share of frame i's confident depth points visible in frame j.
 
-    The diagonal is 1 (0 for a frame with no confident depth). The sampled points of every frame are
-    projected into frame j at once.
+    The diagonal is 1 (0 for a frame with no confident depth). Into each frame j go the sampled points
+    that may be in its view (:func:`_in_view`, per frame and image tile): projecting every frame's points
+    into every frame grew as frames^2 (16 s at 400 frames).
     """
     n = len(prediction)
     rng = np.random.default_rng(options.seed)
-    points = [_sample_points(prediction, i, options, rng) for i in range(n)]
-    owner = np.repeat(np.arange(n), [len(p) for p in points])
-    counts = np.bincount(owner, minlength=n)
-    everything = np.concatenate(points) if len(owner) else np.zeros((0, 3))
+    groups = _Groups.of([_sample_points(prediction, i, options, rng) for i in range(n)])
+    counts = np.bincount(groups.frame, weights=groups.count, minlength=n).astype(np.int64)
     out = np.zeros((n, n))
     for j in range(n):
+        near = np.flatnonzero(_in_view(groups, prediction, j))
+        owner = np.repeat(groups.frame[near], groups.count[near])
         cam = prediction.depth_camera(j)
         h, w = prediction.depth[j].shape
-        uv, z = project_points(everything, cam.K, prediction.cam_from_world[j])
+        uv, z = project_points(groups.points[groups.rows(near)], cam.K, prediction.cam_from_world[j])
         inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
         col = np.clip(uv[inside, 0].astype(int), 0, w - 1)
         row = np.clip(uv[inside, 1].astype(int), 0, h - 1)

@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from ffrecon.geometry.projection import pixel_centers
+from ffrecon.sfm import overlap
 from ffrecon.sfm.overlap import OverlapOptions, overlap_graph, select_pairs
+from ffrecon.types import ModelFamily, ModelInfo, PinholeCamera, Prediction
 
 
 def test_overlap_follows_the_orbit(orbit24):
@@ -50,3 +53,45 @@ def test_select_pairs_keeps_loop_candidates():
     assert not without & revisits, "the cap alone drops every revisit"
     assert len(with_loops & revisits) >= 5 and with_loops >= without
     assert all(abs(a - b) <= 6 or (a, b) in revisits for a, b in with_loops)
+
+
+def _corridor(n: int) -> Prediction:
+    """Cameras walking along a wall (0.4 apart, the wall 3 away, 60 degrees of view), every fifth turned
+    about its vertical axis and the last looking away from the wall: far frames share nothing."""
+    h, w = 48, 64
+    camera = PinholeCamera(w, h, 55.0, 55.0, 32.0, 24.0)
+    poses = []
+    for k in range(n):
+        yaw = np.radians(20.0 if k % 5 == 0 else 0.0) + (np.pi if k == n - 1 else 0.0)
+        rot = np.array([[np.cos(yaw), 0, -np.sin(yaw)], [0, 1, 0], [np.sin(yaw), 0, np.cos(yaw)]])
+        centre = np.array([0.4 * k, 0.0, 0.0])
+        poses.append(np.hstack([rot, (-rot @ centre)[:, None]]))
+    poses = np.array(poses)
+    depth = []
+    for k in range(n):  # z-depth of the wall z = 3 (+ a ripple) along each pixel's ray
+        uv = pixel_centers(h, w).reshape(-1, 2)
+        rays = np.column_stack([(uv - [camera.cx, camera.cy]) / camera.fx, np.ones(h * w)]) @ poses[k][:, :3]
+        centre = -poses[k][:, :3].T @ poses[k][:, 3]
+        t = (3.0 - centre[2]) / np.where(np.abs(rays[:, 2]) > 1e-9, rays[:, 2], 1e-9)
+        hit = centre + t[:, None] * rays
+        t *= 1 + 0.01 * np.sin(hit[:, 0] * 5)
+        depth.append(np.where(t > 0, t, 0.0).reshape(h, w).astype(np.float32))
+    conf = tuple((d > 0).astype(np.float32) * 2 for d in depth)
+    info = ModelInfo("corridor", ModelFamily.MULTIVIEW, simulated=True)
+    return Prediction(tuple(f"{k}.png" for k in range(n)), poses, (camera,) * n, tuple(depth), conf, info)
+
+
+def test_frustum_test_skips_projections_and_changes_no_overlap(monkeypatch):
+    """Projecting only the points that may be in view gives the overlap of projecting every frame's points into
+    every frame, exactly; on a 40-frame corridor most of the points are never projected into a frame."""
+    prediction = _corridor(40)
+    rng = np.random.default_rng(0)
+    groups = overlap._Groups.of([overlap._sample_points(prediction, i, OverlapOptions(), rng) for i in range(40)])
+    tested = np.array([overlap._in_view(groups, prediction, j) for j in range(40)])  # [frame j, group]
+    fast = overlap.overlap_matrix(prediction)
+    monkeypatch.setattr(overlap, "_in_view", lambda groups, pred, j: np.ones(len(groups.count), bool))
+    every = overlap.overlap_matrix(prediction)
+    np.testing.assert_array_equal(fast, every)
+    projected = (tested * groups.count).sum() / (40 * groups.count.sum())
+    assert projected < 0.3, projected
+    assert fast[0, 1] > 0.5 and fast[0, 20] == 0 and fast[39, :39].max() == 0 and fast[:39, 39].max() == 0
