@@ -40,11 +40,27 @@ class PairSupport:
         )
 
 
+def _reaches_two_others(rec: pycolmap.Reconstruction, image: pycolmap.Image, count: int) -> bool:
+    """Whether at least ``count`` of the image's tracks reach two other frames or more (then, whichever its
+    partner, that many reach a frame besides it). Stops at the ``count``-th: on a dense video the tracks
+    grow with the frame count, and reading every one of every frame grew as frames^2 (21 s at 500 frames)."""
+    found = 0
+    for point2D in image.points2D:
+        if point2D.has_point3D():
+            track = rec.points3D[point2D.point3D_id].track
+            found += len({e.image_id for e in track.elements} - {image.image_id}) >= 2
+            if found >= count:
+                return True
+    return False
+
+
 def planar_single_pair(rec: pycolmap.Reconstruction, image_id: int, min_elsewhere: int) -> PairSupport | None:
     """The frame's support when it hangs on one planar pair (fewer than ``min_elsewhere`` observations
     in tracks reaching any other frame, and COLMAP's planarity test passes on the pair's shared
     observations); None otherwise."""
     image = rec.images[image_id]
+    if _reaches_two_others(rec, image, min_elsewhere):
+        return None
     tracks = [rec.points3D[p.point3D_id].track for p in image.points2D if p.has_point3D()]
     others = [{e.image_id for e in t.elements} - {image_id} for t in tracks]
     counts = Counter(i for o in others for i in o)
