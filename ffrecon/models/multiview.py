@@ -34,6 +34,9 @@ class MultiviewOptions:
     chunk_size: int | None = None  # frames per model call; None: from the model's size and free memory
     chunk_overlap: int = 2
     max_depth_side: int | None = 1024  # cap on stored depth grids (None: original resolution)
+    # The depth and confidence grids of all frames together (float32 each) stay under this: on long captures
+    # their long side shrinks below max_depth_side (1,000 frames of 640x480 would hold 2.5 GB). None: no bound.
+    depth_memory_gb: float | None = 1.0
     align_points_per_frame: int = 4000  # depth points per shared frame used for the chunk Sim(3)
 
     def __post_init__(self) -> None:
@@ -50,6 +53,7 @@ class MultiviewOptions:
                 f"pass --chunk-overlap at most {self.chunk_size - 1} (at least 1), or a larger --chunk-size",
             )
         check_number("MultiviewOptions.max_depth_side", self.max_depth_side, low=1, integer=True, allow_none=True)
+        check_number("MultiviewOptions.depth_memory_gb", self.depth_memory_gb, low=0, low_open=True, allow_none=True)
         check_number("MultiviewOptions.align_points_per_frame", self.align_points_per_frame, low=1, integer=True)
 
 
@@ -65,6 +69,7 @@ class ChunkLayout:
     workers: int = 1  # model sessions
     nodes: int = 1  # machines
     chunk_workers: tuple[str, ...] = ()  # per call, the host:pid that ran it (Ray)
+    max_depth_side: int | None = None  # the cap on the stored depth grids' long side (None: photo size)
 
     @staticmethod
     def of(chunks: Sequence[Sequence[int]], size: int, overlap: int, **engine) -> ChunkLayout:
@@ -72,10 +77,29 @@ class ChunkLayout:
 
     def to_report(self) -> dict:
         out = {"size": self.size, "overlap": self.overlap, "calls": [list(f) for f in self.frames]}
-        out |= {"engine": self.engine, "workers": self.workers}
+        out |= {"engine": self.engine, "workers": self.workers, "max_depth_side": self.max_depth_side}
         if self.engine == "ray":
             out |= {"address": self.address, "nodes": self.nodes, "chunk_workers": list(self.chunk_workers)}
         return out
+
+
+def depth_side_within(options: MultiviewOptions, num_frames: int, width: int, height: int) -> int | None:
+    """The cap on the stored depth grids' long side: ``options.max_depth_side``, lowered so that ``num_frames``
+    depth and confidence grids (float32) of a ``width`` x ``height`` photo stay under ``options.depth_memory_gb``.
+
+    >>> depth_side_within(MultiviewOptions(), 250, 640, 480)  # 0.6 GB: within the budget
+    1024
+    >>> depth_side_within(MultiviewOptions(), 1000, 640, 480)  # 2.5 GB at the photo's size
+    423
+    """
+    cap = options.max_depth_side
+    if options.depth_memory_gb is None:
+        return cap
+    scale = np.sqrt(options.depth_memory_gb * 2**30 / (num_frames * width * height * 8))
+    if scale >= 1:
+        return cap
+    side = max(int(max(width, height) * scale), 16)
+    return side if cap is None else min(cap, side)
 
 
 def preprocess_mode(adapter: MultiviewAdapter, options: MultiviewOptions) -> PreprocessMode:

@@ -28,6 +28,7 @@ from ffrecon.models.multiview import (
     ChunkLayout,
     MultiviewOptions,
     chunking,
+    depth_side_within,
     merge_chunks,
     plan_chunks,
     predict_multiview,
@@ -178,16 +179,37 @@ def _predict_multiview(
         mv_options = dataclasses.replace(
             mv_options, chunk_size=chunk, chunk_overlap=min(mv_options.chunk_overlap, chunk - 1)
         )
+    mv_options = _within_depth_memory(mv_options, images)
     chunks = plan_chunks(len(images), *chunking(mv_options))
     if options.ray is not None:
         from ffrecon.models.distributed import predict_chunks_ray
 
         mode = preprocess_mode(adapter, mv_options)
         ray = predict_chunks_ray(model.info(), images, names, chunks, mode, mv_options, options.ray)
-        return ModelPass(merge_chunks(ray.parts, chunks, mv_options.align_points_per_frame), ray.layout)
+        layout = dataclasses.replace(ray.layout, max_depth_side=mv_options.max_depth_side)
+        return ModelPass(merge_chunks(ray.parts, chunks, mv_options.align_points_per_frame), layout)
     infer = lambda batch: model.run_checked(adapter.input_name, {adapter.input_name: batch})  # noqa: E731
     prediction = predict_multiview(images, names, infer, model.info(), mv_options, adapter)
-    return ModelPass(prediction, ChunkLayout.of(chunks, *chunking(mv_options)))
+    return ModelPass(
+        prediction, ChunkLayout.of(chunks, *chunking(mv_options), max_depth_side=mv_options.max_depth_side)
+    )
+
+
+def _within_depth_memory(options: MultiviewOptions, images: Sequence[np.ndarray]) -> MultiviewOptions:
+    """``options`` with the depth grids' cap lowered to keep every frame's depth within the memory bound
+    (sized on the first frame)."""
+    height, width = images[0].shape[:2]
+    side = depth_side_within(options, len(images), width, height)
+    if side != options.max_depth_side:
+        log.info(
+            "depth grids stored at %d px on the long side: %d frames of %dx%d stay within %.1f GB",
+            side,
+            len(images),
+            width,
+            height,
+            options.depth_memory_gb,
+        )
+    return dataclasses.replace(options, max_depth_side=side)
 
 
 def _predict_pairwise(model: OnnxModel, images: list, names: list, options: FeedForwardOptions) -> Prediction:
