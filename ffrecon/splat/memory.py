@@ -2,7 +2,8 @@
 
 One optimisation step renders a training view at full size and back-propagates the L1 + SSIM loss
 through it: colour, transmittance and gradient images, the SSIM kernel's moment maps, the per-pair
-gradients of the rasteriser. Every view is held as a float32 target beside it, and each Gaussian
+gradients of the rasteriser. Every view is held as its uint8 photo (a step converts the one it reads;
+float16 copies at the coarser levels of the resolution schedule), and each Gaussian
 carries its parameters, their gradients and Adam's two moments. Measured on this 2-core machine
 (``tools/bench_splat.py --memory``: one step of :func:`ffrecon.splat.optimize.optimize` on 200k
 Gaussians, two views, at 1600x1200 to 6400x4800; docs/benchmarks.md, "Very large photos"): the peak
@@ -32,7 +33,7 @@ log = logging.getLogger("ffrecon.splat")
 
 BASE_BYTES = 700 * 2**20  # torch, numba's kernels and the process before the first step (measured 640-990 MB)
 STEP_BYTES_PER_PIXEL = 300  # one step at the largest view's size (fit: 313 B/px with two 12 B/px targets)
-VIEW_BYTES_PER_PIXEL = 15  # each view: its float32 target (12 B/px) and the uint8 photo it came from
+VIEW_BYTES_PER_PIXEL = 6  # each view: its uint8 photo (3 B/px, the target itself), its float16 coarser levels
 BYTES_PER_GAUSSIAN = 2000  # parameters, gradients, Adam moments, projection (fit: 360 MB over 200k)
 MEMORY_FRACTION = 0.7  # of the memory available when the splat starts (as the model's chunk size)
 MIN_TRAIN_SIDE = 256  # a splat trained below this long side is not worth making: refuse instead

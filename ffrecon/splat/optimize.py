@@ -249,7 +249,7 @@ def optimize(
 
     Args:
         gaussians: the seed (not modified).
-        images: per view ``[H_i, W_i, 3]`` float32 RGB in [0, 1].
+        images: per view ``[H_i, W_i, 3]`` RGB: uint8 (held as they are) or float in [0, 1] (see :func:`unit_float`).
         cam_from_world: ``[N, 3, 4]`` OpenCV poses; Ks: ``[N, 3, 3]`` (COLMAP pixel convention).
         train: indices of the views to fit.
         scale: scene scale (see :func:`scene_scale`) for the position and pose learning rates.
@@ -282,7 +282,7 @@ def optimize(
 class _TrainingViews:
     """What every iteration reads and never changes: the views on the optimisation device."""
 
-    images: list[torch.Tensor]  # per view [H_i, W_i, 3] float32 RGB in [0, 1]
+    images: list[torch.Tensor]  # per view [H_i, W_i, 3] RGB as given: uint8, or float in [0, 1] (see unit_float)
     poses: torch.Tensor  # [N, 3, 4] float32 cam_from_world, as given
     k_mats: torch.Tensor  # [N, 3, 3] float32
     background: torch.Tensor  # [3] float32
@@ -323,6 +323,15 @@ def _training_views(
     )
 
 
+def unit_float(image: torch.Tensor) -> torch.Tensor:
+    """A view as float32 in [0, 1]: uint8 ones divided by 255, float ones as they are.
+
+    The views are kept as they come (uint8 photos: a quarter of float32's memory; 500 frames of 640x480
+    held 1.8 GB as float32) and each step converts the one it reads.
+    """
+    return image.float() / 255.0 if image.dtype == torch.uint8 else image.float()
+
+
 def downscaled(
     images: list[torch.Tensor], k_mats: torch.Tensor, factor: int, views: Sequence[int]
 ) -> tuple[list[torch.Tensor], torch.Tensor]:
@@ -338,7 +347,8 @@ def downscaled(
     for i in views:
         h, w = images[i].shape[:2]
         size = (max(1, round(h / factor)), max(1, round(w / factor)))
-        out[i] = F.interpolate(images[i].permute(2, 0, 1)[None], size=size, mode="area")[0].permute(1, 2, 0)
+        small = F.interpolate(unit_float(images[i]).permute(2, 0, 1)[None], size=size, mode="area")[0]
+        out[i] = small.permute(1, 2, 0).to(torch.float16)  # (half the memory; a step reads it through unit_float)
         ks[i, 0] *= size[1] / w
         ks[i, 1] *= size[0] / h
     return out, ks
@@ -464,7 +474,7 @@ def _train_step(
     Returns the loss (detached).
     """
     images, k_mats = views.levels.get(factor, (views.images, views.k_mats))
-    target = images[view]
+    target = unit_float(images[view])
     height, width = target.shape[:2]
     prior = views.depth_levels[factor][view] if views.depth_levels else None
     g = _as_gaussians(params)

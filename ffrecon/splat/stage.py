@@ -45,6 +45,7 @@ from ffrecon.splat.optimize import (
     optimize,
     scene_scale,
     torch_threads,
+    unit_float,
 )
 from ffrecon.splat.render import render_view
 from ffrecon.splat.render_gsplat import gsplat_available
@@ -545,7 +546,7 @@ def _fit_and_clean(
         seed, seed_points = _initial_splat(seed_xyz, seed_rgb, options)
         scale = scene_scale(cam_from_world[train], seed_points)
 
-    targets = [torch.from_numpy(np.ascontiguousarray(im)).float() / 255.0 for im in images]
+    targets = [torch.from_numpy(np.ascontiguousarray(im)) for im in images]  # uint8, as the photos (unit_float)
     Ks = np.stack([c.K for c in cameras])
     score = None
     if options.curve_every > 0 and heldout:
@@ -554,7 +555,7 @@ def _fit_and_clean(
             views = [
                 render_view(g, poses[i], cameras[i], background=opt.background, raster=opt.raster) for i in heldout
             ]
-            m = np.mean([image_metrics(v, targets[i]) for v, i in zip(views, heldout)], axis=0)
+            m = np.mean([image_metrics(v, unit_float(targets[i])) for v, i in zip(views, heldout)], axis=0)
             curve.append((iteration, seconds, float(m[0]), float(m[1])))
 
         score(0, 0.0, seed, cam_from_world)
@@ -589,7 +590,7 @@ def _heldout_psnr(heldout, poses, cameras, targets, opt) -> Callable[[Gaussians]
 
     def judge(g: Gaussians) -> float:
         views = [render_view(g, poses[i], cameras[i], background=opt.background, raster=opt.raster) for i in heldout]
-        return float(np.mean([image_metrics(v, targets[i])[0] for v, i in zip(views, heldout)]))
+        return float(np.mean([image_metrics(v, unit_float(targets[i]))[0] for v, i in zip(views, heldout)]))
 
     return judge
 
