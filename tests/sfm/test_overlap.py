@@ -95,3 +95,17 @@ def test_frustum_test_skips_projections_and_changes_no_overlap(monkeypatch):
     projected = (tested * groups.count).sum() / (40 * groups.count.sum())
     assert projected < 0.3, projected
     assert fast[0, 1] > 0.5 and fast[0, 20] == 0 and fast[39, :39].max() == 0 and fast[:39, 39].max() == 0
+
+
+def test_long_captures_measure_only_the_pairs_a_coarse_pass_finds():
+    """From ``coarse_from_frames`` frames the overlap is first estimated on a tenth of the samples: on the
+    corridor every pair that overlaps by 10 % or more is measured exactly as before, the others stay under
+    the coarse threshold, and the same pairs are chosen."""
+    prediction = _corridor(40)
+    exact = overlap.overlap_matrix(prediction, OverlapOptions())
+    coarse_first = overlap.overlap_matrix(prediction, OverlapOptions(coarse_from_frames=10))
+    both = np.minimum(exact, exact.T)
+    np.testing.assert_array_equal(coarse_first[both >= 0.1], exact[both >= 0.1])
+    assert (coarse_first != exact).any(), "some pairs kept the coarse estimate"
+    assert (np.maximum(coarse_first, coarse_first.T)[coarse_first != exact] < 0.05).all()
+    np.testing.assert_array_equal(select_pairs(coarse_first), select_pairs(exact))
