@@ -3,7 +3,8 @@
 For each frame count, a synthetic scene and its simulated VGGT model are made with
 ``ffrecon.demo.prepare_demo`` (cached under ``$FFRECON_CACHE``; ``--seed`` other than the demo's 0 gives
 held-out scenes). Then, each in its own subprocess, timed wall-clock with its peak resident memory taken
-from the kernel when it ends (``os.wait4``; the child's own and its children's high-water mark):
+from the kernel when it ends (``os.wait4``; the child's own and its children's high-water mark; the scene is made in a
+child too, so that this process stays small: a child starts at its parent's high-water mark):
 
 - COLMAP alone: ``run_colmap`` on the same images with the cross-check's default ``ColmapOptions`` (SIFT on
   the CPU, exhaustive pairing up to 150 images, incremental then global mapping) and the focal priors the
@@ -31,6 +32,7 @@ Timings on a shared machine are pessimistic; the load average is printed at the 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import platform
@@ -81,6 +83,7 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--no-colmap-alone", action="store_true", help="skip the COLMAP-alone row (no xCOLMAP)")
     parser.add_argument("--colmap-only", nargs=2, type=Path, metavar=("IMAGES", "OUT"), help=argparse.SUPPRESS)
     parser.add_argument("--truth", type=Path, default=None, help=argparse.SUPPRESS)  # scene folder, for the child
+    parser.add_argument("--prepare-only", nargs=5, type=int, default=None, help=argparse.SUPPRESS)  # prepare()'s child
     return parser
 
 
@@ -211,15 +214,32 @@ def colmap_child(images: Path, out: Path, scene_dir: Path | None) -> None:
 
 
 def prepare(frames: int, width: int, height: int, seed: int, depth_stride: int = 1):
-    """The scene and simulated model (cached), and the seconds it took."""
+    """The scene and simulated model (cached), and the seconds it took; made in a child process.
+
+    Linux carries a process's resident high-water mark across ``fork`` and ``exec`` (``ru_maxrss`` of a
+    child starts at its parent's size when it forked), so a bench that had built a 500-frame scene itself
+    (4.8 GB) reported that figure for every run after it: this process stays small instead.
+    """
+    from ffrecon.demo import DemoInputs
+
+    start = time.perf_counter()
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--prepare-only", str(frames), str(width), str(height)]
+    done = subprocess.run([*cmd, str(seed), str(depth_stride)], capture_output=True, text=True, check=False)
+    if done.returncode != 0:
+        raise SystemExit(f"preparing the {frames}-frame scene failed:\n{done.stderr[-2000:]}")
+    paths = json.loads(done.stdout.strip().splitlines()[-1])
+    return DemoInputs(**{k: Path(v) for k, v in paths.items()}), time.perf_counter() - start
+
+
+def _prepare_here(frames: int, width: int, height: int, seed: int, depth_stride: int) -> None:
+    """The child of :func:`prepare`: makes (or finds) the scene and prints its paths as JSON."""
     from ffrecon.demo import DemoOptions, prepare_demo
     from ffrecon.synthetic import SceneOptions
 
-    start = time.perf_counter()
     scene = SceneOptions(num_frames=frames, width=width, height=height, seed=seed)
     simulation = {"bad_frames": [7]} | ({"depth_stride": depth_stride} if depth_stride != 1 else {})
     inputs = prepare_demo(DemoOptions(scene=scene, simulation=simulation))
-    return inputs, time.perf_counter() - start
+    print(json.dumps({k: str(v) for k, v in dataclasses.asdict(inputs).items()}))
 
 
 def write_reference(scene_dir: Path, out: Path) -> Path:
@@ -470,6 +490,9 @@ def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     if args.colmap_only:
         colmap_child(*args.colmap_only, args.truth)
+        return 0
+    if args.prepare_only:
+        _prepare_here(*args.prepare_only)
         return 0
     if "quick" in args.modes and not quick_available():
         print("ffrecon run has no --quick option here; pass --modes default", file=sys.stderr)
