@@ -9,7 +9,7 @@ the correspondences are exact), weighted by the model's confidence.
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -151,10 +151,10 @@ def predict_multiview(
         from ffrecon.models.vggt import ADAPTER as adapter
     mode = preprocess_mode(adapter, options)
     chunks = plan_chunks(len(images), *chunking(options))
-    parts = [
+    parts = (  # merged as they come: a chunk's own arrays are let go once its frames are in
         predict_chunk([images[k] for k in chunk], [names[k] for k in chunk], infer, model, mode, adapter, options)
         for chunk in tqdm(chunks, desc="feed-forward", unit="chunk", disable=None)
-    ]
+    )
     return merge_chunks(parts, chunks, options.align_points_per_frame)
 
 
@@ -216,8 +216,10 @@ def chunk_alignment(
     return umeyama(src_a[keep], dst_a[keep], w[keep]) if keep.sum() >= 3 else sim
 
 
-def merge_chunks(parts: Sequence[Prediction], chunks: Sequence[Sequence[int]], max_points: int = 4000) -> Prediction:
-    """Bring every chunk into the first chunk's world frame and scale; shared frames keep their first estimate."""
+def merge_chunks(parts: Iterable[Prediction], chunks: Sequence[Sequence[int]], max_points: int = 4000) -> Prediction:
+    """Bring every chunk into the first chunk's world frame and scale; shared frames keep their first estimate.
+
+    ``parts`` (one per chunk, in order) may be a generator: each is merged and dropped before the next."""
     n = max(max(c) for c in chunks) + 1
     poses: list[np.ndarray | None] = [None] * n
     cameras: list = [None] * n
@@ -248,6 +250,6 @@ def merge_chunks(parts: Sequence[Prediction], chunks: Sequence[Sequence[int]], m
             tuple(cameras[k] for k in done),
             tuple(depth[k] for k in done),
             tuple(conf[k] for k in done),
-            parts[0].model,
+            part.model,
         )
     return merged_so_far
