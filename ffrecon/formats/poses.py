@@ -37,9 +37,11 @@ def _from_transforms(path: Path) -> list[tuple[str, np.ndarray]]:
         frames = json.loads(path.read_text())["frames"]
         poses = []
         for frame in frames:
-            c2w = np.asarray(frame["transform_matrix"], np.float64)[:3, :4]
-            rot = c2w[:, :3] @ _OPENGL_FROM_OPENCV  # OpenGL camera axes to OpenCV's
-            poses.append((Path(frame["file_path"]).name, np.hstack([rot.T, -rot.T @ c2w[:, 3:]])))
+            world_from_cam_gl = np.asarray(frame["transform_matrix"], np.float64)[:3, :4]  # OpenGL camera axes
+            world_from_cam_rot = world_from_cam_gl[:, :3] @ _OPENGL_FROM_OPENCV  # to OpenCV's axes
+            cam_from_world_rot = world_from_cam_rot.T
+            cam_from_world = np.hstack([cam_from_world_rot, -cam_from_world_rot @ world_from_cam_gl[:, 3:]])
+            poses.append((Path(frame["file_path"]).name, cam_from_world))
         return poses
     except (OSError, ValueError, KeyError, TypeError, IndexError) as err:
         raise InputError(f"--poses {path} cannot be read as a transforms.json ({err})", FIX) from None
