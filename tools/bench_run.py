@@ -48,6 +48,8 @@ import numpy as np
 
 # Columns of the table: report.json timing names, and groups of the small ones.
 STAGES = ("capture", "feedforward", "colmap", "refine", "splat", "exports")
+# with the checks between them (gates, dense evidence, comparisons): the cost of poses one can trust
+POSE_STAGES = ("feedforward", "colmap", "refine", "checks")
 CHECKS = ("gates", "evidence", "comparisons", "seed_comparison")
 # Steps inside a stage, from its own timer in report.json: stage -> steps (the rest of the stage is not listed).
 STEPS = {"colmap": ("feature_extraction", "matching", "mapping"), "splat": ("optimize", "evaluate", "video")}
@@ -81,6 +83,18 @@ def _parser() -> argparse.ArgumentParser:
         help="the simulated model stores depth at 1/N resolution (SimulationOptions.depth_stride; 4 for 1,000 frames)",
     )
     parser.add_argument("--no-colmap-alone", action="store_true", help="skip the COLMAP-alone row (no xCOLMAP)")
+    parser.add_argument(
+        "--colmap-pairing",
+        choices=("auto", "exhaustive", "sequential"),
+        default="auto",
+        help="COLMAP alone's pairing (ColmapOptions.pairing; auto: exhaustive up to 150 images, sequential past that)",
+    )
+    parser.add_argument(
+        "--colmap-mapping-seconds",
+        type=int,
+        default=None,
+        help="COLMAP alone's bound per mapper (ColmapOptions.max_mapping_seconds; default: the pipeline's)",
+    )
     parser.add_argument("--colmap-only", nargs=2, type=Path, metavar=("IMAGES", "OUT"), help=argparse.SUPPRESS)
     parser.add_argument("--truth", type=Path, default=None, help=argparse.SUPPRESS)  # scene folder, for the child
     parser.add_argument("--prepare-only", nargs=5, type=int, default=None, help=argparse.SUPPRESS)  # prepare()'s child
@@ -179,12 +193,13 @@ def _truth_poses(scene_dir: Path, names: list[str]) -> tuple[np.ndarray, np.ndar
     return np.stack([by_name.get(n, np.eye(3, 4)) for n in names]), have
 
 
-def colmap_child(images: Path, out: Path, scene_dir: Path | None) -> None:
+def colmap_child(images: Path, out: Path, scene_dir: Path | None, pairing: str, mapping_s: int | None) -> None:
     """COLMAP alone, as the pipeline's cross-check runs it; writes ``out/RESULT_FILE``.
 
     Imports stay inside so that this process holds only what COLMAP needs (its peak memory is measured).
     """
     from ffrecon.capture.images import focal_prior_px, list_images, read_exif
+    from ffrecon.sfm.colmap_options import PairingMode
     from ffrecon.sfm.crosscheck import ColmapOptions, run_colmap
     from ffrecon.sfm.features import image_sizes_wh
 
@@ -193,13 +208,17 @@ def colmap_child(images: Path, out: Path, scene_dir: Path | None) -> None:
     sizes = image_sizes_wh(images, names)
     priors = [focal_prior_px(*size, *read_exif(p)[1:]) if size else None for p, size in zip(paths, sizes)]
     start = time.perf_counter()
-    result = run_colmap(images, names, ColmapOptions(), out, focal_prior_px=priors)
+    options = ColmapOptions(pairing=PairingMode(pairing))
+    if mapping_s is not None:
+        options = dataclasses.replace(options, max_mapping_seconds=mapping_s)
+    result = run_colmap(images, names, options, out, focal_prior_px=priors)
     row = {
         "seconds": time.perf_counter() - start,
         "steps": result.timings.to_report(),
         "num_images": len(names),
         "registered": result.num_registered,
         "mapper": None if result.mapper is None else result.mapper.value,
+        "pairing": result.pairing.value,
     }
     if scene_dir is not None:
         from ffrecon.geometry.metrics import pose_errors
@@ -256,10 +275,13 @@ def write_reference(scene_dir: Path, out: Path) -> Path:
     return write_reconstruction(rec, out)
 
 
-def run_colmap_alone(images: Path, scene_dir: Path, out: Path) -> dict:
+def run_colmap_alone(images: Path, scene_dir: Path, out: Path, args) -> dict:
     shutil.rmtree(out, ignore_errors=True)
     out.mkdir(parents=True)
     cmd = [sys.executable, str(Path(__file__).resolve()), "--colmap-only", str(images), str(out)]
+    cmd += ["--colmap-pairing", args.colmap_pairing]
+    if args.colmap_mapping_seconds is not None:
+        cmd += ["--colmap-mapping-seconds", str(args.colmap_mapping_seconds)]
     code, wall, peak, _ = measured([*cmd, "--truth", str(scene_dir)], out.parent / "colmap_alone.log")
     row = {"method": "COLMAP alone", "exit": code, "wall_s": wall, "peak_gb": peak}
     if code != 0 or not (out / RESULT_FILE).is_file():
@@ -274,6 +296,7 @@ def run_colmap_alone(images: Path, scene_dir: Path, out: Path) -> dict:
         registered=f"{child['registered']}/{child['num_images']}",
         auc5=child.get("auc5"),
         med_rot=child.get("med_rot"),
+        colmap_setup=f"{child['pairing']} pairing, {child['mapper']} mapper",
     )
     return row
 
@@ -394,12 +417,18 @@ def bench_frames(frames: int, args, root: Path) -> list[dict]:
     work = root / f"n{frames}"
     work.mkdir(parents=True, exist_ok=True)
     reference = write_reference(inputs.scene_dir, work / "ground_truth_model")
-    rows = [] if args.no_colmap_alone else [run_colmap_alone(inputs.images, inputs.scene_dir, work / "colmap_alone")]
+    alone = work / "colmap_alone"
+    rows = [] if args.no_colmap_alone else [run_colmap_alone(inputs.images, inputs.scene_dir, alone, args)]
     for model in args.models or [None]:
         rows += [run_ffrecon(inputs, mode, work, reference, args, model) for mode in args.modes]
     colmap_wall = rows[0]["wall_s"] if rows[0]["method"] == "COLMAP alone" and "error" not in rows[0] else float("nan")
+    colmap_s = rows[0]["stages"]["colmap"] if np.isfinite(colmap_wall) else float("nan")
     for row in rows:
         row.update(frames=frames, ratio=row["wall_s"] / colmap_wall)
+        if row["method"] != "COLMAP alone" and "stages" in row:
+            # The pose stages (feed-forward, cross-check, refinement) against COLMAP alone's own seconds
+            row["pose_s"] = sum(row["stages"].get(k, 0.0) for k in POSE_STAGES)
+            row["pose_speedup"] = colmap_s / row["pose_s"]
     if not args.keep:
         shutil.rmtree(work, ignore_errors=True)
     return rows
@@ -447,6 +476,11 @@ def print_table(rows: list[dict]) -> None:
         notes += [f"{e} {a['registered']} AUC@5 {_num(a['auc5'], '.3f', 0)}" for e, a in others.items()]
         if r.get("skipped"):
             notes.append(f"skipped: {', '.join(r['skipped'])}")
+        if r.get("colmap_setup"):
+            notes.append(r["colmap_setup"])
+        if r.get("pose_s") is not None:
+            speedup = _num(r.get("pose_speedup"), ".2f", 0)
+            notes.append(f"pose stages {r['pose_s']:.1f} s, {speedup}x faster than COLMAP alone")
         if r.get("loop_drift_pct") is not None:
             notes.append(f"loop drift {r['loop_drift_pct']:.3f}% of the path")
         if notes:
@@ -489,7 +523,7 @@ def print_growth(fits: dict, methods: list[str]) -> None:
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     if args.colmap_only:
-        colmap_child(*args.colmap_only, args.truth)
+        colmap_child(*args.colmap_only, args.truth, args.colmap_pairing, args.colmap_mapping_seconds)
         return 0
     if args.prepare_only:
         _prepare_here(*args.prepare_only)
