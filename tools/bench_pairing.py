@@ -5,7 +5,7 @@ the first) with its simulated model (``depth_stride`` 4), each row runs ``run_co
 own code, on the same images:
 
 - ``exhaustive``: every pair (COLMAP alone, the reference);
-- ``model``: the pairs the model's cameras and depth say overlap (``--pairing model``; ``sfm/overlap.py``);
+- ``model``: the pairs the model's cameras and depth say overlap (``--pairing model``; ``geometry/overlap.py``);
 - ``sequential``: COLMAP's sequential pairing alone (the next 10 frames and those 2^k ahead);
 - ``sequential+retrieval``: the same plus ffrecon's loop candidates (VLAD over SIFT, ``sfm/retrieval.py``).
 
@@ -44,7 +44,7 @@ from ffrecon.sfm.colmap_options import ColmapOptions, MapperKind, PairingMode
 from ffrecon.sfm.crosscheck import run_colmap
 from ffrecon.sfm.features import colmap_log_level
 from ffrecon.sfm.mapping import map_images
-from ffrecon.sfm.overlap import overlap_graph
+from ffrecon.geometry.overlap import overlap_graph
 from ffrecon.sfm.retrieval import RetrievalOptions
 from ffrecon.synthetic import SceneOptions, make_scene
 from ffrecon.synthetic.scene import write_scene

@@ -10,7 +10,7 @@ from pathlib import Path
 
 from ffrecon.checks import check_number
 from ffrecon.sfm.features import CameraModel, SiftOptions
-from ffrecon.sfm.overlap import OverlapOptions
+from ffrecon.geometry.overlap import OverlapOptions
 from ffrecon.sfm.retrieval import RetrievalOptions
 from ffrecon.sfm.two_view import TwoViewOptions
 
@@ -35,7 +35,7 @@ class PairingMode(enum.Enum):
     SEQUENTIAL = "sequential"
     SPATIAL = "spatial"  # nearest GPS positions (needs position priors in the database, e.g. from EXIF)
     VOCAB_TREE = "vocab_tree"  # image retrieval; needs ``vocab_tree_path``
-    # The pairs the feed-forward geometry predicts to overlap (ffrecon.sfm.overlap, as the refinement's, loop
+    # The pairs the feed-forward geometry predicts to overlap (ffrecon.geometry.overlap, as the refinement's, loop
     # candidates included): COLMAP still matches, verifies and maps on its own; only the choice of pairs is the
     # model's. The cross-check then waits for the model instead of running beside it.
     MODEL = "model"

@@ -46,7 +46,7 @@ from ffrecon.sfm.features import (
     threads_at_most,
 )
 from ffrecon.sfm.mapping import MapperRun, map_images, two_view_run
-from ffrecon.sfm.overlap import overlap_graph
+from ffrecon.geometry.overlap import overlap_graph
 from ffrecon.sfm.retrieval import retrieval_pairs
 from ffrecon.timing import StageTimer, Timings
 from ffrecon.types import PinholeCamera, Prediction

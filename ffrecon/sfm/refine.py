@@ -53,7 +53,7 @@ from ffrecon.sfm.features import (
     write_pairs,
 )
 from ffrecon.sfm.guided import GuidanceOptions, GuidanceStats, MatchGuidance, filter_matches, guided_matches
-from ffrecon.sfm.overlap import OverlapGraph, OverlapOptions, overlap_graph
+from ffrecon.geometry.overlap import OverlapGraph, OverlapOptions, overlap_graph
 from ffrecon.sfm.relocalize import Relocalized, RelocalizeOptions, reach_matrix, relocalize, with_poses
 from ffrecon.sfm.screen import ScreenOptions, Suspect, reseeded, screen_rotations
 from ffrecon.timing import StageTimer, Timings

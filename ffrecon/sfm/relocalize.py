@@ -37,7 +37,7 @@ from ffrecon.checks import check_number
 from ffrecon.geometry.poses import camera_centers
 from ffrecon.geometry.rotations import rotation_angle_deg
 from ffrecon.sfm.dense import world_at_size
-from ffrecon.sfm.overlap import OverlapOptions, overlap_matrix
+from ffrecon.geometry.overlap import OverlapOptions, overlap_matrix
 from ffrecon.types import PinholeCamera, Prediction
 
 logger = logging.getLogger("ffrecon.sfm")

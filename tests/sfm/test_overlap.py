@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from ffrecon.geometry.projection import pixel_centers
-from ffrecon.sfm import overlap
-from ffrecon.sfm.overlap import OverlapOptions, overlap_graph, select_pairs
+from ffrecon.geometry import overlap
+from ffrecon.geometry.overlap import OverlapOptions, overlap_graph, select_pairs
 from ffrecon.types import ModelFamily, ModelInfo, PinholeCamera, Prediction
 
 

@@ -17,7 +17,7 @@ from ffrecon.checks import check_number
 from ffrecon.geometry.projection import pixel_centers, project_points
 from ffrecon.types import Prediction
 
-logger = logging.getLogger("ffrecon.sfm")
+logger = logging.getLogger("ffrecon.geometry")
 
 
 @dataclass(frozen=True, kw_only=True)
