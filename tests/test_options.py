@@ -11,13 +11,13 @@ from PIL import Image
 
 from ffrecon.cli import main
 from ffrecon.errors import InputError
+from ffrecon.geometry.overlap import OverlapOptions
 from ffrecon.models.distributed import RayOptions
 from ffrecon.models.global_alignment import AlignmentOptions
 from ffrecon.models.multiview import MultiviewOptions
 from ffrecon.models.stage import FeedForwardOptions
 from ffrecon.pipeline import RunOptions, check_run_options
 from ffrecon.sfm.gates import GateOptions
-from ffrecon.geometry.overlap import OverlapOptions
 from ffrecon.splat.clean import CleanOptions
 from ffrecon.splat.densify import DensifyOptions
 from ffrecon.splat.optimize import OptimizeOptions

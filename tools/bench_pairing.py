@@ -37,6 +37,7 @@ import numpy as np
 from ffrecon.colmap_io import cam_from_world_by_name
 from ffrecon.geometry.alignment import umeyama
 from ffrecon.geometry.metrics import pose_errors
+from ffrecon.geometry.overlap import overlap_graph
 from ffrecon.geometry.poses import camera_centers
 from ffrecon.models.multiview import MultiviewOptions, predict_multiview
 from ffrecon.models.runner import MULTIVIEW_INPUT, OnnxModel
@@ -44,7 +45,6 @@ from ffrecon.sfm.colmap_options import ColmapOptions, MapperKind, PairingMode
 from ffrecon.sfm.crosscheck import run_colmap
 from ffrecon.sfm.features import colmap_log_level
 from ffrecon.sfm.mapping import map_images
-from ffrecon.geometry.overlap import overlap_graph
 from ffrecon.sfm.retrieval import RetrievalOptions
 from ffrecon.synthetic import SceneOptions, make_scene
 from ffrecon.synthetic.scene import write_scene

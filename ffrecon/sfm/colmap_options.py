@@ -9,8 +9,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ffrecon.checks import check_number
-from ffrecon.sfm.features import CameraModel, SiftOptions
 from ffrecon.geometry.overlap import OverlapOptions
+from ffrecon.sfm.features import CameraModel, SiftOptions
 from ffrecon.sfm.retrieval import RetrievalOptions
 from ffrecon.sfm.two_view import TwoViewOptions
 

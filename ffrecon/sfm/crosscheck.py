@@ -32,6 +32,7 @@ import pycolmap
 from ffrecon.capture import Capture
 from ffrecon.colmap_io import cam_from_world_by_name, cameras_by_name, write_reconstruction
 from ffrecon.errors import InputError
+from ffrecon.geometry.overlap import overlap_graph
 from ffrecon.sfm.colmap_options import CameraSharing, ColmapOptions, MapperKind, PairingMode
 from ffrecon.sfm.features import (
     FeatureStats,
@@ -46,7 +47,6 @@ from ffrecon.sfm.features import (
     threads_at_most,
 )
 from ffrecon.sfm.mapping import MapperRun, map_images, two_view_run
-from ffrecon.geometry.overlap import overlap_graph
 from ffrecon.sfm.retrieval import retrieval_pairs
 from ffrecon.timing import StageTimer, Timings
 from ffrecon.types import PinholeCamera, Prediction

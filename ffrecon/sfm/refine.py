@@ -33,6 +33,7 @@ from ffrecon.colmap_io import (
 from ffrecon.errors import InputError
 from ffrecon.geometry.alignment import Sim3
 from ffrecon.geometry.metrics import aligned_rotation_errors_deg
+from ffrecon.geometry.overlap import OverlapGraph, OverlapOptions, overlap_graph
 from ffrecon.geometry.undistort import NO_DISTORTION, opencv_coefficients
 from ffrecon.sfm.bundle import BundleOptions, BundleSummary, refine_tracks, sim3_to_ff_frame
 from ffrecon.sfm.crosscheck import ColmapResult
@@ -53,7 +54,6 @@ from ffrecon.sfm.features import (
     write_pairs,
 )
 from ffrecon.sfm.guided import GuidanceOptions, GuidanceStats, MatchGuidance, filter_matches, guided_matches
-from ffrecon.geometry.overlap import OverlapGraph, OverlapOptions, overlap_graph
 from ffrecon.sfm.relocalize import Relocalized, RelocalizeOptions, reach_matrix, relocalize, with_poses
 from ffrecon.sfm.screen import ScreenOptions, Suspect, reseeded, screen_rotations
 from ffrecon.timing import StageTimer, Timings

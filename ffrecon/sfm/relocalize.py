@@ -34,10 +34,10 @@ import numpy as np
 import pycolmap
 
 from ffrecon.checks import check_number
+from ffrecon.geometry.overlap import OverlapOptions, overlap_matrix
 from ffrecon.geometry.poses import camera_centers
 from ffrecon.geometry.rotations import rotation_angle_deg
 from ffrecon.sfm.dense import world_at_size
-from ffrecon.geometry.overlap import OverlapOptions, overlap_matrix
 from ffrecon.types import PinholeCamera, Prediction
 
 logger = logging.getLogger("ffrecon.sfm")

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ffrecon.geometry.projection import pixel_centers
 from ffrecon.geometry import overlap
 from ffrecon.geometry.overlap import OverlapOptions, overlap_graph, select_pairs
+from ffrecon.geometry.projection import pixel_centers
 from ffrecon.types import ModelFamily, ModelInfo, PinholeCamera, Prediction
 
 
