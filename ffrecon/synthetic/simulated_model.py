@@ -45,6 +45,7 @@ from ffrecon.types import ModelFamily, ModelInfo, PinholeCamera, Prediction
 logger = logging.getLogger("ffrecon.synthetic")
 
 SIGNATURE_GRID = 8  # frames are identified by their 8 x 8 average-pooled thumbnails
+MAX_DRIFT_SLOTS = 1024  # the longest call a drifting model (SimulationOptions.drift_deg_per_slot) takes
 METADATA_KEY = "ffrecon.simulated"
 _CONF_MAX = 10.0
 _CONF_UNKNOWN = 1.0  # confidence of pixels without reference depth: the contract's minimum
@@ -69,9 +70,14 @@ class SimulationOptions:
     # 1.6 MB (a thousand frames would pass protobuf's 2 GB limit), at 4 about 0.1 MB. Edges blur over
     # depth_stride network pixels.
     depth_stride: int = 1
+    # Drift within a call, as a real model's error grows along a long input: the k-th input frame of a call
+    # sees the world turned by k times this about the vertical (world z) through the first input frame's centre.
+    # Chunks chained on shared frames accumulate it (about this much per frame of the path); 0: no drift.
+    drift_deg_per_slot: float = 0.0
 
     def __post_init__(self) -> None:
         check_number("SimulationOptions.depth_stride", self.depth_stride, low=1, high=16, integer=True)
+        check_number("SimulationOptions.drift_deg_per_slot", self.drift_deg_per_slot, low=0, high=1)
 
 
 @dataclass(frozen=True)
@@ -215,7 +221,9 @@ def simulate(
     K_net[:, 1] *= t.scale_y
     if options.depth_stride > 1:
         net_depth, net_conf = (_area_downsampled(a, options.depth_stride) for a in (net_depth, net_conf))
-    return truth, _stored_arrays(batch, cam_from_world, K_net, net_depth, net_conf)
+    return truth, _stored_arrays(batch, cam_from_world, K_net, net_depth, net_conf) | {
+        "drift_deg_per_slot": options.drift_deg_per_slot
+    }
 
 
 def _area_downsampled(maps: np.ndarray, stride: int) -> np.ndarray:
@@ -335,6 +343,8 @@ def _build_graph(arrays: dict) -> onnx.ModelProto:
         gather("centers", arrays["centers"]),
         gather("quat_xyzw", arrays["quat_xyzw"]),
     )
+    if arrays.get("drift_deg_per_slot", 0.0) > 0:
+        rot, centers, quat = _drifted(g, idx, rot, centers, quat, arrays["drift_deg_per_slot"])
     fov, inv_f = gather("fov_hw", arrays["fov_hw"]), gather("inv_focal", arrays["inv_focal"])
     depth = _full_resolution(g, gather("depth", arrays["depth"].reshape(n, -1)), arrays["depth"].shape[1:], (hn, wn))
     conf = _full_resolution(g, gather("conf", arrays["conf"].reshape(n, -1)), arrays["conf"].shape[1:], (hn, wn))
@@ -365,6 +375,31 @@ def _build_graph(arrays: dict) -> onnx.ModelProto:
     g.output(g.op("Reshape", [point_conf, shape4]), "world_points_conf", [1, "S", hn, wn])
     g.output(g.op("Unsqueeze", [x, batch0]), "images", [1, "S", 3, hn, wn])
     return g.model(opset=17)
+
+
+def _drifted(g: GraphBuilder, idx: str, rot: str, centers: str, quat: str, deg_per_slot: float) -> tuple[str, str, str]:
+    """``(rot, centers, quat)`` of the call's frames with the drift of ``SimulationOptions.drift_deg_per_slot``:
+    slot k's world is turned by ``D_k``, k * deg_per_slot about world z through the first frame's centre, so
+    its camera becomes ``R D_k^T`` with centre ``c_0 + D_k (c - c_0)`` (the frame's depth is unchanged)."""
+    angles = np.deg2rad(deg_per_slot) * np.arange(MAX_DRIFT_SLOTS)
+    turns = np.stack([axis_angle_to_matrix(np.array([0.0, 0.0, a])) for a in angles])  # D_k
+    slots = g.op("Range", [g.const(np.array(0, np.int64)), g.op("Size", [idx]), g.const(np.array(1, np.int64))])
+
+    def per_slot(name: str, values: np.ndarray) -> str:
+        return g.op("Gather", [g.const(values.astype(np.float32), name), slots], axis=0)
+
+    turns_t = per_slot("drift_turns_t", turns.transpose(0, 2, 1))  # [S, 3, 3] D_k^T
+    rot_d = g.op("MatMul", [rot, turns_t])
+    center0 = g.op("Gather", [centers, g.const(np.array(0, np.int64))], axis=0)
+    one = g.const(np.array([1], np.int64))
+    offsets = g.op("Unsqueeze", [g.op("Sub", [centers, center0]), one])  # [S, 1, 3] rows: (c - c_0)^T
+    centers_d = g.op("Add", [center0, g.op("Squeeze", [g.op("MatMul", [offsets, turns_t]), one])])
+    # q' = q (x) conj(q_D): the product is linear in its second factor, q' = q @ M(conj(q_D)) per slot.
+    conj = matrix_to_quat_xyzw(turns) * np.array([-1, -1, -1, 1])
+    basis = quat_product_basis().reshape(4, 16)
+    mats = per_slot("drift_quat_products", (conj @ basis).reshape(-1, 4, 4))  # [S, 4, 4]
+    quat_d = g.op("Squeeze", [g.op("MatMul", [g.op("Unsqueeze", [quat, one]), mats]), one])
+    return rot_d, centers_d, quat_d
 
 
 def _frame_index(g: GraphBuilder, x: str, signatures: np.ndarray, size_hw: tuple[int, int]) -> str:

@@ -167,3 +167,39 @@ def test_depth_stored_at_a_stride_is_upsampled_in_the_graph(tmp_path):
     assert np.median(relative) < 0.005 and np.quantile(relative, 0.9) < 0.05
     with pytest.raises(InputError, match="depth_stride"):
         SimulationOptions(depth_stride=0)
+
+
+def test_drift_turns_each_slot_of_a_call_about_the_vertical(tmp_path):
+    """``drift_deg_per_slot``: the k-th input frame's camera is the drift-free one in a world turned k times the
+    drift about world z through the first frame's centre; its depth and focal are unchanged. So the same
+    frames called in another order drift differently, which is what chained chunks accumulate."""
+    scene = make_scene(SceneOptions(num_frames=6, width=224, height=168, seed=2))
+    sessions = {}
+    for drift in (0.0, 0.5):
+        path = tmp_path / f"d{drift}.onnx"
+        truth = build_simulated_vggt(scene, path, SimulationOptions(seed=1, drift_deg_per_slot=drift))
+        sessions[drift] = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    batch, _ = preprocess_vggt(list(scene.images))
+    frames = [1, 2, 3, 4, 5]
+    plain, drifted = (
+        dict(zip(["pose_enc", "depth"], s.run(["pose_enc", "depth"], {"input_images": batch[frames]})))
+        for s in sessions.values()
+    )
+    np.testing.assert_allclose(drifted["depth"], plain["depth"], rtol=1e-5)
+    np.testing.assert_allclose(drifted["pose_enc"][0, :, 7:], plain["pose_enc"][0, :, 7:], rtol=1e-6)
+    cam_plain, _ = decode_pose_enc(plain["pose_enc"][0], batch.shape[2:])
+    cam_drift, _ = decode_pose_enc(drifted["pose_enc"][0], batch.shape[2:])
+    # cam_from_first of slot k: [R D_k^T | t] in the world of the first camera, D_k a turn about world z.
+    world_z_in_first = truth.cam_from_world[frames[0], :, :3] @ np.array([0.0, 0.0, 1.0])  # the model's first camera
+    for k in range(len(frames)):
+        turn = cam_plain[k, :, :3].T @ cam_drift[k, :, :3]  # D_k^T, expressed in the first camera's frame
+        assert rotation_angle_deg(turn[None])[0] == pytest.approx(0.5 * k, abs=1e-3)
+        if k:
+            axis = np.array([turn[2, 1] - turn[1, 2], turn[0, 2] - turn[2, 0], turn[1, 0] - turn[0, 1]])
+            assert abs(axis @ world_z_in_first) / np.linalg.norm(axis) > 0.999
+    # The first frame's centre is the pivot; the others move sideways about it (their distance from it is kept).
+    centres_plain, centres_drift = camera_centers(cam_plain), camera_centers(cam_drift)
+    np.testing.assert_allclose(np.linalg.norm(centres_drift, axis=1), np.linalg.norm(centres_plain, axis=1), rtol=1e-4)
+    assert np.linalg.norm(centres_drift[-1] - centres_plain[-1]) > 1e-3 * np.linalg.norm(centres_plain[-1])
+    with pytest.raises(InputError, match="drift_deg_per_slot"):
+        SimulationOptions(drift_deg_per_slot=-0.1)
