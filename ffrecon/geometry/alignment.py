@@ -33,6 +33,14 @@ class Sim3:
         rot_t = self.rotation.T
         return Sim3(1.0 / self.scale, rot_t, -rot_t @ self.translation / self.scale)
 
+    def compose(self, a_from_c: Sim3) -> Sim3:
+        """``b_from_c = b_from_a . a_from_c`` (this transform after ``a_from_c``)."""
+        return Sim3(
+            self.scale * a_from_c.scale,
+            self.rotation @ a_from_c.rotation,
+            self.scale * self.rotation @ a_from_c.translation + self.translation,
+        )
+
     def transform_cam_from_world(self, cam_from_a: np.ndarray) -> np.ndarray:
         """Re-express ``[..., 3, 4]`` cam_from_a poses as cam_from_b (metric part scaled)."""
         rot = cam_from_a[..., :3, :3] @ self.rotation.T
