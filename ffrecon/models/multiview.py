@@ -3,7 +3,8 @@
 One model call holds at most ``chunk_size`` frames. Each later chunk repeats the last
 ``chunk_overlap`` frames of the one before; its result is brought into the first chunk's frame and
 scale by a Sim(3) fitted on the shared frames' depth points (the same pixels seen in both calls, so
-the correspondences are exact), weighted by the model's confidence.
+the correspondences are exact), weighted by the model's confidence. Where the path revisits a place,
+loop calls and a pose graph close the chain (:mod:`ffrecon.models.loops`).
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from ffrecon.checks import check_number
 from ffrecon.errors import InputError, ModelError
 from ffrecon.geometry.alignment import Sim3, umeyama
 from ffrecon.models.adapters import MultiviewAdapter, PreprocessMode
+from ffrecon.models.loops import LoopClosure, LoopOptions, close_loops
 from ffrecon.types import ModelInfo, Prediction
 from ffrecon.validate import validate_prediction
 
@@ -38,6 +40,7 @@ class MultiviewOptions:
     # their long side shrinks below max_depth_side (1,000 frames of 640x480 would hold 2.5 GB). None: no bound.
     depth_memory_gb: float | None = 1.0
     align_points_per_frame: int = 4000  # depth points per shared frame used for the chunk Sim(3)
+    loops: LoopOptions = LoopOptions()  # loop calls where the path revisits a place, and the pose graph
 
     def __post_init__(self) -> None:
         # Consecutive chunks must share a frame (the Sim(3) between them is fitted on it); without a chunk size
@@ -70,6 +73,7 @@ class ChunkLayout:
     nodes: int = 1  # machines
     chunk_workers: tuple[str, ...] = ()  # per call, the host:pid that ran it (Ray)
     max_depth_side: int | None = None  # the cap on the stored depth grids' long side (None: photo size)
+    loops: LoopClosure | None = None  # the loop pass (None: it did not run)
 
     @staticmethod
     def of(chunks: Sequence[Sequence[int]], size: int, overlap: int, **engine) -> ChunkLayout:
@@ -78,6 +82,7 @@ class ChunkLayout:
     def to_report(self) -> dict:
         out = {"size": self.size, "overlap": self.overlap, "calls": [list(f) for f in self.frames]}
         out |= {"engine": self.engine, "workers": self.workers, "max_depth_side": self.max_depth_side}
+        out["loops"] = None if self.loops is None else self.loops.to_report()
         if self.engine == "ray":
             out |= {"address": self.address, "nodes": self.nodes, "chunk_workers": list(self.chunk_workers)}
         return out
@@ -140,22 +145,53 @@ def predict_multiview(
     options: MultiviewOptions = MultiviewOptions(),
     adapter: MultiviewAdapter | None = None,
 ) -> Prediction:
-    """Run a multi-view model on all frames (chunked) and return one :class:`Prediction`.
+    """Run a multi-view model on all frames (chunked, loops closed) and return one :class:`Prediction`.
 
     Args:
         images: N images ``[H, W, 3]`` uint8 RGB; names: N frame names.
         infer: maps the adapter's input batch ``[S, 3, H, W]`` float32 to the model's outputs.
         adapter: the family's preprocessing and decoding (default: the VGGT contract).
     """
+    return predict_multiview_pass(images, names, infer, model, options, adapter)[0]
+
+
+def predict_multiview_pass(
+    images: Sequence[np.ndarray],
+    names: Sequence[str],
+    infer: Callable[[np.ndarray], dict[str, np.ndarray]],
+    model: ModelInfo,
+    options: MultiviewOptions = MultiviewOptions(),
+    adapter: MultiviewAdapter | None = None,
+) -> tuple[Prediction, LoopClosure | None]:
+    """:func:`predict_multiview` and what its loop pass did (:func:`~ffrecon.models.loops.close_loops`)."""
     if adapter is None:
         from ffrecon.models.vggt import ADAPTER as adapter
     mode = preprocess_mode(adapter, options)
     chunks = plan_chunks(len(images), *chunking(options))
-    parts = (  # merged as they come: a chunk's own arrays are let go once its frames are in
-        predict_chunk([images[k] for k in chunk], [names[k] for k in chunk], infer, model, mode, adapter, options)
-        for chunk in tqdm(chunks, desc="feed-forward", unit="chunk", disable=None)
-    )
-    return merge_chunks(parts, chunks, options.align_points_per_frame)
+
+    def call(frames: Sequence[int]) -> Prediction:
+        return predict_chunk(
+            [images[k] for k in frames], [names[k] for k in frames], infer, model, mode, adapter, options
+        )
+
+    parts = (call(chunk) for chunk in tqdm(chunks, desc="feed-forward", unit="chunk", disable=None))
+    merged = merge_chunks(parts, chunks, options.align_points_per_frame)  # each chunk let go once merged
+    return with_loops_closed(merged, chunks, lambda calls: [call(c) for c in calls], options)
+
+
+def with_loops_closed(
+    merged: Prediction,
+    chunks: Sequence[Sequence[int]],
+    run_calls: Callable[[list[list[int]]], Sequence[Prediction]],
+    options: MultiviewOptions,
+) -> tuple[Prediction, LoopClosure | None]:
+    """The merged chunks after the loop pass (``options.loops``); ``run_calls`` runs model calls on lists of
+    frame indices, here or on Ray's workers."""
+
+    def fit(ref: Prediction, ref_idx: Sequence[int], new: Prediction, new_idx: Sequence[int]) -> tuple[Sim3, float]:
+        return fit_frames(ref, ref_idx, new, new_idx, options.align_points_per_frame)
+
+    return close_loops(merged, chunks, run_calls, fit, options.loops)
 
 
 def chunking(options: MultiviewOptions) -> tuple[int, int]:
@@ -181,28 +217,39 @@ def predict_chunk(
     return part
 
 
-def _sample_points(pred: Prediction, k: int, mask: np.ndarray, max_points: int) -> tuple[np.ndarray, np.ndarray]:
-    """World points and confidences at up to ``max_points`` evenly spaced pixels of ``mask``."""
+def _sample_points(
+    pred: Prediction, k: int, mask: np.ndarray, max_points: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """World points, confidences and depths at up to ``max_points`` evenly spaced pixels of ``mask``."""
     idx = np.flatnonzero(mask)
     idx = idx[:: max(1, len(idx) // max_points)]
     pts = pred.world_points(k).reshape(-1, 3)[idx]
-    return pts, pred.depth_conf[k].reshape(-1)[idx]
+    return pts, pred.depth_conf[k].reshape(-1)[idx], pred.depth[k].reshape(-1)[idx]
 
 
 def chunk_alignment(
     ref: Prediction, ref_idx: Sequence[int], new: Prediction, new_idx: Sequence[int], max_points: int
 ) -> Sim3:
     """Sim(3) ``ref_world_from_new_world`` from frames present in both predictions."""
-    src, dst, weights = [], [], []
+    return fit_frames(ref, ref_idx, new, new_idx, max_points)[0]
+
+
+def fit_frames(
+    ref: Prediction, ref_idx: Sequence[int], new: Prediction, new_idx: Sequence[int], max_points: int
+) -> tuple[Sim3, float]:
+    """:func:`chunk_alignment` and its misfit: the median distance of the fitted points from their
+    counterparts over the median depth (scale-free; the model's own depth noise sets its floor)."""
+    src, dst, weights, depth = [], [], [], []
     for a, b in zip(ref_idx, new_idx):
         mask = ref.valid_mask(a) & new.valid_mask(b)
         if ref.depth[a].shape != new.depth[b].shape or mask.sum() < 3:
             continue
-        p_dst, c_dst = _sample_points(ref, a, mask, max_points)
-        p_src, c_src = _sample_points(new, b, mask, max_points)
+        p_dst, c_dst, z_dst = _sample_points(ref, a, mask, max_points)
+        p_src, c_src, _ = _sample_points(new, b, mask, max_points)
         src.append(p_src)
         dst.append(p_dst)
         weights.append(np.sqrt(c_src * c_dst))
+        depth.append(z_dst)
     if not src:
         raise ModelError(
             "chunks share no frame with valid depth, so they cannot be put in one frame",
@@ -213,7 +260,10 @@ def chunk_alignment(
     # One reweighting pass: drop the worst 10% of residuals (depth edges, sky) and refit.
     resid = np.linalg.norm(sim.apply(src_a) - dst_a, axis=1)
     keep = resid <= np.quantile(resid, 0.9)
-    return umeyama(src_a[keep], dst_a[keep], w[keep]) if keep.sum() >= 3 else sim
+    if keep.sum() >= 3:
+        sim = umeyama(src_a[keep], dst_a[keep], w[keep])
+    misfit = np.median(np.linalg.norm(sim.apply(src_a) - dst_a, axis=1)) / max(np.median(np.concatenate(depth)), 1e-12)
+    return sim, float(misfit)
 
 
 def merge_chunks(parts: Iterable[Prediction], chunks: Sequence[Sequence[int]], max_points: int = 4000) -> Prediction:

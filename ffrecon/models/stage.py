@@ -31,8 +31,9 @@ from ffrecon.models.multiview import (
     depth_side_within,
     merge_chunks,
     plan_chunks,
-    predict_multiview,
+    predict_multiview_pass,
     preprocess_mode,
+    with_loops_closed,
 )
 from ffrecon.models.pairwise import PairwiseOptions
 from ffrecon.models.runner import OnnxModel, cpu_threads
@@ -185,14 +186,20 @@ def _predict_multiview(
         from ffrecon.models.distributed import predict_chunks_ray
 
         mode = preprocess_mode(adapter, mv_options)
+
+        def on_ray(calls: Sequence[Sequence[int]]) -> tuple[Prediction, ...]:
+            return predict_chunks_ray(model.info(), images, names, calls, mode, mv_options, options.ray).parts
+
         ray = predict_chunks_ray(model.info(), images, names, chunks, mode, mv_options, options.ray)
-        layout = dataclasses.replace(ray.layout, max_depth_side=mv_options.max_depth_side)
-        return ModelPass(merge_chunks(ray.parts, chunks, mv_options.align_points_per_frame), layout)
+        merged = merge_chunks(ray.parts, chunks, mv_options.align_points_per_frame)
+        prediction, loops = with_loops_closed(merged, chunks, on_ray, mv_options)
+        return ModelPass(
+            prediction, dataclasses.replace(ray.layout, max_depth_side=mv_options.max_depth_side, loops=loops)
+        )
     infer = lambda batch: model.run_checked(adapter.input_name, {adapter.input_name: batch})  # noqa: E731
-    prediction = predict_multiview(images, names, infer, model.info(), mv_options, adapter)
-    return ModelPass(
-        prediction, ChunkLayout.of(chunks, *chunking(mv_options), max_depth_side=mv_options.max_depth_side)
-    )
+    prediction, loops = predict_multiview_pass(images, names, infer, model.info(), mv_options, adapter)
+    layout = ChunkLayout.of(chunks, *chunking(mv_options), max_depth_side=mv_options.max_depth_side, loops=loops)
+    return ModelPass(prediction, layout)
 
 
 def _within_depth_memory(options: MultiviewOptions, images: Sequence[np.ndarray]) -> MultiviewOptions:
