@@ -86,6 +86,12 @@ def _add_model_call_options(p: argparse.ArgumentParser) -> None:
         default=None,
         help="preprocessing mode (default: the model family's reference; VGGT: crop or pad, DA3: resize or crop)",
     )
+    p.add_argument(
+        "--no-loop-chunks",
+        action="store_true",
+        help="no loop calls where a long path revisits a place (default: found from the chunks, and a pose graph "
+        "spreads the drift; report.json feedforward.chunks.loops)",
+    )
     p.add_argument("--threads", type=int, default=None, help="CPU threads for inference, >= 1 (default: all)")
     _add_ray_options(p)
 
@@ -490,6 +496,8 @@ def _run_options(args: argparse.Namespace, ground_truth: Path | None = None):
 
     mode = PreprocessMode(args.preprocess) if args.preprocess else None
     multiview = MultiviewOptions(mode=mode, **_given(chunk_size=args.chunk_size, chunk_overlap=args.chunk_overlap))
+    if getattr(args, "no_loop_chunks", False):
+        multiview = dataclasses.replace(multiview, loops=dataclasses.replace(multiview.loops, enabled=False))
     capture = CaptureOptions(
         **_given(
             video_frames=getattr(args, "video_frames", None),

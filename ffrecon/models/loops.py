@@ -42,7 +42,7 @@ class LoopOptions:
     min_overlap: float = 0.3  # two key frames whose predicted overlap (both ways) reaches this: a revisit
     min_chunk_gap: int = 3  # ... when their chunks are at least this many calls apart
     max_loops: int = 8  # loop calls at most (the best revisits, no two within min_chunk_gap at both ends)
-    frames_per_end: int | None = None  # frames of each end in a loop call; None: half the chunk size
+    frames_per_end: int = 4  # frames of each end in a loop call (at most half the chunk size)
     max_misfit: float = 0.05  # an end whose points fit the chain worse (median distance / depth): loop dropped
     max_closure_deg: float = 30.0  # a loop that would turn the chain by more is not trusted
     pose_graph: PoseGraphOptions = PoseGraphOptions()
@@ -51,7 +51,7 @@ class LoopOptions:
         check_number("LoopOptions.min_overlap", self.min_overlap, low=0, high=1, low_open=True)
         check_number("LoopOptions.min_chunk_gap", self.min_chunk_gap, low=2, integer=True)
         check_number("LoopOptions.max_loops", self.max_loops, low=0, integer=True)
-        check_number("LoopOptions.frames_per_end", self.frames_per_end, low=1, integer=True, allow_none=True)
+        check_number("LoopOptions.frames_per_end", self.frames_per_end, low=1, integer=True)
         check_number("LoopOptions.max_misfit", self.max_misfit, low=0, low_open=True)
         check_number("LoopOptions.max_closure_deg", self.max_closure_deg, low=0, high=180, low_open=True)
 
@@ -159,7 +159,7 @@ def close_loops(
     if not chosen:
         log.info("loop chunks: no revisit among %d chunks", len(chunks))
         return prediction, LoopClosure(0, ())
-    per_end = options.frames_per_end or max(len(chunks[0]) // 2, 1)
+    per_end = max(min(options.frames_per_end, len(chunks[0]) // 2), 1)
     ends = [(_end_frames(owner, a, keys[a], per_end), _end_frames(owner, b, keys[b], per_end)) for _, a, b in chosen]
     parts = run_calls([first + second for first, second in ends])
     calls, edges = [], [Sim3Edge(c, c + 1, Sim3.identity()) for c in range(len(chunks) - 1)]
