@@ -84,6 +84,17 @@ def _parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--no-colmap-alone", action="store_true", help="skip the COLMAP-alone row (no xCOLMAP)")
     parser.add_argument(
+        "--drift",
+        type=float,
+        default=0.0,
+        help="the simulated model drifts this many degrees per frame of a call (SimulationOptions.drift_deg_per_slot)",
+    )
+    parser.add_argument(
+        "--without-loops-too",
+        action="store_true",
+        help="each mode also once with --no-loop-chunks (rows 'MODE no-loops')",
+    )
+    parser.add_argument(
         "--colmap-pairing",
         choices=("auto", "exhaustive", "sequential"),
         default="auto",
@@ -232,7 +243,7 @@ def colmap_child(images: Path, out: Path, scene_dir: Path | None, pairing: str, 
 # --- the parent: scenes, runs, rows -------------------------------------------------------------------
 
 
-def prepare(frames: int, width: int, height: int, seed: int, depth_stride: int = 1):
+def prepare(frames: int, width: int, height: int, seed: int, depth_stride: int = 1, drift: float = 0.0):
     """The scene and simulated model (cached), and the seconds it took; made in a child process.
 
     Linux carries a process's resident high-water mark across ``fork`` and ``exec`` (``ru_maxrss`` of a
@@ -243,20 +254,22 @@ def prepare(frames: int, width: int, height: int, seed: int, depth_stride: int =
 
     start = time.perf_counter()
     cmd = [sys.executable, str(Path(__file__).resolve()), "--prepare-only", str(frames), str(width), str(height)]
-    done = subprocess.run([*cmd, str(seed), str(depth_stride)], capture_output=True, text=True, check=False)
+    cmd += [str(seed), str(depth_stride), "--drift", str(drift)]
+    done = subprocess.run(cmd, capture_output=True, text=True, check=False)
     if done.returncode != 0:
         raise SystemExit(f"preparing the {frames}-frame scene failed:\n{done.stderr[-2000:]}")
     paths = json.loads(done.stdout.strip().splitlines()[-1])
     return DemoInputs(**{k: Path(v) for k, v in paths.items()}), time.perf_counter() - start
 
 
-def _prepare_here(frames: int, width: int, height: int, seed: int, depth_stride: int) -> None:
+def _prepare_here(frames: int, width: int, height: int, seed: int, depth_stride: int, drift: float) -> None:
     """The child of :func:`prepare`: makes (or finds) the scene and prints its paths as JSON."""
     from ffrecon.demo import DemoOptions, prepare_demo
     from ffrecon.synthetic import SceneOptions
 
     scene = SceneOptions(num_frames=frames, width=width, height=height, seed=seed)
     simulation = {"bad_frames": [7]} | ({"depth_stride": depth_stride} if depth_stride != 1 else {})
+    simulation |= {"drift_deg_per_slot": drift} if drift else {}
     inputs = prepare_demo(DemoOptions(scene=scene, simulation=simulation))
     print(json.dumps({k: str(v) for k, v in dataclasses.asdict(inputs).items()}))
 
@@ -304,8 +317,10 @@ def run_colmap_alone(images: Path, scene_dir: Path, out: Path, args) -> dict:
 def ffrecon_command(images: Path, model: Path, out: Path, reference: Path, mode: str, args) -> list[str]:
     cmd = [sys.executable, "-m", "ffrecon", "run", str(images), "-o", str(out), "--model", str(model)]
     cmd += ["--reference", str(reference), "--overwrite"]
-    if mode == "quick":
+    if mode.startswith("quick"):
         cmd.append("--quick")
+    if mode.endswith("no-loops"):
+        cmd.append("--no-loop-chunks")
     if args.splat_seconds is not None:
         cmd += ["--splat-seconds", str(args.splat_seconds)]
     if args.no_splat:
@@ -411,7 +426,7 @@ def loop_drift_pct(model_dir: Path, scene_dir: Path) -> float | None:
 
 def bench_frames(frames: int, args, root: Path) -> list[dict]:
     """Every method on one scene of ``frames`` frames; the rows carry ``frames``."""
-    inputs, prep_s = prepare(frames, args.width, args.height, args.seed, args.depth_stride)
+    inputs, prep_s = prepare(frames, args.width, args.height, args.seed, args.depth_stride, args.drift)
     size = f"{args.width}x{args.height}"
     print(f"\n{frames} frames of {size}: scene and model ready in {prep_s:.1f} s ({inputs.scene_dir})")
     work = root / f"n{frames}"
@@ -420,7 +435,8 @@ def bench_frames(frames: int, args, root: Path) -> list[dict]:
     alone = work / "colmap_alone"
     rows = [] if args.no_colmap_alone else [run_colmap_alone(inputs.images, inputs.scene_dir, alone, args)]
     for model in args.models or [None]:
-        rows += [run_ffrecon(inputs, mode, work, reference, args, model) for mode in args.modes]
+        modes = [m + suffix for m in args.modes for suffix in ("", " no-loops")[: 1 + args.without_loops_too]]
+        rows += [run_ffrecon(inputs, mode, work, reference, args, model) for mode in modes]
     colmap_wall = rows[0]["wall_s"] if rows[0]["method"] == "COLMAP alone" and "error" not in rows[0] else float("nan")
     colmap_s = rows[0]["stages"]["colmap"] if np.isfinite(colmap_wall) else float("nan")
     for row in rows:
@@ -526,7 +542,7 @@ def main(argv: list[str] | None = None) -> int:
         colmap_child(*args.colmap_only, args.truth, args.colmap_pairing, args.colmap_mapping_seconds)
         return 0
     if args.prepare_only:
-        _prepare_here(*args.prepare_only)
+        _prepare_here(*args.prepare_only, args.drift)
         return 0
     if "quick" in args.modes and not quick_available():
         print("ffrecon run has no --quick option here; pass --modes default", file=sys.stderr)

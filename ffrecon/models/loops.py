@@ -4,9 +4,10 @@ Chunks are chained by a Sim(3) fitted on their shared frames (:func:`~ffrecon.mo
 a model whose error grows along its input drifts a little at every link, and over hundreds of frames the
 revisit no longer meets the start. Here:
 
-1. each chunk's middle frame is a key frame; the merged cameras and depth say which key frames of chunks
-   at least ``min_chunk_gap`` calls apart see the same surfaces (:func:`~ffrecon.geometry.overlap.
-   overlap_matrix`): the revisits. The best of them, no two joining the same stretches, become loop calls;
+1. each chunk's first, middle and last frame are key frames; the merged cameras and depth say which key
+   frames of chunks at least ``min_chunk_gap`` calls apart see the same surfaces (:func:`~ffrecon.geometry.
+   overlap.overlap_matrix`): the revisits. The best of them, no two joining the same stretches, become loop
+   calls, each holding frames around both key frames;
 2. a loop call holds frames of both chunks; its Sim(3) to the chain fitted on each end's frames says how
    the chain should close there (the two fits agree when there is no drift);
 3. a Sim(3) pose graph (:mod:`ffrecon.geometry.pose_graph`) over one correction per chunk, with the chain's
@@ -28,7 +29,7 @@ import numpy as np
 
 from ffrecon.checks import check_number
 from ffrecon.geometry.alignment import Sim3
-from ffrecon.geometry.overlap import OverlapOptions, overlap_matrix
+from ffrecon.geometry.overlap import overlap_matrix
 from ffrecon.geometry.pose_graph import PoseGraphOptions, Sim3Edge, optimize_pose_graph
 from ffrecon.geometry.rotations import rotation_angle_deg
 from ffrecon.types import Prediction
@@ -112,25 +113,34 @@ def owners(chunks: Sequence[Sequence[int]], num_frames: int) -> np.ndarray:
     return out
 
 
-def _revisits(prediction: Prediction, owner: np.ndarray, options: LoopOptions) -> tuple[list, np.ndarray]:
-    """``([(overlap, chunk_a, chunk_b)], key_frames)``: chunk pairs far apart in the chain whose key frames
-    overlap, best first, no two within ``min_chunk_gap`` of each other at both ends."""
-    num_chunks = int(owner.max()) + 1
-    keys = np.array([np.flatnonzero(owner == c)[(owner == c).sum() // 2] for c in range(num_chunks)])
-    overlap = overlap_matrix(prediction.subset(keys.tolist()), OverlapOptions(coarse_from_frames=10**9))
+def _key_frames(owner: np.ndarray) -> np.ndarray:
+    """The first, middle and last frame each chunk kept (a revisit may meet a chunk at either end)."""
+    keys = []
+    for c in range(int(owner.max()) + 1):
+        own = np.flatnonzero(owner == c)
+        keys += sorted({int(own[0]), int(own[len(own) // 2]), int(own[-1])})
+    return np.array(keys)
+
+
+def _revisits(prediction: Prediction, owner: np.ndarray, options: LoopOptions) -> tuple[int, list]:
+    """``(candidates, [(overlap, chunk_a, chunk_b, key_a, key_b)])``: chunk pairs at least ``min_chunk_gap``
+    calls apart whose key frames overlap (the best key pair of each), best first, no two within
+    ``min_chunk_gap`` of each other at both ends."""
+    keys = _key_frames(owner)
+    overlap = overlap_matrix(prediction.subset(keys.tolist()))
     both = np.minimum(overlap, overlap.T)
-    pairs = [
-        (float(both[a, b]), a, b)
-        for a in range(num_chunks)
-        for b in range(a + options.min_chunk_gap, num_chunks)
-        if both[a, b] >= options.min_overlap
-    ]
-    chosen: list[tuple[float, int, int]] = []
+    best: dict[tuple[int, int], tuple[float, int, int, int, int]] = {}
+    for i, j in zip(*np.nonzero(both >= options.min_overlap)):
+        a, b = int(owner[keys[i]]), int(owner[keys[j]])
+        if b - a >= options.min_chunk_gap and both[i, j] > best.get((a, b), (0.0,))[0]:
+            best[(a, b)] = (float(both[i, j]), a, b, int(keys[i]), int(keys[j]))
+    chosen: list[tuple[float, int, int, int, int]] = []
     gap = options.min_chunk_gap
-    for value, a, b in sorted(pairs, reverse=True):
-        if len(chosen) < options.max_loops and all(abs(a - a2) >= gap or abs(b - b2) >= gap for _, a2, b2 in chosen):
-            chosen.append((value, a, b))
-    return chosen, keys
+    for loop in sorted(best.values(), reverse=True):
+        a, b = loop[1:3]
+        if len(chosen) < options.max_loops and all(abs(a - c[1]) >= gap or abs(b - c[2]) >= gap for c in chosen):
+            chosen.append(loop)
+    return len(best), chosen
 
 
 def _end_frames(owner: np.ndarray, chunk: int, key: int, count: int) -> list[int]:
@@ -155,15 +165,15 @@ def close_loops(
     owner = owners(chunks, len(prediction))
     if not options.enabled or options.max_loops == 0 or len(chunks) <= options.min_chunk_gap:
         return prediction, None
-    chosen, keys = _revisits(prediction, owner, options)
+    candidates, chosen = _revisits(prediction, owner, options)
     if not chosen:
         log.info("loop chunks: no revisit among %d chunks", len(chunks))
         return prediction, LoopClosure(0, ())
     per_end = max(min(options.frames_per_end, len(chunks[0]) // 2), 1)
-    ends = [(_end_frames(owner, a, keys[a], per_end), _end_frames(owner, b, keys[b], per_end)) for _, a, b in chosen]
+    ends = [(_end_frames(owner, a, ka, per_end), _end_frames(owner, b, kb, per_end)) for _, a, b, ka, kb in chosen]
     parts = run_calls([first + second for first, second in ends])
     calls, edges = [], [Sim3Edge(c, c + 1, Sim3.identity()) for c in range(len(chunks) - 1)]
-    for (value, a, b), (first, second), part in zip(chosen, ends, parts):
+    for (value, a, b, _, _), (first, second), part in zip(chosen, ends, parts):
         fit_a, misfit_a = fit(prediction, first, part, range(len(first)))
         fit_b, misfit_b = fit(prediction, second, part, range(len(first), len(first) + len(second)))
         b_from_a = fit_b.compose(fit_a.inverse())
@@ -176,8 +186,8 @@ def close_loops(
             edges.append(Sim3Edge(a, b, b_from_a))
     if len(edges) == len(chunks) - 1:
         log.warning("loop chunks: all %d loop calls left out (they did not fit the chain)", len(calls))
-        return prediction, LoopClosure(len(chosen), tuple(calls))
-    depth = float(np.median([np.median(prediction.depth[k][prediction.depth[k] > 0]) for k in keys]))
+        return prediction, LoopClosure(candidates, tuple(calls))
+    depth = float(np.median([np.median(prediction.depth[k][prediction.depth[k] > 0]) for k in _key_frames(owner)]))
     graph = optimize_pose_graph([Sim3.identity()] * len(chunks), edges, depth, options.pose_graph)
     corrected = _corrected(prediction, owner, graph.world_from_node)
     turns = rotation_angle_deg(np.stack([c.rotation for c in graph.world_from_node]))
