@@ -157,6 +157,24 @@ def _given_intrinsics(given: dict | None) -> str:
     )
 
 
+def _calls(chunks: dict | None) -> str | None:
+    """The chunk layout and the loop pass in a sentence (``feedforward.chunks``); None for one call."""
+    if not chunks or len(chunks["calls"]) < 2:
+        return None
+    text = f"{len(chunks['calls'])} chunks of {chunks['size']} frames sharing {chunks['overlap']} ({chunks['engine']})"
+    loops = chunks.get("loops")
+    if loops is None:
+        return text + "; no loop pass"
+    used = [c for c in loops["calls"] if c["used"]]
+    if not used:
+        return text + f"; loop calls: none used of {len(loops['calls'])} ({loops['candidates']} revisits found)"
+    missed = max(c["closure_deg"] for c in used)
+    return text + (
+        f"; {len(used)} loop calls closed the chain (it missed by up to {missed:.2f} deg; "
+        f"chunks moved by up to {loops['max_correction_deg']:.2f} deg)"
+    )
+
+
 def _feedforward(report: dict, run_dir: Path) -> tuple[list[dict], str]:
     ff = report["feedforward"]
     if "skipped" in ff:
@@ -168,6 +186,7 @@ def _feedforward(report: dict, run_dir: Path) -> tuple[list[dict], str]:
         ("assumptions", ff.get("assumptions")),
         ("model notes", model.get("notes")),
         ("model", model.get("description")),
+        ("model calls", _calls(ff.get("chunks"))),
     ]
     previews = []
     for name in _every(report["inputs"]["names"]):

@@ -11,6 +11,7 @@ from ffrecon.geometry.rotations import rotation_angle_deg
 from ffrecon.models.loops import LoopOptions, owners
 from ffrecon.models.multiview import ChunkLayout, MultiviewOptions, predict_multiview_pass
 from ffrecon.models.runner import MULTIVIEW_INPUT, OnnxModel
+from ffrecon.report.html import _calls
 from ffrecon.synthetic import SceneOptions, make_scene
 from ffrecon.synthetic.simulated_model import SimulationOptions, build_simulated_vggt
 
@@ -58,8 +59,9 @@ def test_loop_calls_close_a_drifting_chain(drifting):
     used = [c for c in loops.calls if c.used]
     assert all(max(c.misfit) <= 0.05 for c in used) and max(c.closure_deg for c in used) > 5.0
     assert 1 <= loops.iterations <= 20 and loops.max_correction_deg > 5.0
-    report = ChunkLayout.of([[0, 5]], 6, 2, loops=loops).to_report()["loops"]
-    assert report["calls"][0]["frames"] and report["pose_graph_iterations"] == loops.iterations
+    layout = ChunkLayout.of([[0, 5], [4, 9]], 6, 2, loops=loops).to_report()
+    assert layout["loops"]["calls"][0]["frames"] and layout["loops"]["pose_graph_iterations"] == loops.iterations
+    assert f"{len(used)} loop calls closed the chain" in _calls(layout)  # the HTML report's line
 
 
 def test_no_drift_leaves_the_chain_where_it_was(tmp_path):
