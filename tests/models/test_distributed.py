@@ -66,6 +66,10 @@ def test_ray_chunks_give_the_local_cameras(scene_and_model, local_ray):
     assert on_ray.chunks.frames == local.chunks.frames == ((0, 4), (3, 7), (6, 10), (9, 11))
     assert on_ray.chunks.engine == "ray" and local.chunks.engine == "local"
     assert len(set(on_ray.chunks.chunk_workers)) == 2 and on_ray.chunks.workers == 2
+    # The loop pass ran its loop call on Ray too (the orbit's last chunk revisits the first) and came out the same.
+    assert [c.frames for c in on_ray.chunks.loops.calls] == [c.frames for c in local.chunks.loops.calls]
+    assert any(c.used for c in local.chunks.loops.calls)
+    assert on_ray.chunks.loops.max_correction_deg == pytest.approx(local.chunks.loops.max_correction_deg, abs=1e-6)
 
 
 def test_a_workers_model_error_reads_as_ffrecons(tmp_path, scene_and_model, local_ray):
