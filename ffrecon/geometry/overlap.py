@@ -60,6 +60,7 @@ class OverlapGraph:
 
     overlap: np.ndarray  # [N, N] float, overlap[i, j]: share of i's confident points seen by j
     pairs: np.ndarray  # [P, 2] int, i < j
+    options: OverlapOptions = OverlapOptions()  # what made it (a later user may reuse it under the same options)
 
     def score(self) -> np.ndarray:
         """``[N, N]`` symmetric score: the smaller overlap of the two directions."""
@@ -230,4 +231,4 @@ def overlap_graph(prediction: Prediction, options: OverlapOptions = OverlapOptio
     pairs = select_pairs(overlap, options)
     n = len(prediction)
     logger.info("feed-forward overlap: %d of %d image pairs to match", len(pairs), n * (n - 1) // 2)
-    return OverlapGraph(overlap, pairs)
+    return OverlapGraph(overlap, pairs, options)

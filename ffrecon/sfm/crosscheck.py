@@ -32,7 +32,7 @@ import pycolmap
 from ffrecon.capture import Capture
 from ffrecon.colmap_io import cam_from_world_by_name, cameras_by_name, write_reconstruction
 from ffrecon.errors import InputError
-from ffrecon.geometry.overlap import overlap_graph
+from ffrecon.geometry.overlap import OverlapGraph, overlap_graph
 from ffrecon.sfm.colmap_options import CameraSharing, ColmapOptions, MapperKind, PairingMode
 from ffrecon.sfm.features import (
     FeatureStats,
@@ -88,6 +88,8 @@ class ColmapResult:
     database_path: Path
     model_path: Path | None  # out_dir/sparse/0
     reconstruction: pycolmap.Reconstruction | None = field(default=None, repr=False, compare=False)
+    # MODEL pairing: the model's overlap graph that chose the pairs (the refinement reuses it; not saved)
+    model_overlap: OverlapGraph | None = field(default=None, repr=False, compare=False)
 
     @property
     def num_registered(self) -> int:
@@ -456,11 +458,11 @@ def run_colmap_on(
     the cross-check must stay independent evidence of the model's cameras. ``prediction``: the model's, when
     the pairing takes its pairs (:func:`pairs_from_model`); the only thing the cross-check takes from it."""
     priors, masks = capture.focal_priors_px, capture.mask_dir
-    pairs = None
+    pairs = graph = None
     if prediction is not None and pairs_from_model(options, len(capture.names), model=True):
-        chosen = overlap_graph(prediction, options.model_pairs).pairs
-        pairs = [(capture.names[i], capture.names[j]) for i, j in chosen]
-    return run_colmap(
+        graph = overlap_graph(prediction, options.model_pairs)
+        pairs = [(capture.names[i], capture.names[j]) for i, j in graph.pairs]
+    result = run_colmap(
         capture.image_dir,
         capture.names,
         options,
@@ -470,3 +472,4 @@ def run_colmap_on(
         mask_dir=masks,
         model_pairs=pairs,
     )
+    return result if graph is None else dataclasses.replace(result, model_overlap=graph)

@@ -429,6 +429,7 @@ def run_refine(
     out_dir: Path,
     mask_dir: Path | None = None,
     fixed: frozenset[str] = frozenset(),
+    graph: OverlapGraph | None = None,
 ) -> RefineResult:
     """Refine the feed-forward cameras; writes the refined model to ``out_dir/refine/model`` (work files beside it;
     the run's ``sparse/0``, the final cameras, is written from it by the pipeline).
@@ -439,6 +440,8 @@ def run_refine(
         fixed: frames whose poses (the user's, ``--poses``) stay as the prediction holds them: never reseeded,
             relocalised or registered again, constant in every adjustment.
         prediction: feed-forward cameras (cam_from_world, OpenCV) and depth, original-photo pixels.
+        graph: the prediction's overlap graph when already made under ``options.overlap`` (the cross-check's
+            model pairing: 28 s at 500 frames); None: made here.
     Returns:
         :class:`RefineResult` with poses in the prediction's world frame. Weak frames are flagged, not
         fatal; with fewer than two usable frames the status is FAILED and the feed-forward cameras
@@ -452,7 +455,8 @@ def run_refine(
     db_path = work / "database.db"
     pycolmap.set_random_seed(options.seed)
     with timer.stage("pair_selection"):
-        graph = overlap_graph(prediction, options.overlap)
+        if graph is None or graph.options != options.overlap or len(graph.overlap) != len(prediction):
+            graph = overlap_graph(prediction, options.overlap)
     image_ids, cameras, colmap_cameras, copied = _prepare_database(
         image_dir, prediction, options, db_path, timer, mask_dir
     )
@@ -708,4 +712,5 @@ def run_refine_reusing(
     elif options.reuse_features_from is None and isinstance(sift, Path):
         options = dataclasses.replace(options, reuse_features_from=sift)
     fixed = given if capture.poses_fixed else frozenset()
-    return run_refine(capture.image_dir, prediction, options, out_dir, capture.mask_dir, fixed)
+    graph = colmap.model_overlap if isinstance(colmap, ColmapResult) else None  # the same prediction's
+    return run_refine(capture.image_dir, prediction, options, out_dir, capture.mask_dir, fixed, graph)

@@ -7,8 +7,9 @@ import pytest
 
 from ffrecon.cli import main
 from ffrecon.geometry.metrics import pose_errors
+from ffrecon.geometry.overlap import overlap_graph
 from ffrecon.pipeline import RunOptions, run
-from ffrecon.sfm import mapping
+from ffrecon.sfm import mapping, refine
 from ffrecon.sfm.colmap_options import ColmapOptions, PairingMode
 from ffrecon.sfm.crosscheck import resolve_pairing
 from ffrecon.sfm.mapping import MapperRun
@@ -24,14 +25,17 @@ def test_auto_pairing_takes_the_models_pairs_past_the_exhaustive_limit():
     assert resolve_pairing(options, 11, model=False) is PairingMode.SEQUENTIAL
 
 
-def test_crosscheck_on_model_pairs_matches_fewer_pairs_and_registers_every_frame(tmp_path, demo12):
+def test_crosscheck_on_model_pairs_matches_fewer_pairs_and_registers_every_frame(tmp_path, demo12, monkeypatch):
     """The 12-frame demo: the model's pairs are a subset of all 66, COLMAP still registers every frame and its
-    cameras stay at the exhaustive run's accuracy against the truth; the cross-check then runs after the model."""
+    cameras stay at the exhaustive run's accuracy against the truth; the cross-check then runs after the model,
+    and the refinement takes the overlap graph it made instead of making it again."""
+    made = []
+    monkeypatch.setattr(refine, "overlap_graph", lambda *a, **k: made.append(a) or overlap_graph(*a, **k))
     runs = {}
     for pairing in (PairingMode.EXHAUSTIVE, PairingMode.MODEL):
         options = RunOptions(
             colmap=ColmapOptions(pairing=pairing),
-            refine=RefineOptions(enabled=False),
+            refine=RefineOptions(enabled=pairing is PairingMode.MODEL),
             splat=SplatOptions(enabled=False),
         )
         runs[pairing] = run(demo12.images, tmp_path / pairing.value, demo12.model, options)
@@ -47,6 +51,8 @@ def test_crosscheck_on_model_pairs_matches_fewer_pairs_and_registers_every_frame
     listed = (tmp_path / "model" / "crosscheck" / "model_pairs.txt").read_text().split("\n")
     assert len([line for line in listed if line]) == model.features.num_pairs_matched
     assert pycolmap.Reconstruction(tmp_path / "model" / "crosscheck" / "sparse" / "0").num_reg_images() == 12
+    assert len(model.model_overlap.pairs) == model.features.num_pairs_matched
+    assert made == [] and runs[PairingMode.MODEL].refine.registered.all()  # the cross-check's graph, reused
 
 
 def test_model_pairing_without_a_model_says_so(tmp_path, demo12, capsys):
