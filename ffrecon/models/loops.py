@@ -23,11 +23,12 @@ from __future__ import annotations
 import dataclasses
 import logging
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from ffrecon.checks import check_number
+from ffrecon.errors import ModelError
 from ffrecon.geometry.alignment import Sim3
 from ffrecon.geometry.overlap import overlap_matrix
 from ffrecon.geometry.pose_graph import PoseGraphOptions, Sim3Edge, optimize_pose_graph
@@ -68,6 +69,7 @@ class LoopCall:
     closure_deg: float  # rotation by which the chain missed this loop before the pose graph
     closure_scale: float  # scale ratio by which it missed
     used: bool  # False: left out (misfit or closure over the bounds)
+    b_from_a: Sim3 = field(default_factory=Sim3.identity, repr=False, compare=False)  # the edge it gives
 
     def to_report(self) -> dict:
         return {
@@ -90,6 +92,7 @@ class LoopClosure:
     iterations: int = 0  # pose-graph iterations (0: no pose graph ran)
     max_correction_deg: float = 0.0  # the largest chunk rotation the pose graph applied
     max_correction_scale: float = 1.0  # the largest chunk scale change (ratio >= 1 either way)
+    error: str | None = None  # why the pass stopped short (a loop call the model failed on), if it did
 
     def to_report(self) -> dict:
         return {
@@ -98,6 +101,7 @@ class LoopClosure:
             "pose_graph_iterations": self.iterations,
             "max_correction_deg": round(self.max_correction_deg, 4),
             "max_correction_scale": round(self.max_correction_scale, 5),
+            "error": self.error,
         }
 
 
@@ -160,7 +164,9 @@ def close_loops(
     without any), and what was done (None when the pass did not run: off, or too few chunks for a loop).
 
     ``run_calls`` runs model calls on lists of frame indices (decoded, validated); ``fit`` gives the Sim(3)
-    ``ref_from_new`` of a call's frames onto the chain and its misfit (median point distance / depth).
+    ``ref_from_new`` of a call's frames onto the chain and its misfit (median point distance / depth). A loop
+    call the model fails on (a :class:`ModelError`) leaves the chunks as merged, with a warning and the
+    error in the report: the chunks themselves were good.
     """
     owner = owners(chunks, len(prediction))
     if not options.enabled or options.max_loops == 0 or len(chunks) <= options.min_chunk_gap:
@@ -169,40 +175,51 @@ def close_loops(
     if not chosen:
         log.info("loop chunks: no revisit among %d chunks", len(chunks))
         return prediction, LoopClosure(0, ())
+    try:
+        calls = _measured(prediction, owner, chunks, chosen, run_calls, fit, options)
+    except ModelError as error:
+        log.warning("loop chunks: a loop call failed, the chunks stay as merged: %s", error.problem)
+        return prediction, LoopClosure(candidates, (), error=error.problem)
+    used = [c for c in calls if c.used]
+    if not used:
+        log.warning("loop chunks: all %d loop calls left out (they did not fit the chain)", len(calls))
+        return prediction, LoopClosure(candidates, calls)
+    edges = [Sim3Edge(c, c + 1, Sim3.identity()) for c in range(len(chunks) - 1)]
+    edges += [Sim3Edge(*c.chunks, c.b_from_a) for c in used]
+    medians = [np.median(d[d > 0]) for d in (prediction.depth[k] for k in _key_frames(owner)) if (d > 0).any()]
+    length = float(np.median(medians)) if medians else 1.0
+    graph = optimize_pose_graph([Sim3.identity()] * len(chunks), edges, length, options.pose_graph)
+    if not all(np.isfinite(c.matrix()).all() for c in graph.world_from_node):
+        log.warning("loop chunks: the pose graph gave no finite corrections; the chunks stay as merged")
+        return prediction, LoopClosure(candidates, calls, graph.iterations, error="no finite pose-graph solution")
+    turns = rotation_angle_deg(np.stack([c.rotation for c in graph.world_from_node]))
+    scales = np.abs(np.log([c.scale for c in graph.world_from_node]))
+    log.info(
+        "loop chunks: %d of %d loop calls closed the chain (missed by up to %.2f deg); chunks moved up to %.2f deg",
+        len(used),
+        len(calls),
+        max(c.closure_deg for c in used),
+        turns.max(),
+    )
+    summary = LoopClosure(candidates, calls, graph.iterations, float(turns.max()), float(np.exp(scales.max())))
+    return _corrected(prediction, owner, graph.world_from_node), summary
+
+
+def _measured(prediction, owner, chunks, chosen, run_calls, fit, options: LoopOptions) -> tuple[LoopCall, ...]:
+    """One model call per chosen revisit, each end fitted onto the chain: the loop calls, used or not."""
     per_end = max(min(options.frames_per_end, len(chunks[0]) // 2), 1)
     ends = [(_end_frames(owner, a, ka, per_end), _end_frames(owner, b, kb, per_end)) for _, a, b, ka, kb in chosen]
     parts = run_calls([first + second for first, second in ends])
-    calls, edges = [], [Sim3Edge(c, c + 1, Sim3.identity()) for c in range(len(chunks) - 1)]
+    calls = []
     for (value, a, b, _, _), (first, second), part in zip(chosen, ends, parts):
         fit_a, misfit_a = fit(prediction, first, part, range(len(first)))
         fit_b, misfit_b = fit(prediction, second, part, range(len(first), len(first) + len(second)))
-        b_from_a = fit_b.compose(fit_a.inverse())
+        b_from_a = fit_b.compose(fit_a.inverse())  # what the chain's b-end should be, seen from its a-end
         closure = float(rotation_angle_deg(b_from_a.rotation[None])[0])
         used = max(misfit_a, misfit_b) <= options.max_misfit and closure <= options.max_closure_deg
-        calls.append(
-            LoopCall(tuple(first + second), (a, b), value, (misfit_a, misfit_b), closure, b_from_a.scale, used)
-        )
-        if used:
-            edges.append(Sim3Edge(a, b, b_from_a))
-    if len(edges) == len(chunks) - 1:
-        log.warning("loop chunks: all %d loop calls left out (they did not fit the chain)", len(calls))
-        return prediction, LoopClosure(candidates, tuple(calls))
-    depth = float(np.median([np.median(prediction.depth[k][prediction.depth[k] > 0]) for k in _key_frames(owner)]))
-    graph = optimize_pose_graph([Sim3.identity()] * len(chunks), edges, depth, options.pose_graph)
-    corrected = _corrected(prediction, owner, graph.world_from_node)
-    turns = rotation_angle_deg(np.stack([c.rotation for c in graph.world_from_node]))
-    scales = np.array([c.scale for c in graph.world_from_node])
-    log.info(
-        "loop chunks: %d of %d loop calls closed the chain (before: up to %.2f deg); chunks moved by up to %.2f deg",
-        len(edges) - len(chunks) + 1,
-        len(calls),
-        max(c.closure_deg for c in calls if c.used),
-        turns.max(),
-    )
-    summary = LoopClosure(
-        len(chosen), tuple(calls), graph.iterations, float(turns.max()), float(np.exp(np.abs(np.log(scales)).max()))
-    )
-    return corrected, summary
+        frames = tuple(first + second)
+        calls.append(LoopCall(frames, (a, b), value, (misfit_a, misfit_b), closure, b_from_a.scale, used, b_from_a))
+    return tuple(calls)
 
 
 def _corrected(prediction: Prediction, owner: np.ndarray, corrections: Sequence[Sim3]) -> Prediction:

@@ -9,7 +9,7 @@ from ffrecon.geometry.alignment import umeyama
 from ffrecon.geometry.poses import camera_centers
 from ffrecon.geometry.rotations import rotation_angle_deg
 from ffrecon.models.loops import LoopOptions, owners
-from ffrecon.models.multiview import ChunkLayout, MultiviewOptions, predict_multiview_pass
+from ffrecon.models.multiview import ChunkLayout, MultiviewOptions, plan_chunks, predict_multiview_pass
 from ffrecon.models.runner import MULTIVIEW_INPUT, OnnxModel
 from ffrecon.report.html import _calls
 from ffrecon.synthetic import SceneOptions, make_scene
@@ -82,3 +82,25 @@ def test_owners_and_options():
     for bad in ({"min_chunk_gap": 1}, {"min_overlap": 0.0}, {"max_closure_deg": 0}, {"frames_per_end": 0}):
         with pytest.raises(InputError):
             LoopOptions(**bad)
+
+
+def test_a_loop_call_the_model_fails_on_leaves_the_chunks_as_merged(drifting, monkeypatch):
+    """A loop call whose outputs do not validate (the model returned NaN) is not the chunks' fault: the merged
+    chunks stand, the run goes on, and the report says why no loop closed."""
+    scene, model = drifting
+    merged, _ = _run(scene, model, LoopOptions(enabled=False))
+    real = model.run
+    calls, chunks = [], len(plan_chunks(len(scene.images), 6, 2))
+
+    def poisoned(inputs):
+        out = real(inputs)
+        if len(calls) >= chunks:  # the chunks pass; the loop calls come back with NaN cameras
+            out = {k: np.full_like(v, np.nan) if k == "pose_enc" else v for k, v in out.items()}
+        calls.append(len(inputs[MULTIVIEW_INPUT]))
+        return out
+
+    monkeypatch.setattr(model, "run", poisoned)
+    kept, loops = _run(scene, model, LoopOptions())
+    assert len(calls) > chunks and loops.calls == () and "non-finite" in loops.error.lower()
+    np.testing.assert_array_equal(kept.cam_from_world, merged.cam_from_world)
+    assert loops.to_report()["error"] == loops.error
