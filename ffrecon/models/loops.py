@@ -6,8 +6,8 @@ revisit no longer meets the start. Here:
 
 1. each chunk's first, middle and last frame are key frames; the merged cameras and depth say which key
    frames of chunks at least ``min_chunk_gap`` calls apart see the same surfaces (:func:`~ffrecon.geometry.
-   overlap.overlap_matrix`): the revisits. The best of them, no two joining the same stretches, become loop
-   calls, each holding frames around both key frames;
+   overlap.overlap_matrix`): the revisits. The farthest apart of them, no two joining the same stretches,
+   become loop calls, each holding frames around both key frames;
 2. a loop call holds frames of both chunks; its Sim(3) to the chain fitted on each end's frames says how
    the chain should close there (the two fits agree when there is no drift);
 3. a Sim(3) pose graph (:mod:`ffrecon.geometry.pose_graph`) over one correction per chunk, with the chain's
@@ -128,7 +128,7 @@ def _key_frames(owner: np.ndarray) -> np.ndarray:
 
 def _revisits(prediction: Prediction, owner: np.ndarray, options: LoopOptions) -> tuple[int, list]:
     """``(candidates, [(overlap, chunk_a, chunk_b, key_a, key_b)])``: chunk pairs at least ``min_chunk_gap``
-    calls apart whose key frames overlap (the best key pair of each), best first, no two within
+    calls apart whose key frames overlap (the best key pair of each), the farthest apart first, no two within
     ``min_chunk_gap`` of each other at both ends."""
     keys = _key_frames(owner)
     overlap = overlap_matrix(prediction.subset(keys.tolist()))
@@ -140,7 +140,9 @@ def _revisits(prediction: Prediction, owner: np.ndarray, options: LoopOptions) -
             best[(a, b)] = (float(both[i, j]), a, b, int(keys[i]), int(keys[j]))
     chosen: list[tuple[float, int, int, int, int]] = []
     gap = options.min_chunk_gap
-    for loop in sorted(best.values(), reverse=True):
+    # The longest revisits first: a loop closes the drift of the links it spans, and on a slow video chunks a few
+    # calls apart overlap more than the far ends of a loop do.
+    for loop in sorted(best.values(), key=lambda c: (c[2] - c[1], c[0]), reverse=True):
         a, b = loop[1:3]
         if len(chosen) < options.max_loops and all(abs(a - c[1]) >= gap or abs(b - c[2]) >= gap for c in chosen):
             chosen.append(loop)

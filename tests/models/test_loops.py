@@ -8,6 +8,7 @@ from ffrecon.errors import InputError
 from ffrecon.geometry.alignment import umeyama
 from ffrecon.geometry.poses import camera_centers
 from ffrecon.geometry.rotations import rotation_angle_deg
+from ffrecon.models import loops
 from ffrecon.models.loops import LoopOptions, owners
 from ffrecon.models.multiview import ChunkLayout, MultiviewOptions, plan_chunks, predict_multiview_pass
 from ffrecon.models.runner import MULTIVIEW_INPUT, OnnxModel
@@ -104,3 +105,26 @@ def test_a_loop_call_the_model_fails_on_leaves_the_chunks_as_merged(drifting, mo
     assert len(calls) > chunks and loops.calls == () and "non-finite" in loops.error.lower()
     np.testing.assert_array_equal(kept.cam_from_world, merged.cam_from_world)
     assert loops.to_report()["error"] == loops.error
+
+
+def test_the_farthest_revisits_are_chosen_first(monkeypatch):
+    """On a slow video chunks a few calls apart overlap more than the ends of a loop: the loop still wins,
+    and no two chosen loops join the same stretches."""
+    chunks = [list(range(4 * c, 4 * c + 6)) for c in range(10)]  # 10 chunks of 6 sharing 2: frames 0..41
+    owner = owners(chunks, 42)
+    keys = loops._key_frames(owner)
+    chunk_of_key = owner[keys]
+    overlap = np.eye(len(keys))
+    for i, a in enumerate(chunk_of_key):
+        for j, b in enumerate(chunk_of_key):
+            if abs(int(a) - int(b)) == 3:
+                overlap[i, j] = 0.9  # near neighbours: much in common
+            elif {int(a), int(b)} in ({0, 9}, {1, 8}):
+                overlap[i, j] = 0.5  # the revisits
+    monkeypatch.setattr(loops, "overlap_matrix", lambda prediction: overlap)
+    prediction = type("P", (), {"subset": lambda self, idx: None})()
+    candidates, chosen = loops._revisits(prediction, owner, LoopOptions(max_loops=3))
+    assert candidates == 7 + 2  # (0, 3) ... (6, 9), and the two revisits
+    # (1, 8) is within 3 chunks of (0, 9) at both ends: the same stretches, left out; then the near pairs in
+    # order, (1, 4) and (2, 5) left out beside (0, 3)
+    assert [(a, b) for _, a, b, _, _ in chosen] == [(0, 9), (0, 3), (3, 6)]
