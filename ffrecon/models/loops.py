@@ -42,7 +42,7 @@ log = logging.getLogger("ffrecon.models")
 class LoopOptions:
     enabled: bool = True
     min_overlap: float = 0.3  # two key frames whose predicted overlap (both ways) reaches this: a revisit
-    min_chunk_gap: int = 3  # ... when their chunks are at least this many calls apart
+    min_chunk_gap: int = 6  # ... when their chunks are at least this many calls apart (nearer: little drift between)
     max_loops: int = 8  # loop calls at most (the best revisits, no two within min_chunk_gap at both ends)
     frames_per_end: int = 4  # frames of each end in a loop call (at most half the chunk size)
     max_misfit: float = 0.05  # an end whose points fit the chain worse (median distance / depth): loop dropped

@@ -12,6 +12,7 @@ import pytest
 from ffrecon.cli import main
 from ffrecon.errors import InputError, ModelError
 from ffrecon.models.distributed import RayOptions
+from ffrecon.models.loops import LoopOptions
 from ffrecon.models.multiview import MultiviewOptions
 from ffrecon.models.runner import OnnxModel
 from ffrecon.models.stage import FeedForwardOptions, predict
@@ -22,7 +23,10 @@ from tests.onnx_builders import vggt_like
 
 ray = pytest.importorskip("ray", reason="Ray is not installed: pip install 'ffrecon[distributed]'")
 
-CHUNKS = FeedForwardOptions(multiview=MultiviewOptions(chunk_size=5, chunk_overlap=2))  # 12 frames: 4 calls
+# 12 frames: 4 calls, and a loop call between the first and the last (3 calls apart)
+CHUNKS = FeedForwardOptions(
+    multiview=MultiviewOptions(chunk_size=5, chunk_overlap=2, loops=LoopOptions(min_chunk_gap=3))
+)
 
 
 @dataclasses.dataclass(frozen=True)
