@@ -126,11 +126,10 @@ def _key_frames(owner: np.ndarray) -> np.ndarray:
     return np.array(keys)
 
 
-def _revisits(prediction: Prediction, owner: np.ndarray, options: LoopOptions) -> tuple[int, list]:
+def _revisits(prediction: Prediction, owner: np.ndarray, keys: np.ndarray, options: LoopOptions) -> tuple[int, list]:
     """``(candidates, [(overlap, chunk_a, chunk_b, key_a, key_b)])``: chunk pairs at least ``min_chunk_gap``
     calls apart whose key frames overlap (the best key pair of each), the farthest apart first, no two within
-    ``min_chunk_gap`` of each other at both ends."""
-    keys = _key_frames(owner)
+    ``min_chunk_gap`` of each other at both ends. ``keys``: :func:`_key_frames` of ``owner``."""
     overlap = overlap_matrix(prediction.subset(keys.tolist()))
     both = np.minimum(overlap, overlap.T)
     best: dict[tuple[int, int], tuple[float, int, int, int, int]] = {}
@@ -173,7 +172,8 @@ def close_loops(
     owner = owners(chunks, len(prediction))
     if not options.enabled or options.max_loops == 0 or len(chunks) <= options.min_chunk_gap:
         return prediction, None
-    candidates, chosen = _revisits(prediction, owner, options)
+    keys = _key_frames(owner)
+    candidates, chosen = _revisits(prediction, owner, keys, options)
     if not chosen:
         log.info("loop chunks: no revisit among %d chunks", len(chunks))
         return prediction, LoopClosure(0, ())
@@ -188,7 +188,7 @@ def close_loops(
         return prediction, LoopClosure(candidates, calls)
     edges = [Sim3Edge(c, c + 1, Sim3.identity()) for c in range(len(chunks) - 1)]
     edges += [Sim3Edge(*c.chunks, c.b_from_a) for c in used]
-    medians = [np.median(d[d > 0]) for d in (prediction.depth[k] for k in _key_frames(owner)) if (d > 0).any()]
+    medians = [np.median(d[d > 0]) for d in (prediction.depth[k] for k in keys) if (d > 0).any()]
     length = float(np.median(medians)) if medians else 1.0
     graph = optimize_pose_graph([Sim3.identity()] * len(chunks), edges, length, options.pose_graph)
     if not all(np.isfinite(c.matrix()).all() for c in graph.world_from_node):

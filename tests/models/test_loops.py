@@ -123,7 +123,7 @@ def test_the_farthest_revisits_are_chosen_first(monkeypatch):
                 overlap[i, j] = 0.5  # the revisits
     monkeypatch.setattr(loops, "overlap_matrix", lambda prediction: overlap)
     prediction = type("P", (), {"subset": lambda self, idx: None})()
-    candidates, chosen = loops._revisits(prediction, owner, LoopOptions(max_loops=3, min_chunk_gap=3))
+    candidates, chosen = loops._revisits(prediction, owner, keys, LoopOptions(max_loops=3, min_chunk_gap=3))
     assert candidates == 7 + 2  # (0, 3) ... (6, 9), and the two revisits
     # (1, 8) is within 3 chunks of (0, 9) at both ends: the same stretches, left out; then the near pairs in
     # order, (1, 4) and (2, 5) left out beside (0, 3)
