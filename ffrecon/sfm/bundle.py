@@ -21,6 +21,7 @@ from ffrecon.colmap_io import cam_from_world_by_name
 from ffrecon.geometry.alignment import Sim3, collinear, sim3_from_cameras, umeyama
 from ffrecon.geometry.poses import camera_centers
 from ffrecon.geometry.rotations import matrix_to_quat_xyzw
+from ffrecon.sfm.lens import LensTrial, distortion_may_pay, distortion_pays
 
 logger = logging.getLogger("ffrecon.sfm")
 
@@ -91,6 +92,7 @@ class BundleSummary:
     final_cost: float
     num_adjustments: int  # bundle adjustments over both passes
     thinned_observations: int = 0  # observations the last adjustment's thinned solve left out (0: not thinned)
+    lens: LensTrial = LensTrial.NONE
 
     def to_report(self) -> dict:
         return {
@@ -102,10 +104,11 @@ class BundleSummary:
             "final_cost": self.final_cost,
             "num_adjustments": self.num_adjustments,
             "thinned_observations": self.thinned_observations,
+            "lens": self.lens.value,
         }
 
 
-def _summary(adjust: _Adjuster) -> BundleSummary | None:
+def _summary(adjust: _Adjuster, lens: LensTrial = LensTrial.NONE) -> BundleSummary | None:
     """The last adjustment's summary (None: none ran)."""
     if adjust.last is None:
         return None
@@ -122,6 +125,7 @@ def _summary(adjust: _Adjuster) -> BundleSummary | None:
         final_cost=float(getattr(ceres, "final_cost", np.nan)),
         num_adjustments=count,
         thinned_observations=adjust.thinned,
+        lens=lens,
     )
 
 
@@ -396,7 +400,8 @@ def refine_tracks(
     than ``min_observations`` points (a feed-forward pose too wrong for its tolerances) are taken
     out and registered again by absolute pose after the fine pass; frames still below
     ``min_observations`` at the end are deregistered and flagged. With ``options.refine_distortion``
-    the fine pass runs twice, with and without the radial terms, and the lens model that pays is kept.
+    the fine pass runs again with the radial term free, and the lens model that pays is kept, unless freeing
+    the term on the pinhole pass's solution shows it cannot pay (:func:`ffrecon.sfm.lens.distortion_may_pay`).
     Returns ``(rec, summary, [(name, observations) of the weak frames])`` (``rec`` may be a new
     object); the summary is None if no adjustment ran. ``fixed``: frames whose poses (given ones) every
     adjustment holds constant and that are never registered again.
@@ -415,10 +420,12 @@ def refine_tracks(
         return rec, _summary(adjust), weak
     adjust_k = copy.copy(adjust)
     adjust_k.refine_distortion = True
+    if not distortion_may_pay(rec, adjust_k, options.min_distortion_px, options.min_distortion_gain):
+        return rec, _summary(adjust, LensTrial.PROBED), weak
     weak_k = _fine_pass(cache, trial, adjust_k, options, retry, min_observations, names)
-    if _distortion_pays(rec, trial, options):
-        rec, adjust, weak = trial, adjust_k, weak_k
-    return rec, _summary(adjust), weak
+    if distortion_pays(rec, trial, options.min_distortion_px, options.min_distortion_gain):
+        return trial, _summary(adjust_k, LensTrial.KEPT), weak_k
+    return rec, _summary(adjust, LensTrial.REJECTED), weak
 
 
 def _fine_pass(
@@ -451,26 +458,6 @@ def _fine_pass(
         adjust(rec, pycolmap.LossFunctionType.TRIVIAL)
     mapper.end_reconstruction(False)
     return weak
-
-
-def _distortion_pays(pinhole: pycolmap.Reconstruction, radial: pycolmap.Reconstruction, options: BundleOptions) -> bool:
-    """Whether the model with radial terms is clearly better: as many frames, corners moved by at least
-    ``min_distortion_px``, mean reprojection error lower by at least ``min_distortion_gain``."""
-    if radial.num_reg_images() < max(pinhole.num_reg_images(), 2):
-        return False
-    before, after = pinhole.compute_mean_reprojection_error(), radial.compute_mean_reprojection_error()
-    corner = max(corner_distortion_px(camera) for camera in radial.cameras.values())
-    k = next(float(c.params[3]) for c in radial.cameras.values() if c.model.name == "SIMPLE_RADIAL")
-    pays = corner >= options.min_distortion_px and after <= (1 - options.min_distortion_gain) * before
-    logger.info(
-        "lens distortion %s: k = %.4g moves the corners %.1f px; reprojection error %.3f px without, %.3f px with",
-        "kept" if pays else "not kept",
-        k,
-        corner,
-        before,
-        after,
-    )
-    return pays
 
 
 def _coarse_pass(
@@ -513,20 +500,6 @@ def _coarse_pass(
         len(retry),
     )
     return retry
-
-
-def corner_distortion_px(camera: pycolmap.Camera) -> float:
-    """How far (pixels) the camera's radial term moves an image corner: ``|k| r^3 f`` for SIMPLE_RADIAL.
-
-    >>> camera = pycolmap.Camera(model="SIMPLE_RADIAL", width=640, height=480, params=[500, 320, 240, 0.01])
-    >>> corner_distortion_px(camera)  # corner at r = 400 / 500
-    2.56
-    """
-    if camera.model.name != "SIMPLE_RADIAL":
-        return 0.0
-    focal, cx, cy, k = (float(x) for x in camera.params)
-    r = np.hypot(max(cx, camera.width - cx), max(cy, camera.height - cy)) / focal
-    return round(float(abs(k) * r**3 * focal), 6)
 
 
 def _database_cache(db_path: Path) -> pycolmap.DatabaseCache:

@@ -9,7 +9,7 @@ import pytest
 from ffrecon.colmap_io import cam_from_world_by_name
 from ffrecon.geometry.metrics import pose_errors
 from ffrecon.geometry.poses import camera_centers
-from ffrecon.sfm.bundle import BundleOptions
+from ffrecon.sfm.bundle import BundleOptions, LensTrial
 from ffrecon.sfm.guided import GuidanceOptions, MatchGuidance
 from ffrecon.sfm.refine import RefineOptions, RefineStatus, WeakReason, run_refine
 
@@ -122,6 +122,7 @@ def test_lens_distortion_is_refined_when_the_lens_needs_it(orbit24, refined24, t
     result = run_refine(image_dir, orbit24.prediction, RefineOptions(), tmp_path / "radial")
     assert result.registered.all() and result.distortion is not None
     assert result.distortion[0][0] == pytest.approx(k1, rel=0.15)
+    assert result.bundle.lens is LensTrial.KEPT
     errors = pose_errors(result.cam_from_world, truth, result.registered)
     assert errors.median_rotation_deg <= 0.1 and errors.auc[5] >= 0.98
     assert result.mean_reprojection_error_px < 0.5
@@ -134,8 +135,10 @@ def test_lens_distortion_is_refined_when_the_lens_needs_it(orbit24, refined24, t
     # Measured: 0.046 vs 0.46 deg median rotation, focal 0.1% vs 5% off.
     assert pinhole_errors.median_rotation_deg > 5 * errors.median_rotation_deg
     assert abs(result.cameras[0].fx / camera.fx - 1) < 0.005 < 0.02 < abs(pinhole.cameras[0].fx / camera.fx - 1)
-    # Undistorted photos: the refined k is negligible and dropped.
+    # Undistorted photos: freeing k on the pinhole solution gains nothing, so it gets no fine pass of its own.
     assert refined24[0].distortion is None and refined24[0].to_report()["lens_k1"] is None
+    assert refined24[0].bundle.lens is LensTrial.PROBED
+    assert refined24[0].to_report()["bundle_adjustment"]["lens"] == "probed"
 
 
 def test_thinned_tracks_reach_the_whole_problems_cameras(orbit24, colmap24, refined24, tmp_path):
