@@ -50,7 +50,10 @@ class BundleOptions:
     coarse_max_iterations: int = 10  # Ceres iterations per coarse adjustment: close enough to re-triangulate
     max_refinements: int = 5  # rounds in the fine pass
     fine_function_tolerance: float = 0.0  # relative cost change that ends a fine adjustment (0: run to convergence)
-    max_refinement_change: float = 0.001  # stop when fewer observations than this fraction change
+    # Stop when fewer observations than this fraction change. Measured on the looped 500-frame bench scene: the
+    # fine pass's rounds changed 9.6 %, 1.0 %, 0.16 %, 0.06 %; stopping at 0.2 % instead of 0.1 % (and without
+    # the adjustment after the last round) took the pass from 109 to 62 s, median rotation 0.0153 -> 0.0152 deg.
+    max_refinement_change: float = 0.002
     max_num_iterations: int = 100  # Ceres iterations per bundle adjustment
     max_solver_seconds: float = 600.0  # wall-clock bound per bundle adjustment (Ceres stops and keeps its best)
     num_threads: int = 1  # 1 makes refinement repeatable (multi-threaded Ceres sums in varying order); -1: all
@@ -178,14 +181,18 @@ class _Adjuster:
         iterative, self.thinned = False, 0
         if rec.num_reg_images() >= options.thin_from_images > 0:
             thin, self.thinned = _thinned(rec, options.max_track_images)
-            summary = self._solve(thin, loss, function_tolerance, max_iterations, iterative=False)
+            # Followed by the whole problem, the thinned solve need not run to convergence: from the coarse
+            # cameras it took 101 Ceres iterations (34.6 s of the 500-frame bench scene), to 1e-6 69 (22.0 s).
+            after = options.after_thin_function_tolerance if self.whole_after_thin else 0.0
+            thin_tolerance = max(function_tolerance, after)
+            summary = self._solve(thin, loss, thin_tolerance, max_iterations, iterative=False)
             if summary is None:
                 return False
             if summary.is_solution_usable():
                 _copy_solution(thin, rec)
             if not self.whole_after_thin:
                 return self._done(summary)
-            function_tolerance = max(function_tolerance, options.after_thin_function_tolerance)
+            function_tolerance = max(function_tolerance, after)
             iterative = True
         summary = self._solve(rec, loss, function_tolerance, max_iterations, iterative=iterative)
         return False if summary is None else self._done(summary)
@@ -317,7 +324,8 @@ def _rounds(
     max_iterations: int | None = None,
     end_adjusted: bool = True,
 ) -> None:
-    """Rounds of (bundle adjustment, track completion and merging, filtering), ending adjusted if asked."""
+    """Rounds of (bundle adjustment, track completion and merging, filtering) until fewer than
+    ``max_refinement_change`` of the observations change; ending adjusted if asked and the rounds ran out."""
     mapper.complete_and_merge_tracks(tri)
     mapper.retriangulate(tri)
     changed = 1
@@ -328,9 +336,10 @@ def _rounds(
             return
         changed = mapper.complete_and_merge_tracks(tri) + mapper.filter_points(mapper_options)
         if changed / num_obs < options.max_refinement_change:
-            break
-    if changed and end_adjusted:  # the model changed since the last adjustment: adjust once more
-        adjust(rec, loss, function_tolerance=function_tolerance, max_iterations=max_iterations)
+            break  # converged, as COLMAP's global refinement stops: the last small change is not adjusted again
+    else:
+        if changed and end_adjusted:  # the rounds ran out while the model still changed: adjust once more
+            adjust(rec, loss, function_tolerance=function_tolerance, max_iterations=max_iterations)
 
 
 def _pass(

@@ -69,13 +69,16 @@ def _global_options(options: ColmapOptions, num_images: int) -> pycolmap.GlobalP
 
     Rotation averaging (5 L1 and 100 IRLS iterations) and global positioning (100 iterations) keep
     COLMAP's limits; each bundle adjustment gets ``_GLOBAL_BA_ITERATIONS`` and a quarter of
-    ``max_mapping_seconds``.
+    ``max_mapping_seconds``. Cameras are positioned on ``options.global_tracks_per_view`` tracks per image
+    (the longest), every track is triangulated afterwards.
     """
     mapping = pycolmap.GlobalPipelineOptions()
     mapping.num_threads = options.mapper_num_threads
     mapping.random_seed = options.seed
     mapping.min_model_size = min(3, num_images)
     mapper = mapping.mapper
+    if options.global_tracks_per_view > 0:
+        mapper.track_required_tracks_per_view = options.global_tracks_per_view
     mapper.global_positioning.use_gpu = False
     mapper.bundle_adjustment.ceres.use_gpu = False
     solver = mapper.bundle_adjustment.ceres.solver_options

@@ -48,6 +48,10 @@ class ScreenOptions:
     min_share: float = 0.5  # blame needs more than this share of the frame's pairs agreeing on another rotation
     min_agreeing: int = 2  # ... and at least this many of them (one pair's rotation may itself be wrong)
     min_ray_angle_deg: float = 5.0  # baselines closer to parallel do not place the frame's centre
+    # A pair's rotation is fitted to at most this many of its verified matches (0: all). On the looped 500-frame
+    # bench scene (4,427 pairs, 676 matches a pair): 28.5 -> 8.2 s, rotations within 0.57 deg of the full fits
+    # (median 0.04), far inside max_gap_deg.
+    max_matches: int = 128
 
     def __post_init__(self) -> None:
         check_number("ScreenOptions.max_gap_deg", self.max_gap_deg, low=0, low_open=True, high=180)
@@ -55,6 +59,8 @@ class ScreenOptions:
         check_number("ScreenOptions.min_share", self.min_share, low=0, high=1)
         check_number("ScreenOptions.min_agreeing", self.min_agreeing, low=1, integer=True)
         check_number("ScreenOptions.min_ray_angle_deg", self.min_ray_angle_deg, low=0, high=180)
+        if self.max_matches:
+            check_number("ScreenOptions.max_matches", self.max_matches, low=self.min_inliers, integer=True)
 
 
 @dataclass(frozen=True)
@@ -98,7 +104,8 @@ def pair_gaps(db_path: Path, prediction: Prediction, options: ScreenOptions = Sc
     index = {n: k for k, n in enumerate(names)}
     rotations = prediction.cam_from_world[:, :3, :3]
     out = []
-    for pair in relative_rotations(Path(db_path), names, min_inliers=options.min_inliers):
+    max_matches = options.max_matches or None
+    for pair in relative_rotations(Path(db_path), names, min_inliers=options.min_inliers, max_matches=max_matches):
         if pair.name1 not in index or pair.name2 not in index:
             continue
         i, j = index[pair.name1], index[pair.name2]

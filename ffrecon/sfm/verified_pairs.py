@@ -130,12 +130,16 @@ def _relative_pose(
     geometry: pycolmap.TwoViewGeometry,
     keypoints: dict[int, np.ndarray],
     min_trials: int | None = None,
+    max_matches: int | None = None,
 ) -> pycolmap.TwoViewGeometry | None:
     """The pair's calibrated relative pose (``cam2_from_cam1``, ``tri_angle``) from its verified inliers, or
-    None. ``min_trials``: RANSAC's minimum number of trials (None: pycolmap's 1000)."""
+    None. ``min_trials``: RANSAC's minimum number of trials (None: pycolmap's 1000); ``max_matches``: at most
+    this many of the inliers, evenly spaced in the database's order (None: all)."""
     matches = np.asarray(geometry.inlier_matches)
     if len(matches) < _MIN_POSE_INLIERS:
         return None
+    if max_matches is not None and len(matches) > max_matches:
+        matches = matches[np.linspace(0, len(matches) - 1, max_matches).round().astype(int)]
     for image_id in ids:
         if image_id not in keypoints:
             keypoints[image_id] = np.asarray(db.read_keypoints(image_id))[:, :2].astype(np.float64)
@@ -171,9 +175,12 @@ class RelativeRotation:
     cam1_centre_in_cam2: np.ndarray = field(repr=False)
 
 
-def relative_rotations(db_path: Path, names: Sequence[str], *, min_inliers: int = 15) -> tuple[RelativeRotation, ...]:
+def relative_rotations(
+    db_path: Path, names: Sequence[str], *, min_inliers: int = 15, max_matches: int | None = None
+) -> tuple[RelativeRotation, ...]:
     """The relative rotation of every verified pair that involves one of ``names`` and has at least
-    ``min_inliers`` matches in its essential matrix (COLMAP's database, any matcher's matches).
+    ``min_inliers`` matches in its essential matrix (COLMAP's database, any matcher's matches), fitted to
+    at most ``max_matches`` of its verified matches (None: all; the inlier count is then of those).
 
     The matches were verified already, so nearly all are inliers and RANSAC's confidence is reached in
     a few dozen trials: its minimum is lowered from pycolmap's 1000 to 50 (the trials stay adaptive).
@@ -193,7 +200,7 @@ def relative_rotations(db_path: Path, names: Sequence[str], *, min_inliers: int 
             geometry = db.read_two_view_geometry(*ids)
             if geometry.config not in _USABLE:
                 continue
-            pose = _relative_pose(db, ids, geometry, keypoints, min_trials=50)
+            pose = _relative_pose(db, ids, geometry, keypoints, min_trials=50, max_matches=max_matches)
             if pose is None or len(pose.inlier_matches) < min_inliers:
                 continue
             rotation = np.asarray(pose.cam2_from_cam1.rotation.matrix(), np.float64)
