@@ -38,6 +38,11 @@ class OverlapOptions:
     # on all of them only where the estimate reaches coarse_min_overlap either way (see overlap_matrix).
     coarse_from_frames: int = 300
     coarse_min_overlap: float = 0.05
+    # ... and only for each frame's best coarse_margin x (max_pairs_per_image + min_pairs_per_image) partners by
+    # the estimate and its best coarse_margin x loop_pairs_per_image revisits: those that can be chosen, with room
+    # for the estimate's error. On an orbit of a room every frame overlaps nearly every other (500 frames: 210
+    # partners a frame at 0.25 or more), and measuring them all took 29 s.
+    coarse_margin: int = 3
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -50,6 +55,7 @@ class OverlapOptions:
         check_number("OverlapOptions.samples_per_image", self.samples_per_image, low=1, integer=True)
         check_number("OverlapOptions.coarse_from_frames", self.coarse_from_frames, low=0, integer=True)
         check_number("OverlapOptions.coarse_min_overlap", self.coarse_min_overlap, low=0, high=1)
+        check_number("OverlapOptions.coarse_margin", self.coarse_margin, low=1, integer=True)
         check_number("OverlapOptions.min_depth_conf", self.min_depth_conf, low=0)
         check_number("OverlapOptions.max_depth_ratio", self.max_depth_ratio, low=0, low_open=True)
 
@@ -156,9 +162,10 @@ def overlap_matrix(prediction: Prediction, options: OverlapOptions = OverlapOpti
     The diagonal is 1 (0 for a frame with no confident depth). Into each frame j go the sampled points
     that may be in its view (:func:`_in_view`, per frame and image tile). From ``coarse_from_frames``
     frames, every pair is first estimated on a tenth of the samples, and only the pairs that reach
-    ``coarse_min_overlap`` either way are measured on all of them (the others keep the estimate): on an
-    orbit every frame is in every other's view, and projecting every frame's points into every frame grew
-    as frames^2 (16 s at 400 frames, 27 s at 500).
+    ``coarse_min_overlap`` either way and that :func:`select_pairs` could choose (:func:`_worth_measuring`)
+    are measured on all of them (the others keep the estimate): on an orbit every frame is in every other's
+    view, and projecting every frame's points into every frame grew as frames^2 (16 s at 400 frames, 27 s
+    at 500).
     """
     n = len(prediction)
     rng = np.random.default_rng(options.seed)
@@ -166,9 +173,26 @@ def overlap_matrix(prediction: Prediction, options: OverlapOptions = OverlapOpti
     if n < options.coarse_from_frames:
         return _overlaps(_Groups.of(samples), prediction, options)
     coarse = _overlaps(_Groups.of([(p[::10], t[::10]) for p, t in samples]), prediction, options)
-    candidates = np.maximum(coarse, coarse.T) >= options.coarse_min_overlap
+    candidates = (np.maximum(coarse, coarse.T) >= options.coarse_min_overlap) & _worth_measuring(coarse, options)
     fine = _overlaps(_Groups.of(samples), prediction, options, candidates)
     return np.where(candidates, fine, coarse)
+
+
+def _worth_measuring(coarse: np.ndarray, options: OverlapOptions) -> np.ndarray:
+    """``[N, N]`` symmetric bool: each frame's best ``coarse_margin`` times as many partners as
+    :func:`select_pairs` may choose by the estimated score, and as many times its best revisits."""
+    n = len(coarse)
+    score = np.minimum(coarse, coarse.T)
+    np.fill_diagonal(score, -1.0)
+    near = min(n - 1, options.coarse_margin * (options.max_pairs_per_image + options.min_pairs_per_image))
+    far = options.coarse_margin * options.loop_pairs_per_image
+    rows = np.arange(n)[:, None]
+    keep = np.zeros((n, n), bool)
+    keep[rows, np.argsort(-score, axis=1, kind="stable")[:, :near]] = True
+    revisit = np.where(np.abs(rows - np.arange(n)[None, :]) >= options.loop_min_gap, score, -1.0)
+    keep[rows, np.argsort(-revisit, axis=1, kind="stable")[:, : min(far, n)]] = True
+    keep &= (score >= 0) | (revisit >= 0)
+    return keep | keep.T
 
 
 def _overlaps(

@@ -429,7 +429,9 @@ def refine_tracks(
         return rec, _summary(adjust), weak
     adjust_k = copy.copy(adjust)
     adjust_k.refine_distortion = True
-    if not distortion_may_pay(rec, adjust_k, options.min_distortion_px, options.min_distortion_gain):
+    probe = copy.copy(adjust_k)
+    probe.whole_after_thin = False  # on a long capture the thinned solve is enough to tell the gain
+    if not distortion_may_pay(rec, probe, options.min_distortion_px, options.min_distortion_gain):
         return rec, _summary(adjust, LensTrial.PROBED), weak
     weak_k = _fine_pass(cache, trial, adjust_k, options, retry, min_observations, names)
     if distortion_pays(rec, trial, options.min_distortion_px, options.min_distortion_gain):

@@ -109,3 +109,23 @@ def test_long_captures_measure_only_the_pairs_a_coarse_pass_finds():
     assert (coarse_first != exact).any(), "some pairs kept the coarse estimate"
     assert (np.maximum(coarse_first, coarse_first.T)[coarse_first != exact] < 0.05).all()
     np.testing.assert_array_equal(select_pairs(coarse_first), select_pairs(exact))
+
+
+def test_long_captures_measure_only_the_pairs_that_can_be_chosen():
+    """Where many frames overlap (an orbit of a room: 210 partners a frame at 500 frames), only each frame's
+    best partners by the coarse estimate, ``coarse_margin`` times as many as can be chosen, are measured on
+    every sample; the chosen pairs are those of the exact overlap."""
+    prediction = _corridor(40)
+    small = dict(max_pairs_per_image=2, min_pairs_per_image=1, loop_pairs_per_image=1, loop_min_gap=30)
+    exact = overlap.overlap_matrix(prediction, OverlapOptions(**small))
+    ranked = overlap.overlap_matrix(prediction, OverlapOptions(coarse_from_frames=10, coarse_margin=2, **small))
+    both = np.minimum(exact, exact.T)
+    unmeasured = (ranked != exact) & (both >= 0.1)
+    assert unmeasured.any(), "some overlapping pairs kept the coarse estimate"
+    # Each frame's 6 best and its 2 best revisits (30 frames apart or more) were measured exactly.
+    for i in range(40):
+        best = np.argsort(-both[i] + 2 * np.eye(40)[i], kind="stable")[:3]
+        np.testing.assert_array_equal(ranked[i, best], exact[i, best])
+    np.testing.assert_array_equal(
+        select_pairs(ranked, OverlapOptions(**small)), select_pairs(exact, OverlapOptions(**small))
+    )
