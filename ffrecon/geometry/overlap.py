@@ -191,7 +191,7 @@ def _worth_measuring(coarse: np.ndarray, options: OverlapOptions) -> np.ndarray:
     keep[rows, np.argsort(-score, axis=1, kind="stable")[:, :near]] = True
     revisit = np.where(np.abs(rows - np.arange(n)[None, :]) >= options.loop_min_gap, score, -1.0)
     keep[rows, np.argsort(-revisit, axis=1, kind="stable")[:, : min(far, n)]] = True
-    keep &= (score >= 0) | (revisit >= 0)
+    np.fill_diagonal(keep, False)  # a short row's revisit ranking may reach the frame itself
     return keep | keep.T
 
 
