@@ -54,6 +54,7 @@ from ffrecon.sfm.features import (
     write_pairs,
 )
 from ffrecon.sfm.guided import GuidanceOptions, GuidanceStats, MatchGuidance, filter_matches, guided_matches
+from ffrecon.sfm.links import LinkOptions, detached_frames
 from ffrecon.sfm.relocalize import Relocalized, RelocalizeOptions, reach_matrix, relocalize, with_poses
 from ffrecon.sfm.screen import ScreenOptions, Suspect, reseeded, screen_rotations
 from ffrecon.timing import StageTimer, Timings
@@ -79,6 +80,7 @@ class WeakReason(enum.Enum):
     FEW_FEATURES = "few_features"  # too few SIFT keypoints (textureless, blurred, dark)
     FEW_MATCHES = "few_matches"  # features, but too few verified matches with overlapping frames
     FEW_OBSERVATIONS = "few_observations"  # too few triangulated observations survive refinement
+    WEAK_LINK = "weak_link"  # held to the other refined frames only by weak links or ones the model contradicts
 
 
 @dataclass(frozen=True)
@@ -93,6 +95,7 @@ class WeakFrame:
             WeakReason.FEW_FEATURES: "SIFT keypoints",
             WeakReason.FEW_MATCHES: "verified matches",
             WeakReason.FEW_OBSERVATIONS: "triangulated observations",
+            WeakReason.WEAK_LINK: "3D points shared over a link the model agrees with",
         }[self.reason]
         return f"{self.name}: {self.value} {what} (< {self.threshold}); kept out of the refinement"
 
@@ -107,6 +110,8 @@ class RefineOptions:
     dense: DenseOptions = DenseOptions()  # model-guided correspondences for the frames SIFT leaves short
     # Frames the first adjustment leaves out placed again from their neighbours' renderings (with dense evidence)
     relocalize: RelocalizeOptions = RelocalizeOptions()
+    # Frames held to the others only by weak links, or by links the model contradicts, are left out (sfm/links.py)
+    links: LinkOptions = LinkOptions()
     # Frames whose verified pairs agree on a rotation far from the model's start the adjustment from it
     screen: ScreenOptions = ScreenOptions()
     reuse_features_from: Path | None = None  # a COLMAP database with SIFT of the same images (the cross-check's)
@@ -594,7 +599,19 @@ def _adjust(
             obs = options.min_observations
             rec, summary, weak = refine_tracks(rec, db_path, usable, bundle, min_observations=obs, fixed=fixed)
             flagged += [WeakFrame(n, WeakReason.FEW_OBSERVATIONS, k, options.min_observations) for n, k in weak]
+            flagged += _detach(rec, prediction, options.links) if not fixed else []  # given poses are the truth
     return flagged, rec, summary
+
+
+def _detach(rec: pycolmap.Reconstruction, prediction: Prediction, options: LinkOptions) -> list[WeakFrame]:
+    """Deregister the frames outside the largest group of trusted links (:func:`detached_frames`)."""
+    detached = detached_frames(rec, prediction.names, prediction.cam_from_world, options)
+    for name, _ in detached:
+        rec.deregister_frame(rec.find_image_with_name(name).frame_id)
+    if detached:
+        names = [n for n, _ in detached]
+        logger.warning("frames held by weak links or links the model contradicts, left out: %s", names)
+    return [WeakFrame(n, WeakReason.WEAK_LINK, k, options.min_shared_points) for n, k in detached]
 
 
 def _export_in_ff_frame(rec: pycolmap.Reconstruction, prediction: Prediction, image_dir: Path, model_dir: Path) -> Sim3:

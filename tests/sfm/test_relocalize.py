@@ -1,12 +1,14 @@
 """Relocalisation of frames the model placed far off (sfm/relocalize.py, issue 21): neighbours rendered
 into the frame's predicted view, SIFT-matched to its photo, absolute pose."""
 
+import dataclasses
+
 import cv2
 import numpy as np
 import pytest
 
 from ffrecon.geometry.metrics import aligned_rotation_errors_deg
-from ffrecon.sfm.evidence import CameraStatus, judge_final_cameras
+from ffrecon.sfm.evidence import CameraStatus, FrameVerdict, judge_final_cameras
 from ffrecon.sfm.gates import GatesResult
 from ffrecon.sfm.refine import RefineOptions, run_refine
 from ffrecon.sfm.relocalize import RelocalizeOptions, fill_holes, relocalize, render_into
@@ -78,3 +80,27 @@ def test_the_end_frame_25_deg_off_is_corrected_not_left_unchecked(scene, tmp_pat
     assert ev.per_image[0].status is CameraStatus.CORRECTED and result.registered[0]
     errors = aligned_rotation_errors_deg(result.cam_from_world[:, :, :3], scene.cam_from_world[:, :, :3])
     assert errors[0] < 1.0 and np.median(errors) < 1.0
+
+
+def test_a_frame_the_photos_canvas_cannot_place_is_placed_on_the_wider_one(tmp_path):
+    """Seed 5, frame 6 25 deg off (its centre 0.42 off, 15 % of the path's spacing): rendered onto the photo's
+    own canvas, its neighbours give 12 pose inliers (no pose); the 2x canvas holds what the frame really sees
+    past the predicted view's edge and places it within 5 deg. End to end it is then contradicted, where
+    before it stayed unchecked at 25 deg with no witness either way."""
+    wide_5 = make_scene(dataclasses.replace(WIDE_1, seed=5))
+    off = SimulationOptions(seed=5, bad_frames=(6,), bad_rotation_deg=25.0)
+    pred = _prediction(wide_5, off)
+    images = write_scene(wide_5, tmp_path / "s")
+    others = [k for k in range(8) if k != 6]
+    assert relocalize(images, pred, [6], others, RelocalizeOptions(first_canvas=1.0)) == []
+    found = relocalize(images, pred, [6], others, RelocalizeOptions())
+    assert [r.index for r in found] == [6] and found[0].num_inliers >= 30
+    poses = pred.cam_from_world.copy()
+    poses[6] = found[0].cam_from_world
+    errors = aligned_rotation_errors_deg(poses[:, :, :3], wide_5.cam_from_world[:, :, :3])
+    assert errors[6] < 5.0
+    result = run_refine(images, pred, RefineOptions.quick(), tmp_path / "r")
+    ev = judge_final_cameras(wide_5.names, pred.cam_from_world, result, None, GatesResult((), False))
+    assert ev.per_image[6].verdict is FrameVerdict.CONTRADICTED and not ev.gates.blocking
+    errors = aligned_rotation_errors_deg(result.cam_from_world[:, :, :3], wide_5.cam_from_world[:, :, :3])
+    assert not ev.per_image[6].status.kept or errors[6] < 5.0
