@@ -220,6 +220,14 @@ def _per_image(
             out.append(CameraEvidence(name, status, why, change))
         else:
             out.append(None)
+    for r in refine.relocalized:
+        if out[r.index] is None and r.change_deg > limit:
+            why = (
+                f"{flagged.get(names[r.index], 'not refined')}; its neighbours' renderings placed it "
+                f"{r.change_deg:.1f} deg from the model (> {limit:g}, {r.num_inliers} inliers), but the adjustment "
+                "did not keep it there: left out"
+            )
+            out[r.index] = CameraEvidence(names[r.index], CameraStatus.CONTRADICTED, why, r.change_deg)
     pending = [names[k] for k, e in enumerate(out) if e is None]
     pairs = _pair_checks(names, ff_cam_from_world, refine, pending, options)
     for k, name in enumerate(names):
