@@ -109,8 +109,8 @@ def detached_frames(
         observations[root(i)] += rec.image(i).num_points3D
     main = max(groups, key=lambda g: (groups[g], observations[g]))
     members = [i for i in registered if root(i) == main]
-    if 2 * len(members) <= len(registered):  # no group holds most frames: nothing says which one is right
-        return []
+    if len(members) < 2 * max((n for g, n in groups.items() if g != main), default=0):
+        return []  # no group is at least twice any other: nothing says which one is right
     out = []
     for i in registered:
         if root(i) != main:
