@@ -55,12 +55,20 @@ class LinkOptions:
             check_number(f"LinkOptions.{name}", getattr(self, name), low=0, low_open=True, high=180)
 
 
-def shared_points(rec: pycolmap.Reconstruction) -> Counter:
-    """``{(image_id_a, image_id_b): 3D points both see}`` over the registered images, ``a < b``."""
-    out: Counter = Counter()
-    for point in rec.points3D.values():
-        ids = sorted({e.image_id for e in point.track.elements})
-        out.update((a, b) for k, a in enumerate(ids) for b in ids[k + 1 :])
+def shared_points(rec: pycolmap.Reconstruction, image_ids: Sequence[int], chunk: int = 4096) -> np.ndarray:
+    """``[K, K]`` int64: 3D points each two of ``image_ids`` both see (the diagonal: each image's points).
+
+    The points-by-images incidence matrix, multiplied by itself a chunk of points at a time: counting the
+    pairs of each track instead grows as the square of its length (a 200-frame track has 19,900 pairs).
+    """
+    column = {image_id: k for k, image_id in enumerate(image_ids)}
+    rows = [[column[e.image_id] for e in p.track.elements if e.image_id in column] for p in rec.points3D.values()]
+    out = np.zeros((len(image_ids), len(image_ids)), np.int64)
+    for start in range(0, len(rows), chunk):
+        block = np.zeros((min(chunk, len(rows) - start), len(image_ids)), np.float32)
+        for r, cols in enumerate(rows[start : start + chunk]):
+            block[r, cols] = 1.0
+        out += np.rint(block.T @ block).astype(np.int64)
     return out
 
 
@@ -82,7 +90,8 @@ def detached_frames(
     index = {n: k for k, n in enumerate(names)}
     rotation = {i: rec.image(i).cam_from_world().rotation.matrix() for i in registered}
     model = {i: model_cam_from_world[index[rec.image(i).name], :, :3] for i in registered}
-    shared = shared_points(rec)
+    shared = shared_points(rec, registered)
+    position = {i: k for k, i in enumerate(registered)}
     # A frame the evidence moved further than the threshold from its model rotation (after the best common
     # world rotation) is a correction of the model's failure: its links cannot be checked against the model.
     change = aligned_rotation_errors_deg(
@@ -97,9 +106,8 @@ def detached_frames(
             i = parent[i]
         return i
 
-    for (a, b), count in shared.items():
-        if count < options.min_shared_points or a not in parent or b not in parent:
-            continue
+    for a, b in np.argwhere(np.triu(shared >= options.min_shared_points, 1)):
+        a, b = registered[a], registered[b]
         refined, predicted = rotation[a] @ rotation[b].T, model[a] @ model[b].T
         if {a, b} & corrected or rotation_angle_deg(refined @ predicted.T) <= options.max_disagreement_deg:
             parent[root(a)] = root(b)
@@ -114,6 +122,6 @@ def detached_frames(
     out = []
     for i in registered:
         if root(i) != main:
-            best = max(shared.get((min(i, j), max(i, j)), 0) for j in members)
+            best = max(shared[position[i], position[j]] for j in members)
             out.append((rec.image(i).name, int(best)))
     return out

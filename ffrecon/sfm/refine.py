@@ -4,7 +4,8 @@ Only the pairs that the feed-forward geometry says overlap are matched (SIFT, CO
 tracks are triangulated with the feed-forward cameras, then refined by bundle adjustment in two
 passes: a coarse pass with tolerances wide enough for feed-forward pose errors and a robust loss, then
 a fresh triangulation with the coarse result and COLMAP's usual tolerances. Frames that end up
-with too few features, matches or observations are flagged and kept out; the rest are refined.
+with too few features, matches or observations, or held to the others only by weak links or links
+the model contradicts (``sfm/links.py``), are flagged and kept out; the rest are refined.
 The result is expressed in the prediction's world frame (Sim(3)-aligned to its camera centres).
 """
 
@@ -599,7 +600,8 @@ def _adjust(
             obs = options.min_observations
             rec, summary, weak = refine_tracks(rec, db_path, usable, bundle, min_observations=obs, fixed=fixed)
             flagged += [WeakFrame(n, WeakReason.FEW_OBSERVATIONS, k, options.min_observations) for n, k in weak]
-            flagged += _detach(rec, prediction, options.links) if not fixed else []  # given poses are the truth
+            # Links are checked where dense evidence made the model a chain of two-view links; given poses are the truth
+            flagged += _detach(rec, prediction, options.links) if dense is not None and not fixed else []
     return flagged, rec, summary
 
 
