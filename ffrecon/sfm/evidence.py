@@ -220,6 +220,19 @@ def _per_image(
             out.append(CameraEvidence(name, status, why, change))
         else:
             out.append(None)
+    _relocalized_not_kept(names, refine, flagged, out, limit)
+    pending = [names[k] for k, e in enumerate(out) if e is None]
+    pairs = _pair_checks(names, ff_cam_from_world, refine, pending, options)
+    for k, name in enumerate(names):
+        if out[k] is None:
+            out[k] = _pair_verdict(name, flagged.get(name, "not refined"), pairs.get(name, []), options)
+    return tuple(out), comparison
+
+
+def _relocalized_not_kept(names, refine: RefineResult, flagged: dict, out: list, limit: float) -> None:
+    """Fill ``out`` (``None`` where undecided) for the frames the renderings placed more than ``limit`` from
+    the model that the adjustment did not keep: contradicted, left out (not unchecked with the model's
+    camera, which the renderings disagree with)."""
     for r in refine.relocalized:
         if out[r.index] is None and r.change_deg > limit:
             why = (
@@ -228,12 +241,6 @@ def _per_image(
                 "did not keep it there: left out"
             )
             out[r.index] = CameraEvidence(names[r.index], CameraStatus.CONTRADICTED, why, r.change_deg)
-    pending = [names[k] for k, e in enumerate(out) if e is None]
-    pairs = _pair_checks(names, ff_cam_from_world, refine, pending, options)
-    for k, name in enumerate(names):
-        if out[k] is None:
-            out[k] = _pair_verdict(name, flagged.get(name, "not refined"), pairs.get(name, []), options)
-    return tuple(out), comparison
 
 
 def _correction(refine: RefineResult, name: str, change: float, options: EvidenceOptions) -> CameraEvidence:
