@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import tempfile
 import time
 from pathlib import Path
@@ -61,7 +62,7 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, nargs="+", default=[1, 3, 5, 7])
     parser.add_argument("--frames", type=int, nargs="+", default=list(range(8)))
     args = parser.parse_args()
-    logging.basicConfig(level=getattr(logging, __import__("os").environ.get("LOGLEVEL", "ERROR")))
+    logging.basicConfig(level=getattr(logging, os.environ.get("LOGLEVEL", "ERROR")))
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for seed in args.seeds:

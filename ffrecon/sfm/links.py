@@ -87,7 +87,7 @@ def detached_frames(
     Args:
         rec: the refined model; names: the frames' names in the order of ``model_cam_from_world`` ``[N, 3, 4]``.
     """
-    registered = sorted(i for i in rec.reg_image_ids())
+    registered = sorted(rec.reg_image_ids())
     if not options.enabled or len(registered) < 3:
         return []
     index = {n: k for k, n in enumerate(names)}

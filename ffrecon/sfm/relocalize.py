@@ -230,9 +230,10 @@ def _sweep(image_dir, prediction, frames, placed, out, canvas: float, gray, sift
     """One pass over the ``frames`` not yet in ``out``, rendering from ``placed`` and ``out``: those it places."""
     current = with_poses(prediction, out)
     centers = camera_centers(current.cam_from_world)
-    sources = np.array(sorted(set(placed) | {r.index for r in out}), int)
+    done = {r.index for r in out}
+    sources = np.array(sorted(set(placed) | done), int)
     new: list[Relocalized] = []
-    for i in [k for k in frames if k not in {r.index for r in out}]:
+    for i in [k for k in frames if k not in done]:
         distance = np.linalg.norm(centers[sources] - centers[i], axis=1)
         neighbours = [int(j) for j in sources[np.argsort(distance, kind="stable")] if j != i]
         neighbours = neighbours[: options.max_neighbours]
