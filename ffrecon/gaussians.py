@@ -159,7 +159,7 @@ class Gaussians:
         return Gaussians(
             means=torch.as_tensor(np.asarray(xyz, np.float32)).clone(),
             quats_wxyz=torch.as_tensor(quats),
-            log_scales=torch.as_tensor(np.ascontiguousarray(ls)).clone(),
+            log_scales=torch.from_numpy(np.array(ls, np.float32)),  # a copy: ls may be a read-only broadcast
             opacity_logits=torch.full((m,), logit, dtype=torch.float32),
             sh=torch.as_tensor(sh),
         )

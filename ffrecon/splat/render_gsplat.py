@@ -13,9 +13,12 @@ from __future__ import annotations
 import importlib.util
 import logging
 
+import numpy as np
 import torch
 
-from ffrecon.splat.render import RasterOptions, RenderOutput
+from ffrecon.gaussians import Gaussians
+from ffrecon.splat.render import RasterOptions, RenderOutput, render_view
+from ffrecon.types import PinholeCamera
 
 logger = logging.getLogger("ffrecon.splat")
 
@@ -89,3 +92,37 @@ def render_gsplat(
         extent=radii.float().expand(-1, 2) if radii.shape[-1] == 1 else radii.float(),
         layout=None,
     )
+
+
+def render_view_on(
+    device: str,
+    g: Gaussians,
+    cam_from_world: np.ndarray,
+    camera: PinholeCamera,
+    *,
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    raster: RasterOptions | None = None,
+) -> torch.Tensor:
+    """:func:`~ffrecon.splat.render.render_view` on ``device``: ``"cuda"`` renders with gsplat (``g`` is
+    moved there unless it is there already; move it once before rendering many views), anything else with
+    the CPU renderer. Returns ``[H, W, 3]`` in [0, 1] on the CPU, no gradient."""
+    if device != "cuda":
+        return render_view(g, cam_from_world, camera, background=background, raster=raster)
+    g = g.to("cuda")
+    with torch.no_grad():
+        out = render_gsplat(
+            g.means,
+            g.quats_wxyz,
+            g.log_scales,
+            g.opacity_logits,
+            g.sh,
+            torch.tensor(cam_from_world, dtype=torch.float32, device="cuda"),
+            torch.tensor(camera.K, dtype=torch.float32, device="cuda"),
+            camera.width,
+            camera.height,
+            background=torch.tensor(background, dtype=torch.float32, device="cuda"),
+            sh_degree=g.sh_degree,
+            with_depth=False,
+            options=raster or RasterOptions(),
+        )
+    return out.rgb.clamp(0, 1).cpu()

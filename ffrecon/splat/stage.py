@@ -47,8 +47,7 @@ from ffrecon.splat.optimize import (
     torch_threads,
     unit_float,
 )
-from ffrecon.splat.render import render_view
-from ffrecon.splat.render_gsplat import gsplat_available
+from ffrecon.splat.render_gsplat import gsplat_available, render_view_on
 from ffrecon.splat.seed import initial_gaussians, reduce_points, seed_from_prediction
 from ffrecon.splat.ssim import ssim_mean
 from ffrecon.splat.video import write_flythrough
@@ -479,7 +478,8 @@ def _splat(
     _validate_views(images, names, cam_from_world, cameras, seed=(seed_xyz, seed_rgb))
     train, heldout = split
     out_dir = Path(out_dir)
-    device = resolve_device(options.device)
+    device = resolve_device(options.device)  # training and every later render (scores, renders, video)
+    options = dataclasses.replace(options, optimize=dataclasses.replace(options.optimize, device=device))
     logger.info("splat: %d training and %d held-out views, device %s", len(train), len(heldout), device)
     max_side = check_splat_memory([(im.shape[1], im.shape[0]) for im in images], options)
     images, cameras = _capped(images, cameras, max_side)
@@ -552,9 +552,7 @@ def _fit_and_clean(
     if options.curve_every > 0 and heldout:
 
         def score(iteration: int, seconds: float, g: Gaussians, poses: np.ndarray) -> None:
-            views = [
-                render_view(g, poses[i], cameras[i], background=opt.background, raster=opt.raster) for i in heldout
-            ]
+            views = _render_views(g, poses, cameras, heldout, opt)
             m = np.mean([image_metrics(v, unit_float(targets[i])) for v, i in zip(views, heldout)], axis=0)
             curve.append((iteration, seconds, float(m[0]), float(m[1])))
 
@@ -585,11 +583,19 @@ def _fit_and_clean(
     return seed, result, cleaned, report
 
 
+def _render_views(g: Gaussians, poses, cameras, views, opt: OptimizeOptions) -> list[torch.Tensor]:
+    """Plain renders of ``views`` on the device the splat trained on (``g`` moved there once)."""
+    g = g.to(opt.device)
+    return [
+        render_view_on(opt.device, g, poses[i], cameras[i], background=opt.background, raster=opt.raster) for i in views
+    ]
+
+
 def _heldout_psnr(heldout, poses, cameras, targets, opt) -> Callable[[Gaussians], float]:
     """The cleaning's judge: mean PSNR (dB) of plain renders of the held-out views (the figure the report shows)."""
 
     def judge(g: Gaussians) -> float:
-        views = [render_view(g, poses[i], cameras[i], background=opt.background, raster=opt.raster) for i in heldout]
+        views = _render_views(g, poses, cameras, heldout, opt)
         return float(np.mean([image_metrics(v, unit_float(targets[i]))[0] for v, i in zip(views, heldout)]))
 
     return judge
@@ -608,8 +614,8 @@ def _pose_changes(
     o = options.optimize
     psnr = {}
     for i in dict.fromkeys(refined + fixed):
-        view = render_view(
-            result.gaussians, result.cam_from_world[i], cameras[i], background=o.background, raster=o.raster
+        view = render_view_on(
+            o.device, result.gaussians, result.cam_from_world[i], cameras[i], background=o.background, raster=o.raster
         )
         view = apply_color_transform(view, torch.from_numpy(result.color_transforms[i]).float())
         psnr[i] = image_metrics(view, torch.from_numpy(np.ascontiguousarray(images[i])).float() / 255.0)[0]
@@ -699,7 +705,7 @@ def _evaluate_heldout(
     for j, i in enumerate(heldout):
         truth = torch.from_numpy(np.ascontiguousarray(images[i])).float() / 255.0
         views = {
-            key: render_view(g, poses[i], cameras[i], background=o.background, raster=o.raster)
+            key: render_view_on(o.device, g, poses[i], cameras[i], background=o.background, raster=o.raster)
             for key, g in splats.items()
         }
         m = {key: image_metrics(img, truth) for key, img in views.items()}
@@ -755,6 +761,7 @@ def _write_outputs(
             num_frames=options.video_frames,
             background=o.background,
             raster=o.raster,
+            device=o.device,
         )
     return ply_path, video_path, web_paths
 

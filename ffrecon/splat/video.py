@@ -12,7 +12,8 @@ import numpy as np
 from ffrecon.gaussians import Gaussians
 from ffrecon.geometry.poses import camera_centers
 from ffrecon.geometry.rotations import matrix_to_quat_xyzw, quat_xyzw_to_matrix
-from ffrecon.splat.render import RasterOptions, render_view
+from ffrecon.splat.render import RasterOptions
+from ffrecon.splat.render_gsplat import render_view_on
 from ffrecon.types import PinholeCamera
 
 logger = logging.getLogger("ffrecon.splat")
@@ -88,8 +89,10 @@ def write_flythrough(
     fps: float = 30.0,
     background: tuple[float, float, float] = (0.0, 0.0, 0.0),
     raster: RasterOptions | None = None,
+    device: str = "cpu",
 ) -> Path | None:
-    """Render ``gaussians`` along :func:`smooth_camera_path` and write an ``mp4v`` video.
+    """Render ``gaussians`` along :func:`smooth_camera_path` and write an ``mp4v`` video (on ``device``:
+    ``"cuda"`` renders with gsplat, see :func:`~ffrecon.splat.render_gsplat.render_view_on`).
 
     Frames use ``camera``'s intrinsics (cropped to even sizes for the codec). Returns the path, or
     None (with a warning) when OpenCV cannot open an MP4 writer on this system.
@@ -102,10 +105,10 @@ def write_flythrough(
         logger.warning("OpenCV cannot write %s (no mp4v encoder): skipping the fly-through", path)
         return None
     frame_camera = dataclasses.replace(camera, width=width, height=height)  # even sizes for the encoder
-    g = gaussians.detached()
+    g = gaussians.detached().to(device)  # moved once, not per frame
     try:
         for pose in smooth_camera_path(cam_from_world, num_frames):
-            rgb = render_view(g, pose, frame_camera, background=background, raster=raster)
+            rgb = render_view_on(device, g, pose, frame_camera, background=background, raster=raster)
             frame = (rgb.numpy() * 255 + 0.5).astype(np.uint8)
             writer.write(cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
     finally:
