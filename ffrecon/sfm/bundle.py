@@ -34,6 +34,9 @@ class BundleOptions:
     # COLMAP's default: a point seen in two images only is not triangulated (more robust, fewer points).
     # The refinement allows them where dense evidence was added: its correspondences are mostly pairwise.
     ignore_two_view_tracks: bool = True
+    # The fine pass's loss: squared (COLMAP's) or Cauchy at 1 px. The refinement makes it robust where dense
+    # evidence was added: there a few correspondences 1.5-4 px off (under the filter) bend weakly held frames.
+    robust_fine: bool = False
     refine_focal_length: bool = True
     refine_principal_point: bool = False
     # Run the fine pass also with the radial term of SIMPLE_RADIAL cameras free (never the coarse pass, where
@@ -456,7 +459,7 @@ def _fine_pass(
         options,
         angle_deg=0.0,
         reproj_px=options.max_reproj_error_px,
-        loss=pycolmap.LossFunctionType.TRIVIAL,
+        loss=_fine_loss(options),
         max_refinements=options.max_refinements,
         function_tolerance=options.fine_function_tolerance,
         register=retry,
@@ -466,9 +469,13 @@ def _fine_pass(
     weak = [(names[i], 0) for i in retry if i not in added]
     weak += _deregister_weak_frames(rec, mapper, min_observations)
     if len(weak) > len(retry) - len(added) and rec.num_reg_images() >= 2:
-        adjust(rec, pycolmap.LossFunctionType.TRIVIAL)
+        adjust(rec, _fine_loss(options))
     mapper.end_reconstruction(False)
     return weak
+
+
+def _fine_loss(options: BundleOptions) -> pycolmap.LossFunctionType:
+    return pycolmap.LossFunctionType.CAUCHY if options.robust_fine else pycolmap.LossFunctionType.TRIVIAL
 
 
 def _coarse_pass(

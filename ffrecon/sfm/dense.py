@@ -390,6 +390,14 @@ class _Keypoints:
                 self.db.write_keypoints(image_id, rows)
 
 
+# The configurations whose inlier matches COLMAP's correspondence graph uses (database_cache.cc); the others
+# (undefined, degenerate, watermark, multiple) are ignored when the mapper loads the database.
+_USED_CONFIGS = frozenset(
+    getattr(pycolmap.TwoViewGeometryConfiguration, name)
+    for name in ("CALIBRATED", "UNCALIBRATED", "PLANAR", "PANORAMIC", "PLANAR_OR_PANORAMIC")
+)
+
+
 def _add_matches(db: pycolmap.Database, id_i: int, id_j: int, matches: np.ndarray) -> None:
     """Add ``[M, 2]`` verified matches (indices of i's and j's keypoints) to the pair's two-view geometry."""
     if id_i > id_j:  # COLMAP stores a pair once, smaller image id first
@@ -398,6 +406,12 @@ def _add_matches(db: pycolmap.Database, id_i: int, id_j: int, matches: np.ndarra
     if db.exists_two_view_geometry(id_i, id_j):
         geometry = db.read_two_view_geometry(id_i, id_j)
         old = np.asarray(geometry.inlier_matches, np.uint32).reshape(-1, 2)
+        if geometry.config not in _USED_CONFIGS:
+            # SIFT's verification failed here (degenerate: too few inliers). COLMAP's correspondence graph
+            # ignores such a pair whatever its matches, so the dense ones would never reach the adjustment:
+            # they were verified by the essential matrix above, and the pair is now calibrated.
+            geometry.config = pycolmap.TwoViewGeometryConfiguration.CALIBRATED
+            old = old[:0]
         geometry.inlier_matches = np.ascontiguousarray(np.concatenate([old, matches]), dtype=np.uint32)
         db.update_two_view_geometry(id_i, id_j, geometry)
         return

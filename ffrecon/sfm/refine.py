@@ -595,6 +595,7 @@ def _adjust(
     # track of two frames is a two-view one; the Middlebury pair triangulated nothing without this).
     pairwise = dense is not None or len(usable) < 3
     bundle = dataclasses.replace(options.bundle, ignore_two_view_tracks=False) if pairwise else options.bundle
+    bundle = dataclasses.replace(bundle, robust_fine=True) if dense is not None else bundle
     with timer.stage("triangulation_and_bundle_adjustment"), colmap_log_level():
         if len(usable) >= 2:
             obs = options.min_observations
