@@ -1,9 +1,13 @@
 """Frames held to the rest only by weak links, or by links the model contradicts (sfm/links.py, issue 21).
 
-Both cases are held-out seeds of the wide-baseline scene (8 views 30-60 deg apart, plain walls) that the
-sweep over seeds 1-12 found: with the link check off they end with frames called confirmed 5.7 and
-10.4 deg from the truth. Each test runs the quick refinement with and without the check, so it fails if
-the check stops mattering as well as if it stops working.
+The case is a held-out seed of the wide-baseline scene (8 views 30-60 deg apart, plain walls) that the
+bad-frame sweep over seeds 1-12 found: seed 6 with frame 4 25 deg off ends, with the link check off, with a
+frame called confirmed 4.0 deg from the truth (0.4 with it). The test runs the quick refinement with and
+without the check, so it fails if the check stops mattering as well as if it stops working.
+
+Two earlier cases (seed 2, and seed 4 with frame 7 off: 5.7 and 10.4 deg without the check) no longer need
+it: their weak links came from pairs SIFT's verification had failed, whose dense correspondences never
+reached the adjustment (sfm/dense.py, ``_add_matches``); with those in, no link there is weak.
 """
 
 import dataclasses
@@ -39,16 +43,15 @@ def _run(tmp_path, seed: int, bad: tuple[int, ...], links: LinkOptions):
 @pytest.mark.parametrize(
     ("seed", "bad", "worst_without"),
     [
-        (2, (), 5.0),  # frames 1 and 2 share 101 points with each other, under 20 with any other frame
-        (4, (7,), 8.0),  # the link 4-5: 37 points, 14.6 deg from the model's relative rotation
+        (6, (4,), 3.0),
     ],
 )
 def test_no_frame_beyond_a_weak_or_contradicted_link_is_called_confirmed(tmp_path, seed, bad, worst_without):
     """Without the check a frame called confirmed is over ``worst_without`` deg off; with it no confirmed
-    frame is over 3 deg and the median of all frames is within 1.5 deg (the model's: 2.2 and 2.7)."""
+    frame is over 1 deg and the median of the other frames is within 0.5 deg (the model's: 2.5)."""
     _, errors_off, confirmed_off = _run(tmp_path, seed, bad, LinkOptions(enabled=False))
     assert errors_off[confirmed_off].max() > worst_without
     _, errors, confirmed = _run(tmp_path, seed, bad, LinkOptions())
-    assert confirmed and errors[confirmed].max() < 3.0
+    assert confirmed and errors[confirmed].max() < 1.0, errors
     kept = [k for k in range(8) if k not in bad]
-    assert np.median(errors[kept]) < 1.5
+    assert np.median(errors[kept]) < 0.5, errors
