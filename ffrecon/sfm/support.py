@@ -9,8 +9,10 @@ from the truth with a 0.11 px reprojection error, and BA's own covariance says 0
 is tight, the geometry is not determined.
 
 COLMAP's rule decides planarity, as its two-view geometry does for every pair: the homography's
-inliers over the essential matrix's, above ``max_H_inlier_ratio`` (0.8), with its RANSAC threshold
-(4 px), both pycolmap's defaults.
+inliers over the essential matrix's, above ``max_H_inlier_ratio`` (0.8, pycolmap's default). The RANSAC
+threshold is 1 px, not COLMAP's 4: these are the refined model's observations, accurate to a few tenths
+of a pixel, and at 4 px a homography explained 93 % of the Middlebury motorcycle pair's (a deep scene,
+refined to 0.06 deg), 74 % at 2 px and 47 % at 1 px. Points on one wall stay planar at 1 px.
 """
 
 from __future__ import annotations
@@ -20,6 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 import pycolmap
+
+PLANAR_RANSAC_PX = 1.0  # the homography's and the essential matrix's RANSAC threshold (see above)
 
 
 @dataclass(frozen=True)
@@ -90,6 +94,7 @@ def _planar_ratio(rec: pycolmap.Reconstruction, image_id: int, partner: int) -> 
         return float("nan")
     mine, theirs = np.asarray(mine, np.float64), np.asarray(theirs, np.float64)
     ransac = pycolmap.TwoViewGeometryOptions().ransac
+    ransac.max_error = PLANAR_RANSAC_PX
     ransac.random_seed = 0
     cams = rec.cameras[rec.images[image_id].camera_id], rec.cameras[rec.images[partner].camera_id]
     essential = pycolmap.estimate_essential_matrix(mine, theirs, cams[0], cams[1], ransac)
