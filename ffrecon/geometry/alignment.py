@@ -97,6 +97,21 @@ def collinear(points: np.ndarray, ratio: float = 0.05) -> bool:
     return bool(len(points) < 3 or sing[1] < ratio * max(sing[0], 1e-300))
 
 
+def flat(points: np.ndarray, ratio: float = 0.2) -> bool:
+    """Whether ``[N, 3]`` points lie near one plane (fewer than four always do): the third singular value of
+    the centred points is under ``ratio`` of the first. A Sim(3) fitted to such points holds the plane's tilt
+    only as well as the points' small offsets from it (camera centres of an orbit at one height).
+
+    >>> flat(np.array([[0, 0, 0], [1, 0, 0.01], [0, 1, 0], [1, 1, 0.02]], float))
+    True
+    >>> flat(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float))
+    False
+    """
+    centred = np.asarray(points, np.float64) - np.mean(points, axis=0)
+    sing = np.linalg.svd(centred, compute_uv=False)
+    return bool(len(points) < 4 or sing[-1] < ratio * max(sing[0], 1e-300))
+
+
 def sim3_from_cameras(src_cam_from_world: np.ndarray, dst_cam_from_world: np.ndarray) -> Sim3:
     """``dst_from_src`` for two sets of the same ``[N, 3, 4]`` cameras: the rotation from their orientations
     (the chordal mean of each camera's ``R_dst^T R_src``, projected on SO(3) by SVD), then scale and
