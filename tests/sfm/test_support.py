@@ -11,8 +11,8 @@ from ffrecon.synthetic import CameraPath, SceneOptions, Texture, make_scene, wri
 from ffrecon.synthetic.simulated_model import SimulationOptions, prediction_from_truth, simulate
 
 # Seed 5 of the wide-baseline scene: frame 6 hangs on frame 3 by all but 25 of its 74 observations, which a
-# homography explains (86 % at 1 px). (Seed 7's frame 7 was the case until the dense correspondences of pairs
-# SIFT could not verify reached the adjustment: it is now held by several pairs.)
+# homography explains (86 % at 1 px; the rule runs at 2). Seed 7's frame 7 was the case until the dense
+# correspondences of pairs SIFT could not verify reached the adjustment: it is now held by several pairs.
 WIDE_5 = SceneOptions(num_frames=8, width=320, height=240, path=CameraPath.WIDE, texture=Texture.PLAIN_WALLS, seed=5)
 
 
