@@ -4,9 +4,10 @@ A frame can be refined on enough observations and still be placed by a single pa
 its 3D points seen in one other frame only. When those points also lie on one plane (a wall), the
 pair's relative pose is ambiguous: a homography explains the matches as well as the epipolar
 geometry does, and the adjustment settles where it starts. On the wide-baseline scene (seed 7) frame
-7 hangs on frame 0 by 43 of its 50 observations, 94 % of which a homography explains; it ends 5.4 deg
-from the truth with a 0.11 px reprojection error, and BA's own covariance says 0.07 deg: the fit
-is tight, the geometry is not determined.
+7 hung on frame 0 by 43 of its 50 observations, 94 % of which a homography explains; it ended 5.4 deg
+from the truth with a 0.11 px reprojection error, and BA's own covariance said 0.07 deg: the fit
+is tight, the geometry is not determined. (Since dense evidence reaches the pairs SIFT could not verify,
+sfm/dense.py, that frame is held by several pairs; seed 5's frame 6 is such a case now.)
 
 COLMAP's rule decides planarity, as its two-view geometry does for every pair: the homography's
 inliers over the essential matrix's, above ``max_H_inlier_ratio`` (0.8, pycolmap's default). The RANSAC
