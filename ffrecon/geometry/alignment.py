@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ffrecon.checks import check_shape, require_finite
+from ffrecon.geometry.rotations import rotation_angle_deg
 
 
 @dataclass(frozen=True)
@@ -134,3 +135,15 @@ def sim3_from_cameras(src_cam_from_world: np.ndarray, dst_cam_from_world: np.nda
     turned = (src_c - src_c.mean(0)) @ rot.T
     scale = float(np.sum(turned * (dst_c - dst_c.mean(0))) / max(float(np.sum(turned**2)), 1e-300))
     return Sim3(scale, rot, dst_c.mean(0) - scale * rot @ src_c.mean(0))
+
+
+def robust_sim3_from_cameras(src_cam_from_world: np.ndarray, dst_cam_from_world: np.ndarray) -> Sim3:
+    """:func:`sim3_from_cameras`, refitted once without the cameras whose orientation is more than three
+    times the median angle from the fit (a frame the model turned far off must not tilt the rest)."""
+    sim = sim3_from_cameras(src_cam_from_world, dst_cam_from_world)
+    moved = np.einsum("nij,kj->nik", src_cam_from_world[:, :, :3], sim.rotation)  # R_src rot^T, as R_dst
+    angles = np.array([rotation_angle_deg(m @ d.T) for m, d in zip(moved, dst_cam_from_world[:, :, :3])])
+    keep = angles <= 3 * np.median(angles) + 1e-9
+    if 3 <= keep.sum() < len(keep):
+        sim = sim3_from_cameras(src_cam_from_world[keep], dst_cam_from_world[keep])
+    return sim

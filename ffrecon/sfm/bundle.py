@@ -18,9 +18,9 @@ import pycolmap
 
 from ffrecon.checks import check_number
 from ffrecon.colmap_io import cam_from_world_by_name
-from ffrecon.geometry.alignment import Sim3, collinear, flat, sim3_from_cameras, umeyama
+from ffrecon.geometry.alignment import Sim3, collinear, flat, robust_sim3_from_cameras, umeyama
 from ffrecon.geometry.poses import camera_centers
-from ffrecon.geometry.rotations import matrix_to_quat_xyzw, rotation_angle_deg
+from ffrecon.geometry.rotations import matrix_to_quat_xyzw
 from ffrecon.sfm.lens import LensTrial, distortion_may_pay, distortion_pays
 
 logger = logging.getLogger("ffrecon.sfm")
@@ -564,18 +564,6 @@ def _deregister_weak_frames(
     return weak
 
 
-def _robust_from_cameras(src_cam_from_world: np.ndarray, dst_cam_from_world: np.ndarray) -> Sim3:
-    """:func:`sim3_from_cameras`, refitted once without the cameras whose orientation is more than three
-    times the median angle from the fit (a frame the model turned far off must not tilt the rest)."""
-    sim = sim3_from_cameras(src_cam_from_world, dst_cam_from_world)
-    moved = np.einsum("nij,kj->nik", src_cam_from_world[:, :, :3], sim.rotation)  # R_src rot^T, as R_dst
-    angles = np.array([rotation_angle_deg(m @ d.T) for m, d in zip(moved, dst_cam_from_world[:, :, :3])])
-    keep = angles <= 3 * np.median(angles) + 1e-9
-    if 3 <= keep.sum() < len(keep):
-        sim = sim3_from_cameras(src_cam_from_world[keep], dst_cam_from_world[keep])
-    return sim
-
-
 def sim3_to_ff_frame(rec: pycolmap.Reconstruction, names: Sequence[str], ff_cam_from_world: np.ndarray) -> Sim3:
     """Move ``rec`` (in place) into the feed-forward world frame; returns ``ff_from_refined``.
 
@@ -583,11 +571,10 @@ def sim3_to_ff_frame(rec: pycolmap.Reconstruction, names: Sequence[str], ff_cam_
     without the frames whose residual exceeds three times the median (a badly predicted frame must
     not tilt the whole model). Centres on one line (a straight walk) leave the rotation about it free,
     and centres near one plane (an orbit at one height) leave its tilt weakly held: then the rotation
-    comes from the cameras' orientations (:func:`sim3_from_cameras`, refitted once without the frames
-    more than three times the median angle from it). On lund's every 4th photo the centre fit had turned
-    the whole refined model 99 degrees about the walk; on the wide-baseline scene (seed 15, frame 1 25 deg
-    off, centres within 0.15 of a plane 3.5 across) it tilted it 12-15 degrees, and every well refined
-    frame was then called a correction of the model.
+    comes from the cameras' orientations (:func:`~ffrecon.geometry.alignment.robust_sim3_from_cameras`).
+    On lund's every 4th photo the centre fit had turned the whole refined model 99 degrees about the
+    walk; on the wide-baseline scene (seed 15, frame 1 25 deg off, centres within 0.15 of a plane 3.5
+    across) it tilted it 12-15 degrees, and every well refined frame was then called a correction.
     """
     cam_from_world, registered = cam_from_world_by_name(rec, names)
     src = camera_centers(cam_from_world[registered])
@@ -595,7 +582,7 @@ def sim3_to_ff_frame(rec: pycolmap.Reconstruction, names: Sequence[str], ff_cam_
     if len(src) < 2:
         return Sim3.identity()
     if len(src) < 3 or collinear(src) or collinear(dst) or flat(src) or flat(dst):
-        sim = _robust_from_cameras(cam_from_world[registered], ff_cam_from_world[registered])
+        sim = robust_sim3_from_cameras(cam_from_world[registered], ff_cam_from_world[registered])
     else:
         sim = umeyama(src, dst)
         residual = np.linalg.norm(sim.apply(src) - dst, axis=1)
