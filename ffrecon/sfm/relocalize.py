@@ -59,8 +59,8 @@ class RelocalizeOptions:
     ransac_fraction: float = 0.01  # absolute-pose RANSAC threshold, fraction of the image diagonal
     # Fewer 2D-3D inliers: no pose. The pose only seeds dense evidence and the adjustment, which decide (a
     # pose they do not keep leaves the frame contradicted). Measured on the wide scene, 24 seeds, each
-    # frame 25 deg off in turn (tools/sweep_bad_frames.py): at 20, seeds 10 and 15 frame 7 (14 and 19
-    # inliers on the photo's canvas, 8 and 7 deg from the truth) stayed unchecked at 25 deg; at 12 their
+    # frame 25 deg off in turn (tools/sweep_bad_frames.py): at 20, seeds 10 and 15 frame 7 (19 and 14
+    # inliers on the photo's canvas, 9 and 7 deg from the truth) stayed unchecked at 25 deg; at 12 their
     # next round finds 28 and 60 and both end corrected (2.0 and 0.1 deg); no bad frame confirmed either way.
     min_inliers: int = 12
     # Frames rendered from: registered by the adjustment within this of their model rotation
