@@ -164,16 +164,28 @@ def write_final_model(final: FinalCameras | None, folder: Path | None, work: Pat
     if final is None or folder is None or not is_model_dir(Path(folder)):
         return None
     rec = pycolmap.Reconstruction(str(folder))
+    dropped = _drop_frames_not_final(rec, set(final.names))
     added = add_posed_images(rec, final.names, final.cam_from_world, final.cameras, final.distortion)
     for target in targets:
         write_reconstruction(rec, target)
     log.info(
-        "sparse/0 and colmap/sparse/0: the final cameras (%s, from %s)%s",
+        "sparse/0 and colmap/sparse/0: the final cameras (%s, from %s)%s%s",
         final.source,
         folder,
         f", plus {len(added)} frame(s) it lacks, posed without points: {', '.join(added)}" if added else "",
+        f", without {len(dropped)} frame(s) the evidence left out: {', '.join(dropped)}" if dropped else "",
     )
     return targets[0]
+
+
+def _drop_frames_not_final(rec: pycolmap.Reconstruction, final: set[str]) -> list[str]:
+    """Deregister from ``rec`` the frames it holds that are not final cameras (one the refinement registered
+    that the evidence then contradicted, e.g. on one planar pair): their observations go, points seen by
+    fewer than two frames with them, and the written model no longer lists them. Returns their names."""
+    dropped = sorted(im.name for im in rec.images.values() if im.has_pose and im.name not in final)
+    for name in dropped:
+        rec.deregister_frame(rec.find_image_with_name(name).frame_id)
+    return dropped
 
 
 def final_cameras(

@@ -56,6 +56,26 @@ def test_frames_the_refinement_left_out_are_added_posed_without_points(tmp_path:
     assert rec2.num_images() == 4
 
 
+def test_frames_the_evidence_left_out_are_not_in_sparse_0(tmp_path: Path):
+    """A frame the refinement registered but the evidence contradicted (e.g. held by one planar pair) is
+    not a final camera: sparse/0 lacks it, as transforms.json and the splat do; the refinement's own model
+    keeps it (a resumed run reads that back)."""
+    rng = np.random.default_rng(1)
+    names = [f"frame_{i:03d}.png" for i in range(4)]
+    poses = _poses(4, rng)
+    cam = PinholeCamera(320, 240, 300.0, 301.0, 160.0, 120.0)
+    refined = reconstruction_from_cameras(names, poses, [cam] * 4, rng.normal(size=(50, 3)))
+    refine_dir = write_reconstruction(refined, tmp_path / "refine" / "model")
+    kept = [0, 1, 3]
+    final = FinalCameras(tuple(kept), tuple(names[k] for k in kept), poses[kept], (cam,) * 3, CameraSource.REFINED)
+    rec = pycolmap.Reconstruction(str(write_final_model(final, refine_dir, tmp_path)))
+    assert sorted(im.name for im in rec.images.values()) == [names[k] for k in kept]
+    got, registered = cam_from_world_by_name(rec, [names[k] for k in kept])
+    assert registered.all()
+    np.testing.assert_allclose(got, poses[kept], atol=1e-9)
+    assert pycolmap.Reconstruction(str(refine_dir)).num_images() == 4
+
+
 def test_no_final_cameras_no_model(tmp_path: Path):
     (tmp_path / "colmap" / "sparse" / "0").mkdir(parents=True)  # left by an earlier run: no final cameras now
     assert write_final_model(None, None, tmp_path) is None
