@@ -97,8 +97,8 @@ def _totals(rows: list[dict], no_bad: bool) -> str:
         errors = [r["error"] for r in rows]
         return (
             f"{len(rows)} seeds: median error {min(errors):.2f}-{max(errors):.2f} deg, over 1 deg: "
-            f"{sum(e > 1 for e in errors)}; largest confirmed error {largest:.2f} deg, blocked {blocked}; "
-            f"median {per_run:.1f} s per run"
+            f"{sum(e > 1 for e in errors)}; largest confirmed error {largest:.2f} deg, frames contradicted "
+            f"{sum(r['verdicts'].count('X') for r in rows)}, blocked {blocked}; median {per_run:.1f} s per run"
         )
     bad_confirmed = sum(r["verdict"] is FrameVerdict.CONFIRMED for r in rows)
     unchecked_far = sum(r["verdict"] is FrameVerdict.UNCHECKED and r["error"] > 5 for r in rows)
