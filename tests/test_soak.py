@@ -59,8 +59,9 @@ def test_twenty_interrupted_runs_leave_the_old_or_a_complete_new_result(demo12, 
         proc = _start(base + flags)
         try:
             # Up to 12 s: a full run takes about 10 s here and a resumed one 5-8 s, so some runs end on their
-            # own ("new"). With 9 s only resumed runs could, at the edge: one 0.1 s slower run made all 20
-            # stop early and failed the check below (seen 2026-11-27, the same code passing and failing).
+            # own ("new"). With 9 s only resumed runs could, at the edge: on 2026-11-27 run 11 (resumed, given
+            # 6.3 s) ended in time on one commit and was stopped 0.1 s short on the next, and the check below
+            # failed on timing alone.
             proc.wait(timeout=rng.uniform(0.3, 12.0))
             stopped = None
         except subprocess.TimeoutExpired:
