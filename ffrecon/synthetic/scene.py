@@ -29,6 +29,7 @@ from ffrecon.formats.ground_truth import read_ground_truth
 from ffrecon.geometry.poses import look_at_cam_from_world
 from ffrecon.geometry.projection import unproject_depth
 from ffrecon.synthetic import render, textures
+from ffrecon.synthetic.layouts import Layout, layout_spec, wide_path
 from ffrecon.types import PinholeCamera
 
 logger = logging.getLogger("ffrecon.synthetic")
@@ -64,6 +65,9 @@ class Texture(enum.Enum):
     TEXTURELESS = "textureless"  # near-uniform surfaces
     REPEATED = "repeated"  # one tile repeated on every surface (look-alike views)
     PLAIN_WALLS = "plain_walls"  # two near-uniform walls and ceiling (PLAIN_SURFACES), the rest rich
+    # Crops of real photos (SceneOptions.photo_dir) on every surface; with plain walls, the layout's plain ones.
+    PHOTOS = "photos"
+    PHOTOS_PLAIN_WALLS = "photos_plain_walls"
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -84,10 +88,23 @@ class SceneOptions:
     # > 0: the room's far wall (y = 3) moves out to y = 3 + backdrop, so the background (that wall and the
     # floor, ceiling and side walls leading to it) lies far beyond the cameras, as in forward-facing photos.
     backdrop: float = 0.0
+    # The scene's layout (ffrecon.synthetic.layouts): the objects in a room (default), a furnished room seen
+    # from inside, one object in a hall, a street facade. Layouts other than OBJECTS take the WIDE path only.
+    layout: Layout = Layout.OBJECTS
+    # The wide path's turn between consecutive views, degrees (low, high); None: the layout's default.
+    step_deg: tuple[float, float] | None = None
+    photo_dir: str = ""  # folder of photos the PHOTOS textures are cut from
+
+    def __post_init__(self) -> None:
+        if self.layout is not Layout.OBJECTS and self.path is not CameraPath.WIDE:
+            raise ValueError(f"layout {self.layout.value} has only the wide path, got {self.path.value}")
+        if self.texture in (Texture.PHOTOS, Texture.PHOTOS_PLAIN_WALLS) and not self.photo_dir:
+            raise ValueError("photo textures need SceneOptions.photo_dir (a folder of photos)")
 
     def to_dict(self) -> dict:
         out = asdict(self)
         out.update(path=self.path.value, texture=self.texture.value, textureless_frames=list(self.textureless_frames))
+        out.update(layout=self.layout.value, step_deg=None if self.step_deg is None else list(self.step_deg))
         return out
 
     @staticmethod
@@ -97,6 +114,8 @@ class SceneOptions:
             path=CameraPath(data["path"]),
             texture=Texture(data["texture"]),
             textureless_frames=tuple(int(i) for i in data["textureless_frames"]),
+            layout=Layout(data.get("layout", Layout.OBJECTS.value)),
+            step_deg=None if data.get("step_deg") is None else tuple(float(v) for v in data["step_deg"]),
         )
         return SceneOptions(**data)
 
@@ -120,9 +139,11 @@ class SyntheticScene:
         return unproject_depth(self.depth[i], self.camera.K, self.cam_from_world[i])
 
 
-def scene_geometry(backdrop: float = 0.0) -> render.Geometry:
+def scene_geometry(backdrop: float = 0.0, layout: Layout = Layout.OBJECTS) -> render.Geometry:
     """The fixed room (its far wall ``backdrop`` further out), boxes and sphere (the seed changes textures
-    and jitter, not the layout)."""
+    and jitter, not the layout); another ``layout``'s own geometry (:mod:`ffrecon.synthetic.layouts`)."""
+    if layout is not Layout.OBJECTS:
+        return layout_spec(layout).geometry
     boxes = (
         render.Box(
             center=np.array([0.15, -0.1, 0.225]), half_size=np.array([0.45, 0.3, 0.225]), yaw_rad=np.radians(20)
@@ -138,10 +159,19 @@ def scene_geometry(backdrop: float = 0.0) -> render.Geometry:
     return render.Geometry(room_lo=ROOM_LO, room_hi=room_hi, boxes=boxes, spheres=spheres)
 
 
-def camera_path(path: CameraPath, num_frames: int, *, seed: int = 0) -> np.ndarray:
+def camera_path(
+    path: CameraPath,
+    num_frames: int,
+    *,
+    seed: int = 0,
+    layout: Layout = Layout.OBJECTS,
+    step_deg: tuple[float, float] | None = None,
+) -> np.ndarray:
     """``[N, 3, 4]`` cam_from_world poses (OpenCV) along ``path``; ``seed`` draws the wide path's steps."""
+    if layout is not Layout.OBJECTS:
+        return wide_path(layout, num_frames, seed, step_deg or layout_spec(layout).step_deg)
     if path is CameraPath.WIDE:
-        centers = _wide_centers(num_frames, seed)
+        centers = _wide_centers(num_frames, seed, step_deg)
         return np.stack([look_at_cam_from_world(c, LOOK_TARGET) for c in centers])
     if path in (CameraPath.ORBIT, CameraPath.ARC):
         if path is CameraPath.ORBIT:
@@ -168,14 +198,14 @@ def camera_path(path: CameraPath, num_frames: int, *, seed: int = 0) -> np.ndarr
     return np.stack([look_at_cam_from_world(c, c + heading) for c in centers])
 
 
-def _wide_centers(num_frames: int, seed: int) -> np.ndarray:
+def _wide_centers(num_frames: int, seed: int, step_deg: tuple[float, float] | None = None) -> np.ndarray:
     """``[N, 3]`` world camera centres of the wide path: steps of ``WIDE_STEP_DEG`` about the centre.
 
     The steps, distances (0.9 to 1.15 x the orbit radius) and heights (+-0.25) come from a stream of
     their own, so the textures drawn from ``seed`` stay those of the other paths.
     """
     rng = np.random.default_rng([seed, 21])
-    steps = rng.uniform(*WIDE_STEP_DEG, size=max(num_frames - 1, 0))
+    steps = rng.uniform(*(step_deg or WIDE_STEP_DEG), size=max(num_frames - 1, 0))
     angles = np.radians(-90.0 + np.concatenate([[0.0], np.cumsum(steps)]))
     radii = ORBIT_RADIUS * rng.uniform(0.9, 1.15, num_frames)
     heights = CAMERA_HEIGHT + rng.uniform(-0.25, 0.25, num_frames)
@@ -192,7 +222,12 @@ def make_camera(options: SceneOptions) -> PinholeCamera:
 
 
 def _surface_textures(
-    geometry: render.Geometry, texture: Texture, rng: np.random.Generator
+    geometry: render.Geometry,
+    texture: Texture,
+    rng: np.random.Generator,
+    *,
+    plain_surfaces: tuple[int, ...] = PLAIN_SURFACES,
+    photo_dir: str = "",
 ) -> tuple[tuple[np.ndarray, ...], tuple[float, ...]]:
     """One texture per surface and its texels per world unit.
 
@@ -210,8 +245,15 @@ def _surface_textures(
     out = []
     for k, ((size_v, size_u), density) in enumerate(zip(sizes, densities)):
         h, w = max(4, int(np.ceil(size_v * density))), max(4, int(np.ceil(size_u * density)))
-        rich = texture is Texture.RICH or (texture is Texture.PLAIN_WALLS and k not in PLAIN_SURFACES)
-        out.append(textures.rich_texture(rng, h, w) if rich else textures.plain_texture(rng, h, w))
+        plain = texture is Texture.TEXTURELESS or (
+            texture in (Texture.PLAIN_WALLS, Texture.PHOTOS_PLAIN_WALLS) and k in plain_surfaces
+        )
+        if plain:
+            out.append(textures.plain_texture(rng, h, w))
+        elif texture in (Texture.PHOTOS, Texture.PHOTOS_PLAIN_WALLS):
+            out.append(textures.photo_texture(rng, h, w, photo_dir))
+        else:
+            out.append(textures.rich_texture(rng, h, w))
     return tuple(out), densities
 
 
@@ -224,11 +266,16 @@ def make_scene(options: SceneOptions = SceneOptions()) -> SyntheticScene:
         raise ValueError(f"textureless_frames {bad} outside 0..{options.num_frames - 1}")
     start = time.perf_counter()
     rng = np.random.default_rng(options.seed)
-    geometry = scene_geometry(options.backdrop)
-    surface_textures, densities = _surface_textures(geometry, options.texture, rng)
+    geometry = scene_geometry(options.backdrop, options.layout)
+    plain = PLAIN_SURFACES if options.layout is Layout.OBJECTS else layout_spec(options.layout).plain_surfaces
+    surface_textures, densities = _surface_textures(
+        geometry, options.texture, rng, plain_surfaces=plain, photo_dir=options.photo_dir
+    )
     gains = np.exp(options.exposure_jitter * rng.standard_normal(options.num_frames))
     camera = make_camera(options)
-    poses = camera_path(options.path, options.num_frames, seed=options.seed)
+    poses = camera_path(
+        options.path, options.num_frames, seed=options.seed, layout=options.layout, step_deg=options.step_deg
+    )
     h, w = options.height, options.width
     images = np.empty((options.num_frames, h, w, 3), np.uint8)
     depth = np.empty((options.num_frames, h, w), np.float32)

@@ -74,10 +74,14 @@ class SimulationOptions:
     # sees the world turned by k times this about the vertical (world z) through the first input frame's centre.
     # Chunks chained on shared frames accumulate it (about this much per frame of the path); 0: no drift.
     drift_deg_per_slot: float = 0.0
+    # Per-frame depth scale error: frame i's whole depth map is scaled by exp(this * N(0, 1)), as a network
+    # whose scale is right for the cameras but not for every frame's depth (its confidence does not show it).
+    depth_scale_error: float = 0.0
 
     def __post_init__(self) -> None:
         check_number("SimulationOptions.depth_stride", self.depth_stride, low=1, high=16, integer=True)
         check_number("SimulationOptions.drift_deg_per_slot", self.drift_deg_per_slot, low=0, high=1)
+        check_number("SimulationOptions.depth_scale_error", self.depth_scale_error, low=0, high=0.5)
 
 
 @dataclass(frozen=True)
@@ -165,7 +169,7 @@ def _depth_source(scene: SyntheticScene | RealScene) -> Callable[[int, np.ndarra
     """
     if isinstance(scene, RealScene):
         return lambda i, uv: sample_depth(scene.depth[i], uv)
-    geometry = scene_geometry(scene.options.backdrop)
+    geometry = scene_geometry(scene.options.backdrop, scene.options.layout)
     _check_geometry(scene, geometry)
     return lambda i, uv: render.cast_depth(geometry, scene.cam_from_world[i], scene.camera.K, uv)
 
@@ -192,6 +196,8 @@ def simulate(
     K[:, 0, 0] *= focal_scale
     K[:, 1, 1] *= focal_scale
     fields = [_depth_field(rng) for _ in range(n)]
+    # Drawn from a stream of its own, so that every other error stays what the seed gave before.
+    scales = np.exp(options.depth_scale_error * np.random.default_rng([options.seed, 39]).standard_normal(n))
 
     batch, transforms = preprocess_vggt(list(scene.images), mode=PreprocessMode.CROP, target_size=options.target_size)
     t = transforms[0]
@@ -203,9 +209,11 @@ def simulate(
     net_conf = np.empty((n, hn, wn), np.float32)
     for i in range(n):
         depth_err[i] = options.depth_error * _eval_field(fields[i], orig_uv / [w, h])
+        if scales[i] != 1.0:
+            depth_err[i] = (1 + depth_err[i]) * scales[i] - 1
         err_net = options.depth_error * _eval_field(fields[i], net_uv / [w, h])
         true_net = depth_at(i, net_uv.reshape(-1, 2)).reshape(hn, wn)
-        net_depth[i] = true_net * (1 + err_net)
+        net_depth[i] = true_net * (1 + err_net) * scales[i]
         net_conf[i] = 1 + (_CONF_MAX - 1) * np.exp(-np.abs(err_net) / max(options.depth_error, 1e-6))
         _fill_unknown(net_depth[i], net_conf[i], true_net > 0)
     truth = SimulatedTruth(

@@ -9,7 +9,9 @@ there is no texel-level white noise.
 
 from __future__ import annotations
 
+import functools
 import string
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -115,3 +117,39 @@ def tile_texture(rng: np.random.Generator, tile_px: int) -> np.ndarray:
     b = np.roll(np.roll(big[tile_px:, tile_px:], tile_px // 2, 0), tile_px // 2, 1)
     weight = np.maximum(ramp[:, None], ramp[None, :])[..., None].astype(np.float32) ** 2
     return (a * (1 - weight) + b * weight).astype(np.float32)
+
+
+@functools.lru_cache(maxsize=4)
+def _photos(photo_dir: str) -> tuple[np.ndarray, ...]:
+    """The photos in ``photo_dir`` (JPEG/PNG, sorted by name) as float32 RGB in [0, 1], read once."""
+    paths = sorted(p for p in Path(photo_dir).iterdir() if p.suffix.lower() in (".jpg", ".jpeg", ".png"))
+    if not paths:
+        raise ValueError(f"no JPEG or PNG photos in {photo_dir} to cut textures from")
+    out = []
+    for path in paths:
+        bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        if bgr is not None:
+            out.append(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0)
+    return tuple(out)
+
+
+def photo_texture(rng: np.random.Generator, height: int, width: int, photo_dir: str) -> np.ndarray:
+    """Crops of real photos from ``photo_dir`` (chosen and placed by ``rng``), side by side, resized to
+    ``[height, width, 3]`` float32 in [0, 1]: real-world texture statistics (sky, repeated windows, blur)
+    that procedural textures lack. A surface much wider than tall (a facade) gets one crop per 4:3 of its
+    width, as buildings stand side by side. Rows are flipped: texture rows run up the walls (world z), so
+    the photos stand upright there."""
+    photos = _photos(photo_dir)
+    pieces = max(1, int(round(width / height / (4 / 3))))
+    edges = np.linspace(0, width, pieces + 1).round().astype(int)
+    out = []
+    for x_lo, x_hi in zip(edges[:-1], edges[1:]):
+        photo = photos[int(rng.integers(len(photos)))]
+        ph, pw = photo.shape[:2]
+        aspect = (x_hi - x_lo) / height
+        crop_w = min(pw, ph * aspect) * rng.uniform(0.5, 1.0)
+        crop_h = crop_w / aspect
+        x0, y0 = rng.uniform(0, pw - crop_w), rng.uniform(0, ph - crop_h)
+        crop = photo[int(y0) : int(y0 + crop_h), int(x0) : int(x0 + crop_w)]
+        out.append(cv2.resize(crop, (int(x_hi - x_lo), height), interpolation=cv2.INTER_AREA))
+    return np.clip(np.concatenate(out, axis=1)[::-1], 0.02, 0.98).astype(np.float32)
