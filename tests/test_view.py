@@ -206,10 +206,11 @@ def test_viewer_page_shows_the_scene_and_stops_on_ctrl_c(full_run, chromium, nod
     port = _free_port()
     proc, line = _start_viewer(full_run, port, "--max-points", "30000", "--max-gaussians", "20000")
     try:
-        assert line.startswith(f"viewer: http://127.0.0.1:{port}"), line
+        assert line.startswith(f"viewer: http://127.0.0.1:{port}/?token="), line
+        url = line.split()[1]  # as printed: the page loads with its token, its WebSocket with the cookie
         shown, hidden = tmp_path / "shown.png", tmp_path / "hidden.png"
         shot = subprocess.run(
-            ["node", "screenshot_url.mjs", f"http://127.0.0.1:{port}/", shown, "1000x700", "30000", "3000", hidden],
+            ["node", "screenshot_url.mjs", url, shown, "1000x700", "30000", "3000", hidden],
             cwd=REPO / "clients",
             capture_output=True,
             text=True,

@@ -15,7 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ffrecon.errors import FFReconError
+from ffrecon.errors import FFReconError, ResourceError
+from ffrecon.view.access import AccessPolicy, Gate, guarded_serve, new_token
 from ffrecon.view.scene import FLAG_COLOR, CameraLayer, CameraSpec, Estimate, ViewScene
 
 logger = logging.getLogger("ffrecon.view")
@@ -30,7 +31,8 @@ class PortInUse(FFReconError):
 
 @dataclass
 class Viewer:
-    """A running viewer: ``url`` to open, ``select()`` does what clicking a camera does, ``stop()`` ends it."""
+    """A running viewer: ``url`` to open (it carries the access token), ``select()`` does what clicking a
+    camera does, ``stop()`` ends it."""
 
     server: object  # viser.ViserServer
     url: str
@@ -203,15 +205,30 @@ def _frame_view(server, scene: ViewScene) -> None:
 def start_viewer(scene: ViewScene, *, host: str = "127.0.0.1", port: int = 8080) -> Viewer:
     """Serve ``scene`` on ``http://host:port`` (in a background thread) and return the running viewer.
 
+    Only the viewer's own page, opened from ``viewer.url`` (which carries a fresh ``?token=``), may read
+    the scene: :mod:`ffrecon.view.access` checks Host, Origin and the token on every request.
+
     Raises:
         PortInUse: the port is taken (viser itself would move to another one without saying).
+        ResourceError: the installed viser starts its server in a way the access checks cannot guard.
     """
     _check_port_free(host, port)
     import viser
 
-    with contextlib.redirect_stdout(io.StringIO()):  # its own banner; the CLI prints the address
+    gate = Gate()
+    with guarded_serve(gate), contextlib.redirect_stdout(io.StringIO()):  # its banner; the CLI prints the URL
         server = viser.ViserServer(host=host, port=port, label="ffrecon", verbose=False)
-    viewer = Viewer(server, f"http://{'[' + host + ']' if ':' in host else host}:{server.get_port()}", scene)
+    token = new_token()
+    gate.open(AccessPolicy(host=host, port=server.get_port(), token=token))
+    address = f"http://{'[' + host + ']' if ':' in host else host}:{server.get_port()}"
+    viewer = Viewer(server, f"{address}/?token={token}", scene)
+    if not gate.installed:  # this viser starts its server another way: refuse to serve the scene unguarded
+        viewer.stop()
+        raise ResourceError(
+            f"viser {viser.__version__} starts its web server in a way ffrecon cannot guard "
+            "(no token or origin checks), so the viewer is not started",
+            "install a viser that ffrecon supports: pip install 'viser==1.1.1'",
+        )
     if port and server.get_port() != port:  # taken between the check and the bind
         viewer.stop()
         _check_port_free(host, port)
