@@ -5,9 +5,12 @@ Each stage that finishes writes, under ``<run folder>/.ffrecon/stages/``, a type
 (:mod:`ffrecon.records`): ``<stage>.json`` holds the key, the seconds it took, its options, the keys of
 what it read and the result itself, and ``<stage>.npz`` the result's arrays. The JSON is written
 last, so a stage interrupted half-way has no record and runs again. A stage's key hashes its name,
-ffrecon's version, its options and the keys of its inputs (file names, sizes and modification times
-for files the user gave; the keys of the stages it read), so changing anything upstream recomputes
-everything that depends on it.
+ffrecon's version, its options and the keys of its inputs (for files the user gave: their names, sizes and
+contents, hashed with BLAKE2b, :func:`file_key`; the keys of the stages it read), so changing anything
+upstream recomputes everything that depends on it, also a photo replaced by another of the same size and
+modification time (what ``cp -p``, ``rsync -a`` and ``tar`` make). The hashes are cached in
+``.ffrecon/file_hashes.json`` by path, inode, size, modification and change time, so unchanged files are
+not read again.
 
 Reading a record runs no code: it constructs only ffrecon's own dataclasses and enums, so resuming
 into a folder someone else made is safe. A record that does not decode into today's classes, or of
@@ -22,10 +25,15 @@ data: they are dropped on write and read back from the result's ``model_path``.
 from __future__ import annotations
 
 import dataclasses
+import errno
 import hashlib
+import json
 import logging
 import math
+import os
 import shutil
+import stat
+import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
@@ -41,6 +49,7 @@ from ffrecon.timing import StageTimer
 log = logging.getLogger("ffrecon")
 T = TypeVar("T")
 _RECORDS = Path(".ffrecon") / "stages"
+_HASHES = Path(".ffrecon") / "file_hashes.json"  # content hashes of the user's files (:class:`FileHashes`)
 _RUN_ROOT = Path("<run>")  # placeholder root for paths stored in a record
 
 
@@ -70,19 +79,134 @@ class OverlapTiming:
     sum_seconds: float
 
 
-def file_key(path: Path) -> str:
-    """A key of a file or folder the user gave: names, sizes and modification times (not contents,
-    as make and hloc do), so a key is cheap for hundreds of photos.
+def content_hash(path: Path) -> str | None:
+    """BLAKE2b of a regular file's bytes, streamed (None for a FIFO, a device or a folder: never opened so that
+    it blocks). A sparse file's holes are not read: the hash covers its size and each data extent's offset and
+    bytes, so a 20 GB sparse file hashes at once, and the same bytes laid out with other holes at worst run again.
+
+    >>> content_hash(Path("/dev/zero")) is None
+    True
+    """
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
+    except OSError:
+        return None
+    try:
+        info = os.fstat(fd)
+        if not stat.S_ISREG(info.st_mode):
+            return None
+        digest = hashlib.blake2b(str(info.st_size).encode(), digest_size=20)
+        with os.fdopen(fd, "rb", buffering=0, closefd=False) as file:
+            for start, end in _data_extents(fd, info.st_size):
+                digest.update(f"@{start}:{end}".encode())
+                file.seek(start)
+                left = end - start
+                while left > 0 and (chunk := file.read(min(left, _CHUNK))):
+                    digest.update(chunk)
+                    left -= len(chunk)
+    finally:
+        os.close(fd)
+    return digest.hexdigest()
+
+
+_CHUNK = 1 << 20
+
+
+def _data_extents(fd: int, size: int) -> Iterator[tuple[int, int]]:
+    """``(start, end)`` of the parts of a file that hold data (SEEK_DATA/SEEK_HOLE; the whole file where the file
+    system does not tell)."""
+    if not hasattr(os, "SEEK_DATA"):
+        yield 0, size
+        return
+    offset = 0
+    while offset < size:
+        try:
+            start = os.lseek(fd, offset, os.SEEK_DATA)
+        except OSError as err:
+            if err.errno == errno.ENXIO:  # no data after offset: a hole to the end
+                return
+            yield offset, size  # the file system does not say: read it all
+            return
+        end = os.lseek(fd, start, os.SEEK_HOLE)
+        yield start, end
+        offset = end
+
+
+class FileHashes:
+    """Content hashes of the user's files, cached in ``<run folder>/.ffrecon/file_hashes.json`` so a rerun
+    (``--resume`` copies the cache with the records) does not read unchanged files again. The cache is a first
+    filter only: an entry is used while the file's path, device, inode, size, modification time and
+    status-change time (ctime, which ``cp -p``, ``rsync -a``, ``tar`` and ``os.utime`` cannot set back) are
+    all the same; anything else hashes the bytes. Thread-safe (stages beside each other make keys)."""
+
+    def __init__(self, path: Path | None) -> None:
+        self.path = path
+        self._lock = threading.Lock()
+        self._entries: dict[str, list] = {}
+        self._dirty = False
+        try:
+            loaded = json.loads(path.read_text()) if path is not None and path.is_file() else {}
+            self._entries = {k: v for k, v in loaded.items() if isinstance(v, list) and len(v) == 6}
+        except (OSError, ValueError, AttributeError) as err:
+            log.info("the file hash cache %s cannot be used (%s); hashing the files again", path, err)
+
+    def digest(self, path: Path) -> str | None:
+        """The content hash of ``path`` (None unless it is a regular file)."""
+        try:
+            info = os.stat(path)
+        except OSError:
+            return None
+        if not stat.S_ISREG(info.st_mode):
+            return None
+        name = os.path.abspath(path)
+        fingerprint = [info.st_dev, info.st_ino, info.st_size, info.st_mtime_ns, info.st_ctime_ns]
+        with self._lock:
+            entry = self._entries.get(name)
+        if entry is not None and entry[:5] == fingerprint:
+            return entry[5]
+        digest = content_hash(Path(path))
+        if digest is not None:
+            with self._lock:
+                self._entries[name] = [*fingerprint, digest]
+                self._dirty = True
+        return digest
+
+    def save(self) -> None:
+        """Write the cache when it changed (a cache that cannot be written costs a rehash next time, nothing else)."""
+        if self.path is None:
+            return
+        with self._lock:
+            if not self._dirty or not self.path.parent.is_dir():
+                return
+            text, self._dirty = json.dumps(self._entries), False
+        try:
+            partial = self.path.with_name(f"{self.path.name}.{threading.get_ident()}.partial")
+            partial.write_text(text)
+            partial.replace(self.path)
+        except OSError as err:
+            log.info("the file hash cache %s cannot be written (%s)", self.path, err)
+
+
+def file_key(path: Path, hashes: FileHashes | None = None) -> str:
+    """A key of a file or folder the user gave: its path, and the names, sizes and content hashes
+    (:func:`content_hash`) of the files in it; ``hashes`` caches the hashes by stat (see :class:`FileHashes`).
+    A FIFO or a device is keyed by what it is, never read (its reader refuses it).
 
     >>> file_key(Path("/does/not/exist"))
     'missing:/does/not/exist'
+    >>> file_key(Path("/dev/zero"))
+    'not a regular file:/dev/zero'
     """
     path = Path(path)
     if not path.exists():
         return f"missing:{path}"
+    if not (path.is_dir() or path.is_file()):
+        return f"not a regular file:{path}"
+    hashes = hashes or FileHashes(None)
     entries = sorted(path.iterdir()) if path.is_dir() else [path]
     extra = [path.with_name(path.name + ".data")] if path.suffix == ".onnx" else []  # external weights
-    stats = [(p.name, p.stat().st_size, p.stat().st_mtime_ns) for p in entries + extra if p.is_file()]
+    stats = [(p.name, p.stat().st_size, hashes.digest(p)) for p in entries + extra if p.is_file()]
+    hashes.save()
     return hashlib.sha1(repr((str(path.resolve()), stats)).encode()).hexdigest()
 
 
@@ -151,6 +275,7 @@ class StageRunner:
         self.finished: list[str] = []  # stages finished or reused in this run, in order
         self.current: str | None = None  # the stage running now (named when interrupted)
         self.overlaps: list[OverlapTiming] = []  # groups of stages that ran at the same time
+        self.hashes = FileHashes(self.run_dir / _HASHES)  # the user's files' content hashes, for their keys
 
     def _paths(self, stage: str) -> tuple[Path, Path, Path]:
         """``(record, arrays, legacy pickle)``: ``<stage>.json`` (written last), ``<stage>.npz`` and the

@@ -164,7 +164,7 @@ class StagePlan:
         return state
 
     def _key_inputs(self, state: RunState, stage: Stage) -> list[str]:
-        files = [file_key(p) for p in stage.files(state, self.options) if p is not None]
+        files = [file_key(p, self.runner.hashes) for p in stage.files(state, self.options) if p is not None]
         return [self.keys[name] for name in stage.all_reads(state, self.options)] + files
 
     def _result(self, state: RunState, stage: Stage, runner: StageRunner, share: Share) -> tuple[object, str]:
@@ -199,4 +199,4 @@ class StagePlan:
 
     def inputs_key(self, name: str, value: Path | None) -> None:
         """Set the key of a user input (``source``, ``model``) that stages read."""
-        self.keys[name] = "none" if value is None else file_key(value)
+        self.keys[name] = "none" if value is None else file_key(value, self.runner.hashes)
