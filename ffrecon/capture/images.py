@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -49,6 +50,20 @@ _TAG_FPLANE_XRES = 0xA20E
 _TAG_FPLANE_UNIT = 0xA210
 _UNIT_MM = {2: 25.4, 3: 10.0, 4: 1.0, 5: 0.001}  # EXIF resolution units in mm
 _JPEG_FORMATS = ("JPEG", "MPO")  # MPO: a multi-picture JPEG (some cameras); both decoders read its first image
+
+# The smallest frames every stage accepts, measured (OpenCV 5.0): dense evidence's DIS optical flow (medium
+# preset) raises below 8 px on a side, raises or crashes the process (segmentation fault) for short sides of
+# 8 to 15 px once the long side is 48 px or more, and runs on every size with a short side of 16 px (up to
+# 20000 px long). SIFT (pycolmap) and the models' preprocessing take any such size; the models' resizing
+# needs the short side at least one patch once the long side is scaled to the network's: DUSt3R's (512 px,
+# 16-px patches) refuses photos more than 32 times as long as wide, VGGT's (518 px, rounded to 14) more
+# than 74. Frames are checked at the size they are captured at (after --max-image-size).
+MIN_FRAME_SIDE = 16  # px, the short side of a frame
+MAX_FRAME_ASPECT = 32  # long side over short side
+# EXIF focal lengths outside this range, in multiples of the photo's diagonal, are ignored (as if absent):
+# real lenses span about 0.18x (an 8 mm-equivalent fisheye) to 67x (a 3000 mm-equivalent superzoom, the
+# longest made); corrupt EXIF gives values far outside (1.2e6 px and 1.7e14 px seen on 640-px photos).
+PLAUSIBLE_FOCAL_DIAGONALS = (0.1, 100.0)
 
 
 def list_images(folder: Path) -> tuple[list[Path], list[Path]]:
@@ -88,6 +103,7 @@ class _Header:
 
     size_wh: tuple[int, int] | None  # as stored, before the EXIF orientation
     bands: int
+    mode: str | None = None  # Pillow's mode ("RGB", "CMYK", "P", "L", "I;16", ...)
     orientation: int = 1
     focal_35mm: float | None = None
     focal_px: float | None = None
@@ -149,13 +165,13 @@ def _read_header(path: Path, *, strict: bool) -> _Header:
                 f_mm, xres, unit = sub.get(_TAG_FOCAL_MM), sub.get(_TAG_FPLANE_XRES), sub.get(_TAG_FPLANE_UNIT, 2)
                 f35 = sub.get(_TAG_FOCAL_35MM)
                 orientation = int(exif.get(_TAG_ORIENTATION, 1) or 1)
-                size_wh, bands = img.size, len(img.getbands())
+                size_wh, bands, mode = img.size, len(img.getbands()), img.mode
     except (UnidentifiedImageError, OSError, ValueError, SyntaxError, EOFError):
         return _Header(None, 0)
     f_px = None
     if f_mm and xres and unit in _UNIT_MM and float(xres) > 0:
         f_px = float(f_mm) * float(xres) / _UNIT_MM[unit]
-    return _Header(size_wh, bands, orientation, float(f35) if f35 else None, f_px)
+    return _Header(size_wh, bands, mode, orientation, float(f35) if f35 else None, f_px)
 
 
 def read_exif(path: Path) -> tuple[int, float | None, float | None]:
@@ -168,19 +184,44 @@ def read_exif(path: Path) -> tuple[int, float | None, float | None]:
     return header.orientation, header.focal_35mm, header.focal_px
 
 
-def focal_prior_px(width: int, height: int, focal_35mm: float | None, focal_px_exif: float | None) -> float | None:
+def focal_prior_px(
+    width: int, height: int, focal_35mm: float | None, focal_px_exif: float | None, *, name: str = "a photo"
+) -> float | None:
     """Focal length in pixels of an upright image from EXIF, or None.
 
-    A 35 mm-equivalent focal length refers to a 36 mm wide frame, matched to the long image side.
+    A 35 mm-equivalent focal length refers to a 36 mm wide frame, matched to the long image side. The
+    focal length from the focal-plane resolution comes first; a value outside
+    :data:`PLAUSIBLE_FOCAL_DIAGONALS` is ignored, as if absent, with a warning naming ``name``.
 
     >>> round(focal_prior_px(4000, 3000, 26.0, None), 3)
     2888.889
+    >>> focal_prior_px(640, 480, None, 1.17e6) is None  # 1460 times the diagonal: corrupt EXIF
+    True
     """
-    if focal_px_exif:
-        return focal_px_exif
-    if focal_35mm:
-        return focal_35mm / 36.0 * max(width, height)
-    return None
+    candidates = (
+        (focal_px_exif, "FocalLength and FocalPlaneXResolution"),
+        (focal_35mm and focal_35mm / 36.0 * max(width, height), "FocalLengthIn35mmFilm"),
+    )
+    low, high = (k * math.hypot(width, height) for k in PLAUSIBLE_FOCAL_DIAGONALS)
+    ignored = []
+    found = None
+    for value, tags in candidates:
+        if not value:
+            continue
+        if low <= value <= high:  # NaN fails too
+            found = float(value)
+            break
+        ignored.append(f"{value:.4g} px (from {tags})")
+    if ignored:
+        log.warning(
+            "%s: EXIF focal length %s outside %.0f-%.0f px (%g-%gx the diagonal): ignored",
+            name,
+            " and ".join(ignored),
+            low,
+            high,
+            *PLAUSIBLE_FOCAL_DIAGONALS,
+        )
+    return found
 
 
 def _to_rgb8(pixels: np.ndarray) -> np.ndarray:
@@ -243,6 +284,25 @@ def _check_decode_memory(path: Path, header: _Header) -> None:
         )
 
 
+def frame_size_problem(name: str, size_wh: tuple[int, int], original_wh: tuple[int, int] | None = None) -> str | None:
+    """Why a frame of ``size_wh`` (as captured: after the size cap; ``original_wh`` before it) is too small
+    or too elongated for some stage (:data:`MIN_FRAME_SIDE`, :data:`MAX_FRAME_ASPECT`), or None.
+
+    >>> frame_size_problem("a.png", (8, 8))
+    'a.png is 8x8 px; every stage needs frames of at least 16 px on the short side'
+    """
+    w, h = size_wh
+    was = "" if original_wh is None or tuple(original_wh) == (w, h) else f" (from {original_wh[0]}x{original_wh[1]})"
+    if min(w, h) < MIN_FRAME_SIDE:
+        return f"{name} is {w}x{h} px{was}; every stage needs frames of at least {MIN_FRAME_SIDE} px on the short side"
+    if max(w, h) > MAX_FRAME_ASPECT * min(w, h):
+        return (
+            f"{name} is {w}x{h} px{was}, {max(w, h) / min(w, h):.0f} times as long as wide; "
+            f"the models take frames at most {MAX_FRAME_ASPECT} times as long as wide"
+        )
+    return None
+
+
 def _unreadable(path: Path) -> str | None:
     """Why ``path`` cannot be opened for reading (permissions, I/O error), or None."""
     try:
@@ -276,8 +336,13 @@ def load_photo(path: Path, *, max_size: int | None = None) -> Photo:
         )
     stored_wh = (int(raw.shape[1]), int(raw.shape[0]))
     size = capped_size(*stored_wh, max_size)
+    problem = frame_size_problem(path.name, size, stored_wh)
+    if problem:
+        raise InputError(problem, fix)
     kept = size == stored_wh
-    converted = not kept or raw.dtype != np.uint8 or raw.ndim == 2 or raw.shape[2] != 3
+    # Copied as is only when the file already holds 8-bit RGB (Pillow's "RGB"; OpenCV decodes CMYK JPEGs and
+    # palette PNGs to 3 channels too, so its array alone cannot tell), upright and at its size.
+    converted = not kept or header.mode != "RGB" or raw.dtype != np.uint8 or raw.ndim == 2 or raw.shape[2] != 3
     if not kept and (raw.ndim == 2 or raw.shape[2] != 4):  # average first: the large array is freed at once
         raw = cv2.resize(raw, size, interpolation=cv2.INTER_AREA)
     rgb = _to_rgb8(raw)
@@ -288,7 +353,11 @@ def load_photo(path: Path, *, max_size: int | None = None) -> Photo:
     original = stored_wh[::-1] if header.orientation in (5, 6, 7, 8) else stored_wh
     scale = max(size) / max(stored_wh)
     focal = focal_prior_px(
-        upright.shape[1], upright.shape[0], header.focal_35mm, header.focal_px and header.focal_px * scale
+        upright.shape[1],
+        upright.shape[0],
+        header.focal_35mm,
+        header.focal_px and header.focal_px * scale,
+        name=path.name,
     )
     return Photo(upright, focal, converted or header.orientation != 1, original)
 

@@ -37,13 +37,15 @@ def _open(path: Path) -> tuple[cv2.VideoCapture, int]:
 def extract_video_frames(path: Path, num_frames: int) -> Iterator[tuple[str, np.ndarray]]:
     """Split the video into ``num_frames`` equal windows and yield the sharpest frame of each.
 
-    Yields ``(name, rgb [H, W, 3] uint8)`` with names ``<stem>_<frame index:06d>.png``, each as soon
+    Yields ``(name, rgb [H, W, 3] uint8)`` with names ``<stem>_<frame index:06d>.png`` (white space in the
+    stem made ``_``: COLMAP's pair lists split names on it, see :mod:`.names`), each as soon
     as its window has been read, so only one kept frame is held at a time. Sharpness is
     :func:`ffrecon.capture.quality.edge_sharpness` (every frame is decoded anyway, so scoring all of
     them costs little beside decoding). Fewer frames than asked come with a warning saying why (a
     shorter video, or decoding that stopped before the frame count the container reports).
     """
     cap, total = _open(path)
+    stem = "_".join(path.stem.split()) or "frame"
     num = min(num_frames, total)
     if num < num_frames:
         log.warning("%s has only %d frames: keeping all of them, not %d (--video-frames)", path.name, total, num_frames)
@@ -59,7 +61,7 @@ def extract_video_frames(path: Path, num_frames: int) -> Iterator[tuple[str, np.
             if window < num - 1 and index >= edges[window + 1]:
                 if best[2] is not None:
                     kept += 1
-                    yield f"{path.stem}_{best[1]:06d}.png", cv2.cvtColor(best[2], cv2.COLOR_BGR2RGB)
+                    yield f"{stem}_{best[1]:06d}.png", cv2.cvtColor(best[2], cv2.COLOR_BGR2RGB)
                 best = (-1.0, -1, None)
                 while window < num - 1 and index >= edges[window + 1]:
                     window += 1
@@ -70,7 +72,7 @@ def extract_video_frames(path: Path, num_frames: int) -> Iterator[tuple[str, np.
         cap.release()
     if best[2] is not None:
         kept += 1
-        yield f"{path.stem}_{best[1]:06d}.png", cv2.cvtColor(best[2], cv2.COLOR_BGR2RGB)
+        yield f"{stem}_{best[1]:06d}.png", cv2.cvtColor(best[2], cv2.COLOR_BGR2RGB)
     if not kept:
         raise InputError(
             f"no frame of {path.name} could be decoded",
