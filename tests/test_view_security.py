@@ -154,9 +154,15 @@ def test_own_page_with_the_token_gets_the_scene(viewer, how):
 
 def test_wildcard_host_still_checks_the_name_and_needs_the_token():
     """``--host 0.0.0.0``: reached under any of this machine's addresses, never under another name."""
+    from websockets.datastructures import Headers
+    from websockets.http11 import Request
+
     from ffrecon.view.access import AccessPolicy
 
     policy = AccessPolicy(host="0.0.0.0", port=8080, token="t" * 43)
+    lan = Headers({"Host": "192.168.1.7:8080"})
+    assert policy.refusal(Request("/", lan)) == "no token, or a wrong one"
+    assert policy.refusal(Request("/?token=" + "t" * 43, lan)) == ""
     assert all(policy.own_host(h) for h in ("192.168.1.7:8080", "[fe80::1]:8080", "localhost:8080", "0.0.0.0:8080"))
     assert not any(policy.own_host(h) for h in ("evil.example:8080", "192.168.1.7:8081", "192.168.1.7"))
     assert policy.own_origin("http://192.168.1.7:8080") and not policy.own_origin("http://evil.example:8080")

@@ -127,6 +127,7 @@ class Gate:
     def __init__(self) -> None:
         self.policy: AccessPolicy | None = None
         self.installed = False  # set when viser's server was started through the guard
+        self._said: set[str] = set()  # refusals logged once (a stale tab of an earlier viewer retries forever)
 
     def open(self, policy: AccessPolicy) -> None:
         self.policy = policy
@@ -138,7 +139,10 @@ class Gate:
             policy = self.policy
             why = policy.refusal(request) if policy is not None else "the viewer is starting"
             if why:
-                logger.info("refused %s: %s", urlsplit(request.path).path, why)
+                level = logging.DEBUG if why in self._said else logging.INFO
+                if len(self._said) < 100:  # Host and Origin come from the request: bounded
+                    self._said.add(why)
+                logger.log(level, "viewer: refused a request for %s (%s)", urlsplit(request.path).path, why)
                 text = f"403 Forbidden: {why}. Open the address `ffrecon view` printed (with its ?token=...).\n"
                 return connection.respond(HTTPStatus.FORBIDDEN, text)
             response = inner(connection, request) if inner is not None else None
