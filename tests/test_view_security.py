@@ -170,3 +170,16 @@ def test_wildcard_host_still_checks_the_name_and_needs_the_token():
     assert named.own_host("viewer.lan:9000") and named.own_host("127.0.0.1:9000")
     assert not named.own_host("192.168.1.7:9000") and not named.own_host("other.lan:9000")
     assert not AccessPolicy(host="127.0.0.1", port=8080, token="t" * 43).own_host("192.168.1.7:8080")
+
+
+def test_a_viser_that_bypasses_the_guard_is_not_served(tmp_path, monkeypatch):
+    """A viser version that starts its server without ``websockets.asyncio.server.serve``: refused, not open."""
+    import contextlib
+
+    from ffrecon.errors import ResourceError
+    from ffrecon.view import server
+
+    monkeypatch.setattr(server, "guarded_serve", lambda gate: contextlib.nullcontext(gate))
+    with pytest.raises(ResourceError, match="cannot guard") as err:
+        start_viewer(_tiny_scene(tmp_path / "out"), port=0)
+    assert "pip install" in err.value.fix
