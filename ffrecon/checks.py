@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import math
+import os
+import stat
 from collections.abc import Sequence
+from pathlib import Path
 
 import numpy as np
 
@@ -141,3 +144,142 @@ def check_number(
         ok = float(value) <= high
     if not ok:
         raise InputError(f"{label} must be {want_text}; got {value!r}", fix)
+
+
+# --- files the user names in an option (--intrinsics, --poses, --masks, --vocab-tree, --reference, ...) ----------
+
+MB = 1 << 20
+GB = 1 << 30
+
+
+def _kind(mode: int) -> str:
+    """What a file system entry is, in words ("a FIFO", "a character device", ...)."""
+    kinds = (
+        (stat.S_ISREG, "a regular file"),
+        (stat.S_ISDIR, "a folder"),
+        (stat.S_ISFIFO, "a FIFO (named pipe)"),
+        (stat.S_ISCHR, "a character device"),
+        (stat.S_ISBLK, "a block device"),
+        (stat.S_ISSOCK, "a socket"),
+    )
+    return next((words for test, words in kinds if test(mode)), "not a regular file")
+
+
+def check_option_folder(option: str, path: Path, *, fix: str) -> Path:
+    """``path`` when it is a folder (a link to one counts); else an :class:`InputError` naming ``option``,
+    the path and what it is.
+
+    >>> check_option_folder("--masks", Path("/"), fix="")
+    PosixPath('/')
+    >>> check_option_folder("--masks", Path("/dev/null"), fix="pass a folder of PNGs")
+    Traceback (most recent call last):
+    ...
+    ffrecon.errors.InputError: --masks /dev/null is not a folder: it is a character device
+      fix: pass a folder of PNGs
+    """
+    path = Path(path)
+    if not Path(path).is_dir():
+        raise InputError(f"{option} {path} is not a folder: {path_kind(path)}", fix)
+    return path
+
+
+def path_kind(path: Path) -> str:
+    """What is at ``path``, in words, for messages.
+
+    >>> path_kind(Path("/dev/null")), path_kind(Path("/does/not/exist"))
+    ('it is a character device', 'it does not exist')
+    """
+    try:
+        return f"it is {_kind(os.stat(path).st_mode)}"
+    except OSError as err:
+        return _reason(err)
+
+
+def _reason(err: OSError) -> str:
+    return "it does not exist" if isinstance(err, FileNotFoundError) else (err.strerror or str(err))
+
+
+def read_option_bytes(option: str, path: Path, *, limit_bytes: int, fix: str) -> bytes:
+    """The bytes of the file ``path`` that ``option`` names, read with a bound: an :class:`InputError` naming
+    ``option``, the path and what it is when it is not a regular file (a FIFO, a device, a folder), is empty, or
+    holds more than ``limit_bytes``. The file is opened without blocking and checked on the open descriptor,
+    so a FIFO never hangs and a file swapped after a check is still caught.
+
+    >>> read_option_bytes("--intrinsics", Path("/dev/zero"), limit_bytes=MB, fix="pass cameras.txt")
+    Traceback (most recent call last):
+    ...
+    ffrecon.errors.InputError: --intrinsics /dev/zero is a character device, not a regular file
+      fix: pass cameras.txt
+    """
+    path = Path(path)
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
+    except OSError as err:
+        raise InputError(f"{option} {path} cannot be read ({_reason(err)})", fix) from None
+    try:
+        info = os.fstat(fd)
+        if not stat.S_ISREG(info.st_mode):
+            raise InputError(f"{option} {path} is {_kind(info.st_mode)}, not a regular file", fix)
+        _check_size(option, path, info.st_size, limit_bytes, fix)
+        with os.fdopen(fd, "rb", closefd=False) as file:
+            data = file.read(limit_bytes + 1)
+    except OSError as err:
+        raise InputError(f"{option} {path} cannot be read ({_reason(err)})", fix) from None
+    finally:
+        os.close(fd)
+    _check_size(option, path, len(data), limit_bytes, fix)  # it may have grown or shrunk since the fstat
+    return data
+
+
+def _check_size(option: str, path: Path, size: int, limit_bytes: int, fix: str) -> None:
+    if size == 0:
+        raise InputError(f"{option} {path} is empty", fix)
+    if size > limit_bytes:
+        raise InputError(
+            f"{option} {path} is {_size_text(size)}, more than such a file can be ({_size_text(limit_bytes)})", fix
+        )
+
+
+def _size_text(size: int) -> str:
+    """A size in bytes, MB or GB.
+
+    >>> _size_text(3), _size_text(5 * MB), _size_text(20 * GB)
+    ('3 bytes', '5.0 MB', '20.0 GB')
+    """
+    return f"{size / GB:.1f} GB" if size >= GB else f"{size / MB:.1f} MB" if size >= MB else f"{size} bytes"
+
+
+def read_option_text(option: str, path: Path, *, limit_bytes: int, fix: str) -> str:
+    """:func:`read_option_bytes` decoded as UTF-8 text; an :class:`InputError` for bytes that are not text."""
+    data = read_option_bytes(option, path, limit_bytes=limit_bytes, fix=fix)
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as err:
+        raise InputError(f"{option} {path} is not text (byte {err.start} is not UTF-8)", fix) from None
+    if "\x00" in text:
+        raise InputError(f"{option} {path} is not text (it holds NUL bytes)", fix)
+    return text
+
+
+def check_option_file(option: str, path: Path, *, limit_bytes: int, fix: str) -> Path:
+    """``path`` when it is a regular file of 1 to ``limit_bytes`` bytes, for a library that opens it itself
+    (COLMAP); the same errors as :func:`read_option_bytes`, without reading it."""
+    path = Path(path)
+    try:
+        info = os.stat(path)
+    except OSError as err:
+        raise InputError(f"{option} {path} cannot be read ({_reason(err)})", fix) from None
+    if not stat.S_ISREG(info.st_mode):
+        raise InputError(f"{option} {path} is {_kind(info.st_mode)}, not a regular file", fix)
+    _check_size(option, path, info.st_size, limit_bytes, fix)
+    return path
+
+
+def check_model_files(option: str, folder: Path, *, limit_bytes: int, fix: str) -> None:
+    """Each COLMAP model file in ``folder`` (cameras, images, points3D; .bin or .txt) that exists is a regular
+    file of at most ``limit_bytes`` (see :func:`check_option_file`): checked before COLMAP opens them, where a FIFO
+    would hang and a device would fill the memory."""
+    for name in ("cameras", "images", "points3D", "rigs", "frames"):
+        for found in (Path(folder) / f"{name}{suffix}" for suffix in (".bin", ".txt")):
+            if os.path.lexists(found):
+                check_option_file(option, found, limit_bytes=limit_bytes, fix=fix)

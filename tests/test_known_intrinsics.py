@@ -74,7 +74,8 @@ def test_per_image_intrinsics_scale_to_the_frames(tmp_path):
 @pytest.mark.parametrize(
     ("text", "says"),
     [
-        ("", "holds no camera"),
+        ("", "is empty"),
+        ("# only a comment\n", "holds no camera"),
         ("1 SIMPLE_RADIAL 640 480 500 320 240\n", "takes 4 parameters"),
         ("1 FISHEYE_X 640 480 500 320 240\n", "not one ffrecon takes"),
         ("1 PINHOLE 640 480 500 320 240\n", "takes 4 parameters"),

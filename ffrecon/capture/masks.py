@@ -10,30 +10,34 @@ used whole. The capture writes every frame's mask at the frame's size as ``OUT/m
 from __future__ import annotations
 
 import logging
+import os
 from collections.abc import Sequence
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from ffrecon.checks import MB, check_option_folder, read_option_bytes
 from ffrecon.errors import InputError
 from ffrecon.types import Frame
 
 log = logging.getLogger("ffrecon.capture")
+LIMIT_BYTES = 64 * MB  # one mask PNG (a binary mask of a 100 MP photo compresses to a few MB)
 FIX = "give one PNG per photo named <photo stem>.png or <photo name>.png, 0 where the photo is to be ignored"
 
 
 def _mask_file(folder: Path, name: str) -> Path | None:
     for candidate in (folder / f"{name}.png", folder / f"{Path(name).stem}.png"):
-        if candidate.is_file():
+        if os.path.lexists(candidate):  # a FIFO or a device too: refused when read, not taken for "no mask"
             return candidate
     return None
 
 
 def _read_mask(path: Path, original_wh: tuple[int, int], size_wh: tuple[int, int]) -> np.ndarray:
     """``[H, W]`` uint8 (255 use, 0 ignore) at the frame's size; an :class:`InputError` for a bad file."""
-    mask = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if mask is None:
+    data = np.frombuffer(read_option_bytes("--masks", path, limit_bytes=LIMIT_BYTES, fix=FIX), np.uint8)
+    mask = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    if mask is None or mask.ndim not in (2, 3):
         raise InputError(f"--masks: {path} cannot be read as an image", FIX)
     if mask.ndim == 3:  # a colour or RGBA PNG: ignored where every channel is 0
         mask = mask.max(axis=2)
@@ -51,8 +55,7 @@ def _read_mask(path: Path, original_wh: tuple[int, int], size_wh: tuple[int, int
 
 def write_masks(folder: Path, frames: Sequence[Frame], originals_wh: Sequence[tuple[int, int]], out_dir: Path) -> Path:
     """Every frame's mask, as ``out_dir/<name>.png`` at the frame's size (all 255 where none was given)."""
-    if not folder.is_dir():
-        raise InputError(f"--masks {folder} is not a folder", FIX)
+    check_option_folder("--masks", folder, fix=FIX)
     out_dir.mkdir(parents=True, exist_ok=True)
     found = 0
     for frame, original in zip(frames, originals_wh):

@@ -14,6 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+from ffrecon.checks import MB, read_option_text
 from ffrecon.errors import InputError
 from ffrecon.types import PinholeCamera
 
@@ -40,6 +41,7 @@ def _lens(model: str, coefficients: list[float]) -> Lens | None:
     return "opencv", (padded[0], padded[1], padded[2], padded[3])
 
 
+LIMIT_BYTES = 16 * MB  # a line per photo is ~100 bytes: 160,000 photos
 FIX = "write one line per camera as in COLMAP's cameras.txt: ID (or the photo's name) MODEL WIDTH HEIGHT PARAMS"
 
 
@@ -75,6 +77,8 @@ class KnownIntrinsics:
 
 
 def _camera(tokens: list[str], where: str) -> tuple[PinholeCamera, Lens | None]:
+    if len(tokens) < 5:
+        raise InputError(f"{where}: {len(tokens)} fields, a camera line has ID MODEL WIDTH HEIGHT PARAMS", FIX)
     model = tokens[1].upper()
     if model not in _MODELS:
         raise InputError(f"{where}: camera model {tokens[1]} is not one ffrecon takes", f"use one of {list(_MODELS)}")
@@ -87,7 +91,11 @@ def _camera(tokens: list[str], where: str) -> tuple[PinholeCamera, Lens | None]:
     if len(params) != count:
         raise InputError(f"{where}: {model} takes {count} parameters, the line has {len(params)}", FIX)
     values = [params[fx], params[fy], params[cx], params[cy]]
-    if min(width, height) < 1 or not all(v > 0 for v in values) or not all(abs(v) < 1e7 for v in values):
+    if (
+        not 1 <= min(width, height) <= max(width, height) < 10**6
+        or not all(v > 0 for v in values)
+        or not all(abs(v) < 1e7 for v in values)
+    ):
         raise InputError(f"{where}: a size or parameter is not a positive, finite number", FIX)
     return PinholeCamera(width, height, *values), _lens(model, params[lens:])
 
@@ -95,10 +103,7 @@ def _camera(tokens: list[str], where: str) -> tuple[PinholeCamera, Lens | None]:
 def read_intrinsics(path: Path) -> KnownIntrinsics:
     """Parse ``path`` (see the module's docstring); an :class:`InputError` naming the line that is wrong."""
     path = Path(path)
-    try:
-        lines = path.read_text().splitlines()
-    except (OSError, UnicodeDecodeError) as err:
-        raise InputError(f"--intrinsics {path} cannot be read ({err})", "pass a cameras.txt-style text file") from None
+    lines = read_option_text("--intrinsics", path, limit_bytes=LIMIT_BYTES, fix=FIX).splitlines()
     rows = [(k + 1, line.split()) for k, line in enumerate(lines) if line.strip() and not line.lstrip().startswith("#")]
     if not rows:
         raise InputError(f"--intrinsics {path} holds no camera", FIX)

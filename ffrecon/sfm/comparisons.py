@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from ffrecon.checks import GB, check_model_files
 from ffrecon.colmap_io import cam_from_world_by_name, is_model_dir
 from ffrecon.errors import InputError
 from ffrecon.formats.ground_truth import ground_truth_poses
@@ -60,6 +61,7 @@ def check_references(ground_truth: Path | None, reference: Path | None) -> None:
         inside = [p for p in (ref / "sparse" / "0", ref / "0", ref.parent) if is_model_dir(p)]
         what = "is not a COLMAP model folder (no images.bin or images.txt)" if ref.exists() else "does not exist"
         raise InputError(f"--reference {ref} {what}", f"pass --reference {inside[0]}" if inside else fix)
+    check_model_files("--reference", ref, limit_bytes=32 * GB, fix=fix)  # COLMAP would hang on a FIFO
     try:
         registered = pycolmap.Reconstruction(str(ref)).num_reg_images()
     except Exception as err:  # pycolmap raises ValueError, RuntimeError or MemoryError on bad files

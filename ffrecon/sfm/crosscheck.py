@@ -47,7 +47,7 @@ from ffrecon.sfm.features import (
     threads_at_most,
 )
 from ffrecon.sfm.mapping import MapperRun, map_images, two_view_run
-from ffrecon.sfm.retrieval import retrieval_pairs
+from ffrecon.sfm.retrieval import check_vocab_tree, retrieval_pairs
 from ffrecon.timing import StageTimer, Timings
 from ffrecon.types import PinholeCamera, Prediction
 
@@ -196,7 +196,7 @@ def _check_vocab_tree(options: ColmapOptions, what: str) -> str:
             f"{what} needs a vocabulary tree file (got {options.vocab_tree_path})",
             "download one of COLMAP's vocabulary trees and pass its path, or use sequential pairing",
         )
-    return str(options.vocab_tree_path)
+    return str(check_vocab_tree(options.vocab_tree_path))  # before COLMAP's threads, where a bad tree aborts
 
 
 def _sequential_pairing(options: ColmapOptions) -> pycolmap.SequentialPairingOptions:

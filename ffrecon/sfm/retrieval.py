@@ -13,7 +13,12 @@ aggregates local descriptors (faiss and pyDBoW3 would be new, heavy dependencies
 
 from __future__ import annotations
 
+import json
 import logging
+import os
+import struct
+import subprocess
+import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,7 +27,8 @@ import cv2
 import numpy as np
 import pycolmap
 
-from ffrecon.checks import check_number
+from ffrecon.checks import GB, check_number, check_option_file, read_option_bytes
+from ffrecon.errors import InputError
 
 logger = logging.getLogger("ffrecon.sfm")
 
@@ -128,3 +134,89 @@ def retrieval_pairs(db_path: Path, names: Sequence[str], options: RetrievalOptio
     pairs = loop_candidates(global_descriptors(db_path, names, options), options)
     logger.info("retrieval (VLAD over SIFT): %d loop candidate pairs among %d frames", len(pairs), len(names))
     return [(names[i], names[j]) for i, j in pairs]
+
+
+# --- COLMAP's vocabulary tree file (--vocab-tree) ----------------------------------------------------------------
+# COLMAP reads it in its matching threads, where a failed check aborts the process (SIGABRT, a C++ stack dump),
+# so a tree is checked first: its header here, then a full read by pycolmap in a child process, once per file.
+
+VOCAB_TREE_LIMIT_BYTES = 8 * GB  # COLMAP's largest published tree (1M words) is a few hundred MB
+VOCAB_TREE_PROBE_SECONDS = 120.0  # reading the 1M-word tree takes seconds
+VOCAB_TREE_FIX = (
+    "pass a faiss-format COLMAP vocabulary tree (COLMAP's releases publish vocab_tree_faiss_flickr100K_words32K.bin; "
+    "trees made before May 2025 are FLANN-format and no longer read), build one with `colmap vocab_tree_builder`, "
+    "or drop --vocab-tree"
+)
+_HEADER = struct.Struct("<iii")  # file version (1 or 2), descriptor dimension, embedding dimension (then faiss)
+_PROBE = "import sys, pycolmap; pycolmap.VisualIndex.read(sys.argv[1])"
+
+
+def check_vocab_tree(path: Path, *, cache_dir: Path | None = None) -> Path:
+    """``path`` when COLMAP can read it as a vocabulary tree; else an :class:`InputError` (exit 2) saying why.
+
+    The header (version 1 or 2, then SIFT's 128-dimensional descriptors with 64-bit embeddings, or 32/16) is read
+    here; a FLANN-format tree (before May 2025) begins with its word count instead. Then pycolmap reads the
+    whole tree in a child process (bounded by :data:`VOCAB_TREE_PROBE_SECONDS`), so a corrupt tree ends the
+    child, not the run. A tree that passed is remembered in ``cache_dir`` (default ``$FFRECON_CACHE``, else
+    ``~/.cache/ffrecon``) by path, inode, size, modification and change time, so it is read once per file.
+    """
+    path = check_option_file("--vocab-tree", Path(path), limit_bytes=VOCAB_TREE_LIMIT_BYTES, fix=VOCAB_TREE_FIX)
+    with open(path, "rb") as file:  # a regular file (checked above): the header only
+        head = file.read(_HEADER.size)
+    if len(head) < _HEADER.size:
+        raise InputError(f"--vocab-tree {path} is {len(head)} bytes, too short for a vocabulary tree", VOCAB_TREE_FIX)
+    version, desc_dim, embedding_dim = _HEADER.unpack(head)
+    if version not in (1, 2):
+        # a FLANN tree begins with its word count as a 64-bit integer: e.g. 32768, then 0
+        legacy = version > 2 and desc_dim == 0
+        what = (
+            "a FLANN-format tree (made before COLMAP switched to faiss in May 2025)"
+            if legacy
+            else "not a vocabulary tree"
+        )
+        raise InputError(f"--vocab-tree {path} is {what}: it begins {head[:8].hex(' ')}", VOCAB_TREE_FIX)
+    if (desc_dim, embedding_dim) not in ((128, 64), (32, 16)):
+        raise InputError(
+            f"--vocab-tree {path}: descriptors of {desc_dim} and embeddings of {embedding_dim} dimensions; COLMAP "
+            "reads 128/64 (SIFT) and 32/16",
+            VOCAB_TREE_FIX,
+        )
+    _probe_once(path, cache_dir)
+    return path
+
+
+def _probe_once(path: Path, cache_dir: Path | None) -> None:
+    cache_dir = cache_dir or Path(os.environ.get("FFRECON_CACHE", Path.home() / ".cache" / "ffrecon"))
+    info = os.stat(path)
+    stamp = json.dumps(
+        [os.path.abspath(path), info.st_dev, info.st_ino, info.st_size, info.st_mtime_ns, info.st_ctime_ns]
+    )
+    memo = Path(cache_dir) / "vocab_trees_read.json"
+    try:
+        known = json.loads(read_option_bytes("cache", memo, limit_bytes=GB, fix="")) if memo.is_file() else []
+    except (InputError, ValueError):
+        known = []
+    known = known if isinstance(known, list) else []
+    if stamp in known:
+        return
+    _probe(path)
+    try:
+        memo.parent.mkdir(parents=True, exist_ok=True)
+        memo.write_text(json.dumps([*known[-99:], stamp]))
+    except OSError as err:  # costs a second read next time, nothing else
+        logger.info("cannot remember that %s was read (%s)", path, err)
+
+
+def _probe(path: Path) -> None:
+    """pycolmap reads the tree in a child process: an :class:`InputError` with its last words if it fails."""
+    command = [sys.executable, "-c", _PROBE, str(path)]
+    try:
+        done = subprocess.run(command, capture_output=True, text=True, timeout=VOCAB_TREE_PROBE_SECONDS, check=False)
+    except subprocess.TimeoutExpired:
+        raise InputError(
+            f"--vocab-tree {path}: pycolmap did not finish reading it in {VOCAB_TREE_PROBE_SECONDS:g} s", VOCAB_TREE_FIX
+        ) from None
+    if done.returncode != 0:
+        said = [line.strip() for line in done.stderr.splitlines() if "Check failed" in line or "Error" in line]
+        why = said[-1][:300] if said else f"exit code {done.returncode}"
+        raise InputError(f"--vocab-tree {path} is not a vocabulary tree COLMAP can read ({why})", VOCAB_TREE_FIX)
