@@ -5,10 +5,15 @@ take COLMAP's pose, moved into the refined frame); else the model's; else COLMAP
 the evidence found the model unsuited). Frames the evidence contradicted stay out; those no independent
 evidence confirmed are named (:attr:`FinalCameras.unconfirmed`), for the splat to refine photometrically.
 The splat and the exports read these cameras and nothing else.
+
+When the evidence checked none of the final cameras (every one unchecked: COLMAP and the refinement found
+nothing to check them with), the run fails unless forced (:func:`require_checked`): missing evidence on one
+camera is a warning, on every camera it means there is no result to trust.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import logging
 import shutil
@@ -26,6 +31,7 @@ from ffrecon.geometry.undistort import NO_DISTORTION, opencv_coefficients
 from ffrecon.models.stage import FeedForwardResult
 from ffrecon.sfm.crosscheck import ColmapResult
 from ffrecon.sfm.evidence import CameraStatus, EvidenceResult, FrameVerdict
+from ffrecon.sfm.gates import unchecked_verdict
 from ffrecon.sfm.refine import RefineResult
 from ffrecon.types import PinholeCamera, Skipped
 
@@ -200,3 +206,24 @@ def final_cameras(
     final = select_final_cameras(names, ff, colmap, refine, evidence)
     write_final_model(final, final and source_model(final.source, ff, colmap, refine), work)
     return final
+
+
+def require_checked(evidence: EvidenceResult, colmap: ColmapResult | Skipped, refine: RefineResult) -> EvidenceResult:
+    """``evidence`` with its ``checked_share`` verdict failing (blocking unless forced) when no final camera was
+    checked: every frame kept is unchecked (none confirmed, none corrected). Else ``evidence`` as it is."""
+    kept = [e for e in evidence.per_image if e.status.kept]
+    if evidence.model_unsuited or not kept or any(e.verdict is not FrameVerdict.UNCHECKED for e in kept):
+        return evidence
+    colmap_text = (
+        f"COLMAP registered {colmap.num_registered} of {len(colmap.names)} images and "
+        if isinstance(colmap, ColmapResult)
+        else ""
+    )
+    refined = int(np.count_nonzero(refine.registered))
+    tried = f"{colmap_text}the refinement confirmed none of the {len(kept)} frames ({refined} refined)"
+    failed = unchecked_verdict(len(kept), tried)
+    forced = "; continuing anyway (--force)" if evidence.gates.forced else ""
+    log.warning("gate %s: %s - %s%s", failed.name, failed.status.value, failed.reason, forced)
+    verdicts = [failed if v.name == failed.name else v for v in evidence.gates.verdicts]
+    verdicts += [] if failed in verdicts else [failed]
+    return dataclasses.replace(evidence, gates=dataclasses.replace(evidence.gates, verdicts=tuple(verdicts)))

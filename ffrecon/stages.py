@@ -4,21 +4,58 @@ live (docs/architecture.md)."""
 
 from __future__ import annotations
 
-from ffrecon.capture import run_capture
+from collections.abc import Callable
+
+import numpy as np
+
+from ffrecon.capture import Capture, run_capture
 from ffrecon.export.stage import OUTPUTS, export_final_cameras
-from ffrecon.final_cameras import final_cameras
+from ffrecon.final_cameras import CameraSource, FinalCameras, final_cameras, require_checked
 from ffrecon.models.stage import feedforward_skip_reason, run_feedforward_sharing
 from ffrecon.sfm import refine
 from ffrecon.sfm.comparisons import comparison_skip_reason, load_references, pose_estimates, run_comparisons
 from ffrecon.sfm.crosscheck import pairs_from_model, run_colmap_on
 from ffrecon.sfm.evidence import evidence_skip_reason, judge_refined_cameras
-from ffrecon.sfm.gates import gate_poses
+from ffrecon.sfm.gates import MIN_MASK_USE, gate_poses
 from ffrecon.splat import stage as splat
 from ffrecon.splat.final import seed_comparison_skip_reason, splat_final_cameras, splat_from_colmap_points, with_curves
-from ffrecon.state import Beside, Stage
-from ffrecon.types import QUICK_NO_CROSSCHECK, RunMode
+from ffrecon.splat.seed import no_seed_reason
+from ffrecon.state import Beside, RunState, Stage
+from ffrecon.types import QUICK_NO_CROSSCHECK, Prediction, RunMode
 
 NO_CAMERAS = "COLMAP registered fewer than two images"
+
+
+def masked_out(capture: Capture) -> Callable[[], set[str]] | None:
+    """The frames whose masks (--masks) keep less than ``MIN_MASK_USE`` of their pixels, read when a gate asks
+    (one mask at a time); None without masks."""
+    if capture.mask_dir is None:
+        return None
+    return lambda: {
+        name for k, name in enumerate(capture.names) if float(capture.read_masks([k])[0].mean()) < MIN_MASK_USE
+    }
+
+
+def no_depth_reason(prediction: Prediction | None, masks: bool) -> str | None:
+    """Why the refinement has nothing to work on: the masks ignore every pixel of every frame (the model's depth
+    is cleared there), or None."""
+    if prediction is None or not masks or any(np.any(d > 0) for d in prediction.depth):
+        return None
+    return "no depth left to refine with: the masks (--masks) ignore every pixel of every frame"
+
+
+def splat_seed_reason(state: RunState) -> str | None:
+    """Why the splat has no seed point (the model's depth maps of the final frames hold no confident pixel)."""
+    final = state.final
+    if not isinstance(final, FinalCameras) or final.source is CameraSource.COLMAP or state.prediction is None:
+        return None
+    return no_seed_reason(state.prediction, final.indices)
+
+
+def blocked(state: RunState) -> str | None:
+    """The failed gate that stops the run (not forced), or None: after it nothing is exported."""
+    return state.why_not(*state.verdicts) if state.views >= 2 else None
+
 
 CAPTURE = Stage(
     "capture",
@@ -26,7 +63,7 @@ CAPTURE = Stage(
     lambda s, o, c: run_capture(s.source, o.capture, s.work),
     lambda o: o.capture,
     files=lambda s, o: (o.capture.intrinsics, o.capture.masks, o.capture.poses),
-    outputs=("images",),
+    outputs=("images", "masks"),
     check=lambda capture, o: splat.check_splat_fits([f.size_wh for f in capture.frames], o.splat),
 )
 FEEDFORWARD = Stage(
@@ -64,8 +101,16 @@ SIFT = Stage(  # quick mode: the refinement's SIFT, extracted beside the inferen
 GATES = Stage(
     "gates",
     ("capture", "feedforward", "colmap"),
-    lambda s, o, c: gate_poses(s.capture.quality, s.prediction, s.colmap, o.gates, force=o.force),
-    lambda o: (o.gates, o.force),
+    lambda s, o, c: gate_poses(
+        s.capture.quality,
+        s.prediction,
+        s.colmap,
+        o.gates,
+        force=o.force,
+        judged=o.refine.enabled,
+        masked_out=masked_out(s.capture),
+    ),
+    lambda o: (o.gates, o.force) if o.refine.enabled else (o.gates, o.force, "--no-refine"),
     label="gates",
     skip=lambda s, o: s.why_not(),
 )
@@ -76,15 +121,19 @@ REFINE = Stage(
     lambda o: o.refine,
     label="refinement",
     skip=lambda s, o: (
-        s.why_not(s.gates, enabled=o.refine.enabled, flag="--no-refine") or refine.refine_skip_reason(s.prediction)
+        s.why_not(s.gates, enabled=o.refine.enabled, flag="--no-refine")
+        or refine.refine_skip_reason(s.prediction)
+        or no_depth_reason(s.prediction, masks=s.capture.mask_dir is not None)
     ),
     outputs=("sparse", "refine"),
 )
 EVIDENCE = Stage(
     "evidence",
     ("feedforward", "colmap", "gates", "refine"),
-    lambda s, o, c: judge_refined_cameras(
-        s.capture.names, s.prediction, s.colmap, s.gates, s.refine, o.evidence, force=o.force
+    lambda s, o, c: require_checked(
+        judge_refined_cameras(s.capture.names, s.prediction, s.colmap, s.gates, s.refine, o.evidence, force=o.force),
+        s.colmap,
+        s.refine,
     ),
     lambda o: (o.evidence, o.force),
     label="evidence on the final cameras",
@@ -119,6 +168,7 @@ SPLAT = Stage(
     skip=lambda s, o: (
         s.why_not(*s.verdicts, enabled=o.splat.enabled, flag="--no-splat")
         or (None if s.final else f"no cameras: {NO_CAMERAS}")
+        or splat_seed_reason(s)
     ),
     outputs=splat.OUTPUTS,
 )
@@ -140,7 +190,7 @@ EXPORTS = Stage(
     ),
     lambda o: (o.exports, o.feedforward.fuse),
     label="exports",
-    skip=lambda s, o: None if s.final else f"no cameras to export: {NO_CAMERAS} and no model was given",
+    skip=lambda s, o: blocked(s) or (None if s.final else f"no cameras to export: {NO_CAMERAS} and no model was given"),
     outputs=OUTPUTS,
 )
 POSES = Beside((FEEDFORWARD, COLMAP, SIFT))  # each reads only the capture

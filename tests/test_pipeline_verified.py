@@ -125,8 +125,8 @@ def test_blurred_capture_names_blur_and_marks_what_nothing_checked(tmp_path, dem
     matches per frame here; the model-guided dense evidence refines every frame (measured with the same
     scene and the simulated model: 0.08-0.36 deg from the truth, the model's 2.5), none contradicted, none
     unchecked. With dense evidence off nothing reaches the frames: they keep the model's cameras, marked
-    unchecked, and the run still ends with exit 0 and a warning, not a failed gate: lack of matches is never
-    a contradiction (issue 21)."""
+    unchecked (lack of matches is never a contradiction, issue 21); as no camera at all could be checked, the
+    run fails (exit 5, issue 43) unless forced: there is no result to trust."""
     monkeypatch.setenv("FFRECON_CACHE", str(demo_cache))
     from ffrecon.synthetic import SceneOptions, make_scene, write_scene
     from ffrecon.synthetic.simulated_model import build_simulated_vggt
@@ -149,10 +149,10 @@ def test_blurred_capture_names_blur_and_marks_what_nothing_checked(tmp_path, dem
     # Dense evidence off: the frames nothing checks.
     starved = RunOptions(splat=SplatOptions(enabled=False), refine=RefineOptions(dense=DenseOptions(enabled=False)))
     result = run(images, tmp_path / "starved", tmp_path / "sim.onnx", starved)
-    assert result.exit_code == 0 and not result.evidence.gates.blocking
+    assert result.exit_code == 5 and result.evidence.gates.blocking
     unchecked = result.evidence.count(CameraStatus.UNCHECKED)
-    assert unchecked > 0 and result.evidence.count(CameraStatus.CONTRADICTED) == 0
+    assert unchecked == len(scene) and result.evidence.count(CameraStatus.CONTRADICTED) == 0
     checked = next(v for v in result.evidence.gates.verdicts if v.name == "checked_share")
-    assert checked.status.value == "warn" and f"{unchecked} unchecked" in checked.reason
+    assert checked.status.value == "fail" and "no camera could be checked" in checked.reason
     report = json.loads((tmp_path / "starved" / "report.json").read_text())
     assert len(report["evidence"]["verdicts"]["unchecked"]) == unchecked

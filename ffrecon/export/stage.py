@@ -4,6 +4,10 @@
 sparse points when no model was given), the nerfstudio
 ``transforms.json`` and, on request, a Poisson mesh (``mesh.ply``, ``mesh.glb``). The COLMAP models
 are written by the stages that make them; the report by :mod:`ffrecon.report.build`.
+
+An empty cloud (every pixel masked out, or the model unsure of every pixel) is a result, not a failure:
+the files made of points (``points.ply``, the mesh) are not written, and :attr:`ExportsResult.not_written`
+says why, for the report; ``transforms.json`` is written all the same (it needs cameras only).
 """
 
 from __future__ import annotations
@@ -41,13 +45,31 @@ class ExportOptions:
 class ExportsResult:
     """Files written by the export stage (paths in the run folder)."""
 
-    points_ply: Path
+    points_ply: Path | None  # None: not written (see ``not_written``)
     num_points: int
     points_from: str  # what the cloud is: fused depth maps, or COLMAP's sparse points
     transforms_json: Path
     mesh_ply: Path | None
     mesh_glb: Path | None
     cameras_from: CameraSource  # FinalCameras.source
+    not_written: dict[str, str] = field(default_factory=dict)  # file name -> why it was not written
+
+
+def empty_cloud_reason(points_from: str, masks: bool) -> str:
+    """Why a cloud of ``points_from`` holds no point, and what to do (for the report).
+
+    >>> empty_cloud_reason("COLMAP's sparse points", masks=False)
+    "no point to write: COLMAP's sparse points hold none"
+    """
+    if "depth" not in points_from:
+        return f"no point to write: {points_from} hold none"
+    why = (
+        "the masks (--masks) ignore every pixel, or the model is unsure of the rest: check the mask polarity, "
+        "0 = ignore, 255 = use"
+        if masks
+        else "the model is unsure of every pixel: try another model"
+    )
+    return f"no depth pixel of the final frames is left to fuse; {why}"
 
 
 def fuse_with_final_cameras(
@@ -83,24 +105,33 @@ def run_exports(
     """
     out_dir = Path(out_dir)
     xyz, rgb = points
-    cloud = write_point_cloud(out_dir / "points.ply", xyz, rgb)
+    not_written: dict[str, str] = {}
+    cloud = None
+    if len(xyz):
+        cloud = write_point_cloud(out_dir / "points.ply", xyz, rgb)
+    else:
+        reason = empty_cloud_reason(points_from, masks)
+        not_written = {"points.ply": reason} | ({"mesh.ply": reason, "mesh.glb": reason} if options.mesh else {})
+        log.warning("points.ply%s not written: %s", " and the mesh" if options.mesh else "", reason)
     files = [f"images/{n}" for n in final.names]
     transforms = write_transforms(
         out_dir / "transforms.json",
         files,
         final.cam_from_world,
         final.cameras,
-        ply_file_path="points.ply",
+        ply_file_path=None if cloud is None else "points.ply",
         distortion=final.distortion,
         mask_paths=[f"masks/{n}.png" for n in final.names] if masks else None,
     )
     mesh_ply = mesh_glb = None
-    if options.mesh:
+    if options.mesh and cloud is not None:
         centers = camera_centers(final.cam_from_world)
         mesh_ply, mesh_glb = write_mesh(
             out_dir / "mesh.ply", out_dir / "mesh.glb", xyz, rgb, centers, options.mesh_options
         )
-    return ExportsResult(cloud, int(len(xyz)), points_from, transforms, mesh_ply, mesh_glb, final.source)
+    return ExportsResult(
+        cloud, int(len(xyz)), points_from, transforms, mesh_ply, mesh_glb, final.source, not_written=not_written
+    )
 
 
 def export_final_cameras(
@@ -116,7 +147,9 @@ def export_final_cameras(
     cameras; the depth maps fused again with the refined cameras; the model's own fused cloud for its
     cameras), then :func:`run_exports`."""
     if final.source is CameraSource.COLMAP and isinstance(colmap, ColmapResult):
-        points, what = seed_from_reconstruction(colmap.reconstruction), "COLMAP's sparse points"
+        rec = colmap.reconstruction
+        points = seed_from_reconstruction(rec) if rec.num_points3D() else (np.zeros((0, 3)), np.zeros((0, 3)))
+        what = "COLMAP's sparse points"
     elif isinstance(ff, FeedForwardResult) and final.source is CameraSource.REFINED:
         points = fuse_with_final_cameras(ff.prediction, final, capture.frames_on_demand, fuse)
         what = "depth maps fused with the refined cameras"

@@ -23,7 +23,8 @@ def quat_xyzw_to_matrix(quat_xyzw: np.ndarray) -> np.ndarray:
     True
     """
     q = np.asarray(quat_xyzw, dtype=np.float64)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    norm = np.linalg.norm(q, axis=-1, keepdims=True)
+    q = q / np.where(norm > 0, norm, np.nan)  # a zero quaternion is no rotation: NaN, which the callers report
     x, y, z, w = np.moveaxis(q, -1, 0)
     rot = np.stack(
         [

@@ -204,6 +204,7 @@ def build_report(results: RunResults) -> dict:
             "transforms_json": rel(ex.transforms_json),
             "mesh": {"ply": rel(ex.mesh_ply), "glb": rel(ex.mesh_glb)} if ex.mesh_ply else None,
             "cameras": ex.cameras_from,
+            "not_written": dict(ex.not_written),  # file -> why (an empty cloud: no points.ply, no mesh)
         }
 
     report = {

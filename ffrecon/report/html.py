@@ -527,9 +527,9 @@ def summary_rows(report: dict) -> list[tuple[str, str]]:
         rows.append(("fused points", str(ff["num_points"])))
     exports = report["exports"]
     if "skipped" not in exports:
-        rows.append(
-            ("exported cameras", f"{exports['cameras']}; points.ply: {exports['num_points']} {exports['points']}")
-        )
+        missing = exports.get("not_written", {}).get("points.ply")
+        cloud = f"not written: {missing}" if missing else f"{exports['num_points']} {exports['points']}"
+        rows.append(("exported cameras", f"{exports['cameras']}; points.ply: {cloud}"))
     colmap, refine, splat = report["colmap"], report["refine"], report["splat"]
     if "skipped" not in colmap:
         runs = "; ".join(f"{r['mapper']}: {r['num_registered']}" for r in colmap.get("mapper_runs", []))
@@ -594,6 +594,8 @@ def render_html(report: dict, run_dir: Path) -> str:
     for item in report["skipped_stages"]:
         stage, reason = html.escape(item["stage"]), html.escape(item["reason"])
         parts.append(f"<div class='banner warn'>Skipped <b>{stage}</b>: {reason}</div>")
+    for file, reason in (report["exports"].get("not_written") or {}).items():
+        parts.append(f"<div class='banner warn'>Not written <b>{html.escape(file)}</b>: {html.escape(reason)}</div>")
     parts.append("<h2>Summary</h2>" + _table([{"item": k, "value": v} for k, v in summary_rows(report)]))
     scene = scene_html(report, run_dir)
     if scene:

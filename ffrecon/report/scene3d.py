@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import plotly.graph_objects as go
 
+from ffrecon.colmap_io import is_model_dir
 from ffrecon.errors import InputError
 from ffrecon.view.scene import FLAG_COLOR, CameraLayer, CameraSpec, Estimate, PointLayer, ViewOptions, load_scene
 
@@ -130,10 +131,19 @@ def _scatter(xyz: np.ndarray, name: str, hover: list[str] | None = None, **style
     )
 
 
+def _has_scene(run_dir: Path) -> bool:
+    """Whether ``run_dir`` holds something the 3D view draws: a camera model or points.ply."""
+    return any(is_model_dir(run_dir / e.folder) for e in Estimate) or (run_dir / "points.ply").is_file()
+
+
 def scene_html(report: dict, run_dir: Path) -> str:
     """The 3D view of the output folder ``run_dir`` (described by ``report``) as an HTML fragment with
     plotly.js inlined; '' when it holds no cameras or a file in it cannot be read (logged: the rest of the
-    report is still written)."""
+    report is still written). A run that made no cameras and no points (one stopped by a gate) has no view,
+    and that is no news: nothing is logged then."""
+    if not _has_scene(Path(run_dir)):
+        logger.debug("report: no 3D view: the run made no cameras and no points")
+        return ""
     try:
         scene = load_scene(Path(run_dir), ViewOptions(max_points=MAX_POINTS, splat=False), report)
     except InputError as err:

@@ -4,15 +4,23 @@ Each gate returns a :class:`GateVerdict` with its value, threshold, reason and f
 registration gate names the likely cause (blur, lack of texture, small parallax, too little overlap)
 from the capture checks' per-frame measures (:class:`ffrecon.capture.quality.CaptureQuality`) and from
 the verified pairs of the images COLMAP left out (:mod:`ffrecon.sfm.verified_pairs`: their matches
-and triangulation angles), so the user knows what to change; the images are not read again.
+and triangulation angles), so the user knows what to change; the images are not read again. Masks
+(``--masks``) that ignore every pixel are named as the cause before anything else (read only when a gate
+failed).
+
+A run in which a check was tried and no camera could be checked (COLMAP and the refinement found nothing
+to check them with) fails too (:func:`unchecked_verdict`): the model's cameras, unverified, would
+otherwise pass as a result. Runs that turn every check off (``--no-colmap --no-refine``) check nothing on
+purpose: they pass, the report saying so.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import enum
+import functools
 import logging
-from collections.abc import Sequence
+from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -42,6 +50,7 @@ class FailureCause(enum.Enum):
     DISCONNECTED = "disconnected"  # several models: groups of photos that share no views
     SMALL_PARALLAX = "small_parallax"  # plenty of verified matches, too little baseline to triangulate
     OVERLAP = "overlap"  # the photos left out share few matches: too little overlap or too wide a baseline
+    MASKED = "masked"  # the masks (--masks) ignore every pixel of the photos: nothing is left to match
 
 
 @dataclass(frozen=True)
@@ -150,7 +159,14 @@ _FIXES = {
     FailureCause.OVERLAP: "the photos left out share too few matches with any other photo: too little overlap or "
     "too wide a baseline between them and the rest (the view turns or moves too far between shots); take more "
     "photos in between, each sharing about two thirds of its view with the previous one, and move less between shots",
+    FailureCause.MASKED: "the masks (--masks) are 0 (ignore) on (nearly) every pixel, so nothing is left to match "
+    "or fuse: check the mask polarity: 0 = ignore, 255 = use (invert masks drawn the other way round)",
 }
+
+MaskedOut = Callable[[], Collection[str]]  # the frames whose masks ignore (nearly) every pixel, read when asked
+# A frame whose mask (--masks) keeps less than this share of its pixels counts as masked out: its photo gives
+# no features and no depth, whatever it shows.
+MIN_MASK_USE = 0.01
 
 
 def diagnose_registration(
@@ -164,8 +180,12 @@ def diagnose_registration(
     num_models: int = 1,
     camera_groups: np.ndarray | None = None,
     registered: np.ndarray | None = None,
+    masked_out: Collection[str] = (),
 ) -> tuple[FailureCause, ...]:
     """Likely causes of poor registration of ``names``, most likely first.
+
+    Masks that ignore every pixel of ``cause_share`` of the images or more (``masked_out``: their names)
+    come first and alone: the photos were never seen, so nothing else about them can be told.
 
     Blur, lack of texture and exposure drift come from the capture flags on those images (blur
     lowers the edge sharpness; a textureless image has a low mean gradient but sharp edges).
@@ -178,6 +198,8 @@ def diagnose_registration(
     ``median_verified_matches`` (the images left out, per verified pair) stands in, angles unknown:
     many mean small parallax. When nothing else is named: too little overlap or too wide a baseline.
     """
+    if len(set(names) & set(masked_out)) >= max(options.cause_share * len(names), 1):
+        return (FailureCause.MASKED,)
     measured = set(names) & set(quality.names) if quality is not None else set()
     if not measured and median_keypoints < options.min_keypoints:
         return (FailureCause.BLUR, FailureCause.TEXTURE)
@@ -256,14 +278,20 @@ _LIKELY = {
     FailureCause.DISCONNECTED: "groups of photos that share no views",
     FailureCause.SMALL_PARALLAX: "too little parallax (viewpoints too alike)",
     FailureCause.OVERLAP: "too little overlap or too wide a baseline between the photos left out and the rest",
+    FailureCause.MASKED: "masks that ignore every pixel of the photos (0 = ignore)",
 }
 
 
 def registration_gate(
-    colmap: ColmapResult, options: GateOptions, *, quality: CaptureQuality | None = None
+    colmap: ColmapResult,
+    options: GateOptions,
+    *,
+    quality: CaptureQuality | None = None,
+    masked_out: MaskedOut | None = None,
 ) -> GateVerdict:
-    """Share of images COLMAP registered; on failure the likely causes, from ``quality`` when given and from the
-    verified pairs of the images left out (read from COLMAP's database)."""
+    """Share of images COLMAP registered; on failure the likely causes, from ``masked_out`` (masks that ignore
+    every pixel), from ``quality`` when given and from the verified pairs of the images left out (read from
+    COLMAP's database)."""
     ratio = colmap.registration_ratio
     if ratio >= options.min_registration_ratio:
         return GateVerdict(
@@ -286,6 +314,7 @@ def registration_gate(
         num_models=colmap.num_models,
         camera_groups=colmap.camera_groups,
         registered=colmap.registered,
+        masked_out=masked_out() if masked_out is not None else (),
     )
     reason = (
         f"COLMAP registered only {colmap.num_registered} of {len(colmap.names)} images ({ratio:.0%} < "
@@ -420,7 +449,11 @@ def sparse_cloud_gate(
     )
 
 
-def depth_coverage_gate(prediction: Prediction | None, options: GateOptions) -> GateVerdict:
+def depth_coverage_gate(
+    prediction: Prediction | None, options: GateOptions, *, masked_out: MaskedOut | None = None
+) -> GateVerdict:
+    """Mean share of pixels with confident feed-forward depth; on failure, masks that ignore every pixel of
+    ``cause_share`` of the frames or more (``masked_out``) are named as the cause."""
     if prediction is None or len(prediction) == 0:
         return GateVerdict(
             "depth_coverage", GateStatus.SKIPPED, None, options.min_depth_coverage, "no feed-forward prediction"
@@ -434,15 +467,35 @@ def depth_coverage_gate(prediction: Prediction | None, options: GateOptions) -> 
     )
     if coverage >= options.min_depth_coverage:
         return GateVerdict("depth_coverage", GateStatus.PASS, coverage, options.min_depth_coverage, reason)
-    return GateVerdict(
-        "depth_coverage",
-        GateStatus.FAIL,
-        coverage,
-        options.min_depth_coverage,
-        reason,
+    fix = (
         "the model is unsure of most of the scene: check that the images show one static scene, "
-        "try another model, or run with --force",
+        "try another model, or run with --force"
     )
+    causes: tuple[FailureCause, ...] = ()
+    masked = set(masked_out() if masked_out is not None else ()) & set(prediction.names)
+    if len(masked) >= max(options.cause_share * len(prediction), 1):
+        reason += f"; the masks ignore every pixel of {len(masked)} of {len(prediction)} frames"
+        fix = _FIXES[FailureCause.MASKED] + ("" if len(masked) == len(prediction) else f"; else {fix}")
+        causes = (FailureCause.MASKED,)
+    return GateVerdict("depth_coverage", GateStatus.FAIL, coverage, options.min_depth_coverage, reason, fix, causes)
+
+
+UNCHECKED_FIX = (
+    "the photos give too few matches to check any camera (blank, dark, blurred or textureless photos, or too little "
+    "overlap between them): retake them with more light, texture and overlap, or run with --force to keep the "
+    "model's cameras, marked unchecked"
+)
+
+
+def unchecked_verdict(num_cameras: int, tried: str, *, fix: str = UNCHECKED_FIX) -> GateVerdict:
+    """The failing (blocking) ``checked_share`` verdict of a run that tried to check its cameras and checked none:
+    ``tried`` says what ran and what it found (e.g. "COLMAP registered 0 of 6 images").
+
+    >>> unchecked_verdict(6, "COLMAP registered 0 of 6 images").reason
+    'no camera could be checked: COLMAP registered 0 of 6 images; all 6 final cameras are unverified'
+    """
+    reason = f"no camera could be checked: {tried}; all {num_cameras} final cameras are unverified"
+    return GateVerdict("checked_share", GateStatus.FAIL, 0.0, None, reason, fix)
 
 
 def evaluate_gates(
@@ -452,13 +505,16 @@ def evaluate_gates(
     quality: CaptureQuality | None = None,
     options: GateOptions = GateOptions(),
     colmap_skipped: str = "",
+    masked_out: MaskedOut | None = None,
 ) -> list[GateVerdict]:
     """Registration, sparse-cloud sanity (COLMAP model) and feed-forward depth coverage, in that order.
 
     ``quality`` (the capture stage's measures and flags) lets a failed registration gate name blur
-    or lack of texture as the cause. Without ``colmap`` the first two are SKIPPED, saying why the
-    cross-check did not run when ``colmap_skipped`` gives the reason.
+    or lack of texture as the cause, ``masked_out`` masks that ignore every pixel (called once, and only
+    when a gate failed). Without ``colmap`` the first two are SKIPPED, saying why the cross-check did not
+    run when ``colmap_skipped`` gives the reason.
     """
+    masked_out = functools.cache(masked_out) if masked_out is not None else None
     verdicts = []
     if colmap is None:
         why = f"COLMAP cross-check not run: {colmap_skipped}" if colmap_skipped else "COLMAP cross-check not run"
@@ -466,9 +522,9 @@ def evaluate_gates(
         verdicts.append(GateVerdict("registration", GateStatus.SKIPPED, None, threshold, why))
         verdicts.append(GateVerdict("sparse_cloud", GateStatus.SKIPPED, None, options.min_in_front_ratio, why))
     else:
-        verdicts.append(registration_gate(colmap, options, quality=quality))
+        verdicts.append(registration_gate(colmap, options, quality=quality, masked_out=masked_out))
         verdicts.append(sparse_cloud_gate(colmap.reconstruction, options))
-    verdicts.append(depth_coverage_gate(prediction, options))
+    verdicts.append(depth_coverage_gate(prediction, options, masked_out=masked_out))
     for v in verdicts:
         (logger.warning if v.failed else logger.info)("gate %s: %s - %s", v.name, v.status.value, v.reason)
     return verdicts
@@ -483,19 +539,30 @@ def run_gates(
     force: bool = False,
     witness: bool = False,
     colmap_skipped: str = "",
+    masked_out: MaskedOut | None = None,
+    unchecked: GateVerdict | None = None,
 ) -> GatesResult:
     """The gates stage: :func:`evaluate_gates`, and whether a failure stops the run (not with ``force``).
 
     ``witness``: COLMAP is a witness (a model's cameras will be judged on their own evidence, see
     :mod:`ffrecon.sfm.evidence`): its registration and sparse-cloud verdicts are reported, not blocking.
-    ``colmap_skipped``: why the cross-check did not run (given when ``colmap`` is None).
+    ``colmap_skipped``: why the cross-check did not run (given when ``colmap`` is None). ``unchecked``: the
+    verdict of a run that checks its cameras no further and checked none (:func:`unchecked_verdict`), added.
     """
     verdicts = evaluate_gates(
-        colmap=colmap, prediction=prediction, quality=quality, options=options, colmap_skipped=colmap_skipped
+        colmap=colmap,
+        prediction=prediction,
+        quality=quality,
+        options=options,
+        colmap_skipped=colmap_skipped,
+        masked_out=masked_out,
     )
     if witness:
         colmap_gates = ("registration", "sparse_cloud")
         verdicts = [dataclasses.replace(v, blocking=v.name not in colmap_gates) for v in verdicts]
+    if unchecked is not None:
+        logger.warning("gate %s: %s - %s", unchecked.name, unchecked.status.value, unchecked.reason)
+        verdicts.append(unchecked)
     result = GatesResult(tuple(verdicts), force)
     if result.failed and force:
         names = ", ".join(v.name for v in result.failed)
@@ -510,9 +577,21 @@ def gate_poses(
     options: GateOptions,
     *,
     force: bool,
+    judged: bool = True,
+    masked_out: MaskedOut | None = None,
 ) -> GatesResult:
     """The run's gates on the capture and the COLMAP cross-check. With a model (``prediction``), COLMAP is a
-    witness: the final cameras are judged on their own evidence instead (:mod:`ffrecon.sfm.evidence`)."""
+    witness: the final cameras are judged on their own evidence instead (:mod:`ffrecon.sfm.evidence`).
+
+    ``judged``: the refinement will judge the model's cameras (False: ``--no-refine``). When it will not,
+    COLMAP is the only check: if it registered fewer than two images, no camera could be checked, and the
+    run fails (:func:`unchecked_verdict`). ``masked_out``: see :func:`evaluate_gates`.
+    """
+    unchecked = None
+    if prediction is not None and not judged and isinstance(colmap, ColmapResult) and colmap.num_registered < 2:
+        tried = f"COLMAP registered {colmap.num_registered} of {len(colmap.names)} images and --no-refine is given"
+        fix = f"drop --no-refine: the refinement checks the cameras on their own image matches; else {UNCHECKED_FIX}"
+        unchecked = unchecked_verdict(len(prediction), tried, fix=fix)
     return run_gates(
         colmap=colmap if isinstance(colmap, ColmapResult) else None,
         prediction=prediction,
@@ -521,4 +600,6 @@ def gate_poses(
         force=force,
         witness=prediction is not None,
         colmap_skipped=colmap.reason if isinstance(colmap, Skipped) else "",
+        masked_out=masked_out,
+        unchecked=unchecked,
     )

@@ -114,6 +114,17 @@ def seed_from_prediction(
     return reduce_points(xyz, rgb, voxel_size=voxel_size, max_points=max_points, seed=seed)
 
 
+def no_seed_reason(prediction: Prediction, frames: Sequence[int], min_conf: float = 1.0) -> str | None:
+    """Why the depth maps of ``frames`` give :func:`seed_from_prediction` no point (no pixel with positive depth
+    and confidence >= ``min_conf``: every pixel masked out, or the model unsure everywhere), or None. A
+    verdict, not an error: the splat is then skipped with this reason."""
+    if any(prediction.valid_mask(int(i), min_conf).any() for i in frames):
+        return None
+    return (
+        f"no point to seed the splat: no depth pixel of the {len(frames)} final frames has confidence >= {min_conf:g}"
+    )
+
+
 def seed_from_reconstruction(rec: pycolmap.Reconstruction) -> tuple[np.ndarray, np.ndarray]:
     """The 3D points of a COLMAP model: ``(xyz [M, 3] float64, rgb [M, 3] float32 in [0, 1])``."""
     points = list(rec.points3D.values())
