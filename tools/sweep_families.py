@@ -130,12 +130,14 @@ def run_case(case: Case, args) -> dict:
         final = _final_errors(out, scene)
         transforms = json.loads((out / "transforms.json").read_text())
         in_transforms = {Path(f["file_path"]).name for f in transforms["frames"]}
-        letters, confirmed_max, good_contradicted = "", 0.0, []
+        letters, confirmed_max, good_contradicted, whys = "", 0.0, [], []
         for k, name in enumerate(scene.names):
             e = per_image.get(name, {})
             verdict, status = e.get("verdict", ""), e.get("status", "")
             corrected = status.startswith("corrected")
             letters += {"confirmed": "C", "unchecked": "?"}.get(verdict, "c" if corrected else "X")
+            if verdict != "confirmed":
+                whys.append(f"{name} (model {model_errors[k]:.1f} deg): {e.get('why', '')}")
             if (verdict == "confirmed" or corrected) and name in final:
                 confirmed_max = max(confirmed_max, final[name])
             if verdict == "contradicted" and not corrected and model_errors[k] < 3.0:
@@ -147,6 +149,7 @@ def run_case(case: Case, args) -> dict:
             "max_confirmed": confirmed_max,
             "good_contradicted": len(good_contradicted),
             "verdicts": letters,
+            "whys": " | ".join(whys),
         }
         if case.bad is not None:
             name = scene.names[case.bad]
@@ -195,7 +198,8 @@ def summarise(rows: list[dict]) -> None:
         ok = sum(r["bad_outcome"] in ("left out", "within 5 deg") for r in bads)
         unchecked = sum(r["bad_unchecked_exported"] for r in bads)
         print(
-            f"{family:7s} {'quick' if quick else 'default':8s} {len(group):4d}  {med:11.2f}  "
+            f"{family:7s} {'quick' if quick else 'default':8s} {len(group):4d}  "
+            f"{sum(r['code'] != 0 for r in group):7d}  {med:11.2f}  "
             f"{half:5d}/{len(clean):<6d} "
             f"{full:5d}/{len(clean):<18d} {max(r['max_confirmed'] for r in group):13.2f}  "
             f"{sum(r['good_contradicted'] for r in group):5d}/{frames:<11d} {ok}/{len(bads)} / {unchecked}"
@@ -216,6 +220,7 @@ def main() -> None:
     parser.add_argument("--photos", type=Path, default=REPO.parent / "shared" / "data" / "lund")
     parser.add_argument("--jobs", type=int, default=1)
     parser.add_argument("--csv", type=Path, default=None)
+    parser.add_argument("-v", "--verbose", action="store_true", help="also print why each frame was not confirmed")
     args = parser.parse_args()
     cases = [
         Case(family, error, seed, mode == "quick", bad)
@@ -229,6 +234,8 @@ def main() -> None:
     with multiprocessing.Pool(args.jobs) as pool:
         for row in pool.imap(_run_one, [(c, args) for c in cases]):
             print(_line(row), flush=True)
+            if args.verbose and row.get("whys"):
+                print("    " + row["whys"].replace(" | ", "\n    "), flush=True)
             rows.append(row)
     summarise(rows)
     if args.csv:

@@ -1,0 +1,51 @@
+"""camera_sim3: the fit that holds the rotation better wins (centres against orientations)."""
+
+import numpy as np
+
+from ffrecon.geometry.alignment import Sim3, camera_sim3
+from ffrecon.geometry.poses import look_at_cam_from_world
+from ffrecon.geometry.rotations import axis_angle_to_matrix, rotation_angle_deg
+
+
+def _cameras(centers: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    targets = centers + rng.normal(size=centers.shape)
+    return np.stack([look_at_cam_from_world(c, t) for c, t in zip(centers, targets)])
+
+
+def _noisy(cams: np.ndarray, rot_deg: float, centre_std: float, rng: np.random.Generator) -> np.ndarray:
+    """The cameras with random rotation errors of ``rot_deg`` and centre errors of ``centre_std``, then moved
+    by a known similarity (the fit should find it)."""
+    n = len(cams)
+    axes = rng.normal(size=(n, 3))
+    axes *= np.radians(rot_deg) / np.linalg.norm(axes, axis=1, keepdims=True)
+    rot = axis_angle_to_matrix(axes) @ cams[:, :, :3]
+    centers = -np.einsum("nji,nj->ni", cams[:, :, :3], cams[:, :, 3]) + rng.normal(0, centre_std, (n, 3))
+    noisy = np.concatenate([rot, -np.einsum("nij,nj->ni", rot, centers)[..., None]], axis=2)
+    return Sim3(
+        1.7, axis_angle_to_matrix(np.array([0.3, -0.2, 0.5])), np.array([1.0, 2.0, 3.0])
+    ).transform_cam_from_world(noisy)
+
+
+def _rotation_error_deg(fit: Sim3) -> float:
+    return rotation_angle_deg(fit.rotation.T @ axis_angle_to_matrix(np.array([0.3, -0.2, 0.5])))
+
+
+def test_bunched_centres_take_the_orientations():
+    """A room photographed from its middle: centres within 1 unit, 0.1 of noise each, 2.5-deg rotations. Over
+    20 draws the centre fit alone is several degrees off; camera_sim3 stays within the orientations' error."""
+    worst = 0.0
+    for seed in range(20):
+        rng = np.random.default_rng(seed)
+        centers = rng.uniform(-0.5, 0.5, (8, 3)) * [1.0, 0.7, 0.4]
+        cams = _cameras(centers, rng)
+        worst = max(worst, _rotation_error_deg(camera_sim3(cams, _noisy(cams, 2.5, 0.1, rng))))
+    assert worst < 2.0, worst
+
+
+def test_spread_centres_with_small_noise_take_the_centres():
+    """Centres spread 10 units in 3D with 1e-3 of noise hold the rotation to hundredths of a degree; the
+    orientations (5-deg errors) only to about a degree: the centre fit must win."""
+    rng = np.random.default_rng(0)
+    centers = rng.uniform(-5, 5, (12, 3))
+    cams = _cameras(centers, rng)
+    assert _rotation_error_deg(camera_sim3(cams, _noisy(cams, 5.0, 1e-3, rng))) < 0.05
