@@ -77,14 +77,17 @@ def pose_problems(prediction: Prediction) -> list[FrameProblem]:
     return problems
 
 
-def depth_problems(prediction: Prediction) -> list[FrameProblem]:
-    """Frames with unusable depth or confidence maps."""
+def depth_problems(prediction: Prediction, *, allow_empty: bool = False) -> list[FrameProblem]:
+    """Frames with unusable depth or confidence maps (``allow_empty``: a frame with no positive depth is not
+    one: the user's masks can clear a whole frame, and it then simply has no depth)."""
     problems = []
     for name, depth, conf in zip(prediction.names, prediction.depth, prediction.depth_conf):
         if not (np.isfinite(depth).all() and np.isfinite(conf).all()):
             problems.append(FrameProblem(name, "depth or confidence has NaN/inf values"))
             continue
         positive = depth[depth > 0]
+        if positive.size == 0 and allow_empty:
+            continue
         if positive.size == 0:
             problems.append(FrameProblem(name, "depth is zero or negative everywhere"))
             continue
@@ -104,13 +107,19 @@ def depth_problems(prediction: Prediction) -> list[FrameProblem]:
 
 
 def validate_prediction(
-    prediction: Prediction, *, camera_outputs: str = "the camera outputs", depth_outputs: str = "depth"
+    prediction: Prediction,
+    *,
+    camera_outputs: str = "the camera outputs",
+    depth_outputs: str = "depth",
+    allow_empty_depth: bool = False,
 ) -> None:
     """Raise :class:`ModelError` unless every frame has a plausible camera, a rigid pose and usable depth.
 
     Args:
         camera_outputs, depth_outputs: the model's output names the cameras and depth came from,
             so the message can name them (e.g. ``"pose_enc"``).
+        allow_empty_depth: a frame whose depth is zero everywhere passes (the later stages check a prediction
+            after the user's masks, which may clear a whole frame; the model's own output was checked whole).
     """
     total = len(prediction)
     model = prediction.model.path
@@ -130,7 +139,7 @@ def validate_prediction(
             "check that the model follows its family's contract (docs/models.md) "
             "and was exported from a trained checkpoint",
         )
-    depths = depth_problems(prediction)
+    depths = depth_problems(prediction, allow_empty=allow_empty_depth)
     if depths:
         raise ModelError(
             f"model output '{depth_outputs}' of {model} is unusable in {_frames(depths, total)}",

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import logging
+import shutil
 import warnings
 from pathlib import Path
 
@@ -219,3 +220,19 @@ def test_a_zero_quaternion_gives_nan_without_a_warning():
         warnings.simplefilter("error")
         rot = quat_xyzw_to_matrix(np.zeros((2, 4)))
     assert np.isnan(rot).all()
+
+
+def test_frames_whose_masks_ignore_every_pixel_do_not_fail_the_model(small_demo, zero_masks, tmp_path, capsys):
+    """Two of eight frames masked out whole: their depth is empty after the masks, which is not the model's fault
+    (it used to end with exit 3, "depth is zero or negative everywhere ... re-export the model")."""
+    masks = tmp_path / "some_masks"
+    masks.mkdir()
+    for k, path in enumerate(sorted(zero_masks.iterdir())):
+        if k < 2:
+            shutil.copy(path, masks / path.name)  # the rest have no mask: used whole
+    out = tmp_path / "out"
+    run = ["run", str(small_demo.images), "-o", str(out), "--model", str(small_demo.model), "--masks", str(masks)]
+    code = main([*run, "--no-colmap", "--no-splat", "-q"])
+    err = _err(capsys)
+    assert code in (0, 5), err
+    assert "re-export the model" not in err

@@ -174,7 +174,7 @@ def filter_matches(
     Works on the inlier matches of COLMAP's two-view geometries; a pair left with fewer than
     ``min_inliers`` loses its geometry (no edge in the correspondence graph).
     """
-    validate_prediction(prediction)
+    validate_prediction(prediction, allow_empty_depth=True)
     index = {name: k for k, name in enumerate(prediction.names)}
     cv2.setRNGSeed(options.seed)
     db = pycolmap.Database.open(str(db_path))
@@ -350,7 +350,9 @@ def guided_matches(
     Matches are searched from the image of each pair with more confident depth; verification is
     left to COLMAP (:func:`ffrecon.sfm.features.verify_pairs`).
     """
-    validate_prediction(prediction)  # an infinite focal would turn every predicted position into NaN
+    validate_prediction(
+        prediction, allow_empty_depth=True
+    )  # an infinite focal would turn every predicted position into NaN
     index = {name: k for k, name in enumerate(prediction.names)}
     db = pycolmap.Database.open(str(db_path))
     first_total = after = 0

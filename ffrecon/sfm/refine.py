@@ -221,7 +221,7 @@ def _check_inputs(image_dir: Path, prediction: Prediction) -> None:
         )
     if len(prediction) < 2:
         raise InputError(f"refinement needs at least two images, got {len(prediction)}", "add images")
-    validate_prediction(prediction)
+    validate_prediction(prediction, allow_empty_depth=True)
 
 
 def _shared_camera(prediction: Prediction) -> PinholeCamera | None:
