@@ -6,12 +6,15 @@ Usage (from the repository root):
     .venv/bin/python tools/sweep_families.py --families street --errors bad --seeds 101 --modes quick
     .venv/bin/python tools/sweep_families.py --seeds $(seq 101 104) --jobs 2 --csv runs.csv
 
-Families (``ffrecon.synthetic.layouts``), 8 views at 320x240 unless set, photo textures cut from
-``../shared/data/lund`` (``--photos``):
+Families (``ffrecon.synthetic.layouts``), 8 views at 320x240 unless set:
 
-- ``room``: a furnished room seen from inside, 30-60 deg turns, 80 deg field of view, plain walls;
-- ``object``: one object on a plinth in a hall, orbited at 30-90 deg steps, 55 deg field of view;
-- ``street``: a facade of photos with bay windows, from across a street, 20-40 deg about a point on it.
+- ``room``: a furnished room seen from inside, each view turned 30-60 or 45-75 deg from the last;
+- ``object``: one object on a plinth in a hall, orbited at 30-60 or 50-90 deg steps;
+- ``street``: a facade with bay windows from the far pavement, azimuth turns of 20-40 or 30-50 deg.
+
+Each seed draws (``variant``) the texture (crops of the real photos in ``../shared/data/lund``,
+``--photos``; the same with the layout's plain walls; one repeated tile everywhere), which of the
+family's two turn ranges, and a 50, 65 or 85 deg field of view.
 
 Errors of the simulated model (VGGT contract, exported to ONNX as a user would run it):
 
@@ -52,11 +55,28 @@ from ffrecon.synthetic.layouts import Layout
 from ffrecon.synthetic.simulated_model import SimulationOptions, build_simulated_vggt
 
 REPO = Path(__file__).resolve().parents[1]
-FAMILIES = {
-    "room": dict(layout=Layout.ROOM, texture=Texture.PHOTOS_PLAIN_WALLS, fov_x_deg=80.0),
-    "object": dict(layout=Layout.OBJECT, texture=Texture.PHOTOS, fov_x_deg=55.0),
-    "street": dict(layout=Layout.STREET, texture=Texture.PHOTOS, fov_x_deg=65.0),
+FAMILIES = {"room": Layout.ROOM, "object": Layout.OBJECT, "street": Layout.STREET}
+# Each seed draws its texture, baseline and field of view from these (per family), so a handful of seeds
+# covers photo, plain-wall and repeated-pattern surfaces, 30-90 degree turns and 50-85 degree lenses.
+TEXTURES = (Texture.PHOTOS, Texture.PHOTOS_PLAIN_WALLS, Texture.REPEATED)
+STEPS = {
+    "room": ((30.0, 60.0), (45.0, 75.0)),
+    "object": ((30.0, 60.0), (50.0, 90.0)),
+    "street": ((20.0, 40.0), (30.0, 50.0)),
 }
+FOVS = (50.0, 65.0, 85.0)
+
+
+def variant(family: str, seed: int) -> dict:
+    """The scene options a seed draws for ``family``: texture, the wide path's turns, field of view."""
+    rng = np.random.default_rng([seed, 3939, list(FAMILIES).index(family)])
+    return {
+        "texture": TEXTURES[int(rng.integers(len(TEXTURES)))],
+        "step_deg": STEPS[family][int(rng.integers(len(STEPS[family])))],
+        "fov_x_deg": FOVS[int(rng.integers(len(FOVS)))],
+    }
+
+
 ERRORS = {
     "independent": dict(),
     "drift": dict(drift_deg_per_slot=0.6),
@@ -76,7 +96,10 @@ class Case:
 
 def _case_line(case: Case) -> str:
     bad = f" frame {case.bad} off" if case.bad is not None else ""
-    return f"{case.family:6s} {case.error:11s} seed {case.seed:4d} {'quick  ' if case.quick else 'default'}{bad}"
+    v = variant(case.family, case.seed)
+    scene = f"{v['texture'].value[:12]:12s} {v['step_deg'][0]:.0f}-{v['step_deg'][1]:.0f} fov {v['fov_x_deg']:.0f}"
+    mode = "quick  " if case.quick else "default"
+    return f"{case.family:6s} {scene} {case.error:11s} seed {case.seed:4d} {mode}{bad}"
 
 
 def _scene(case: Case, args, folder: Path):
@@ -87,7 +110,8 @@ def _scene(case: Case, args, folder: Path):
         seed=case.seed,
         path=CameraPath.WIDE,
         photo_dir=str(args.photos),
-        **FAMILIES[case.family],
+        layout=FAMILIES[case.family],
+        **variant(case.family, case.seed),
     )
     scene = make_scene(options)
     written = write_scene(scene, folder / "scene")

@@ -11,9 +11,10 @@ looks like, so rules tuned on one do not carry over by accident:
   Most of each view is wall, so pairs share planar surfaces seen at a distance of 2-4 units.
 - ``OBJECT``: one cluster of objects on a plinth in a large hall, orbited at 30-90 degree steps with
   the camera far (3 units) from a small subject: little of each view is shared background.
-- ``STREET``: a facade (the wall at y = +4 of a long, tall street) with bay windows and a doorstep,
-  photographed from across the street: the cameras stand on an arc about a point on the facade,
-  turning 20-40 degrees about it, so the shared surface is one big plane plus shallow relief.
+- ``STREET``: a facade (the wall at y = +4 of a long, tall street) with bay windows, a doorstep and a kiosk,
+  photographed from the far pavement: each view's azimuth to the facade turns 20-40 degrees from the
+  last (within 60 degrees of the facade's normal), so the shared surface is one big plane seen
+  obliquely plus shallow relief.
 
 All units are arbitrary (the simulated model normalises scale); world z is up.
 """
@@ -127,16 +128,19 @@ def wide_path(layout: Layout, num_frames: int, seed: int, step_deg: tuple[float,
         target = np.array([0.0, 0.0, 0.6])
         return np.stack([look_at_cam_from_world(c, target + rng.normal(0, 0.08, 3)) for c in centers])
     if layout is Layout.STREET:
-        # An arc about a point on the facade, from one side of it to the other (the arc is centred on
-        # the facade's normal): the turn about the point is the step.
-        angles = turns - turns[-1] / 2
-        target = np.array([rng.uniform(-1.5, 1.5), 4.0, 2.5])
-        radius = rng.uniform(5.5, 7.0, num_frames)
-        centers = target + np.stack([radius * np.sin(angles), -radius * np.cos(angles), np.zeros(num_frames)], 1)
-        centers[:, 1] = np.maximum(centers[:, 1], -3.5)  # stay inside the street
-        centers[:, 2] = rng.uniform(1.5, 1.9, num_frames)
-        aims = target + np.stack(
-            [rng.uniform(-1.5, 1.5, num_frames), np.zeros(num_frames), rng.uniform(0, 1.5, num_frames)], 1
+        # From the far pavement (y about -3), each view aimed at a point of the facade (y = 4) at an azimuth
+        # from its normal that walks by the step, reflected to stay within 60 degrees of it (a person
+        # walking along and photographing the building from ever other angles, never from behind its plane).
+        azimuth = np.empty(num_frames)
+        azimuth[0] = rng.uniform(-np.radians(60), np.radians(60))
+        for k in range(1, num_frames):
+            turn = steps[k - 1] * (1 if rng.random() < 0.5 else -1)
+            nxt = azimuth[k - 1] + turn
+            azimuth[k] = nxt if abs(nxt) <= np.radians(60) else azimuth[k - 1] - turn
+        aims = np.stack(
+            [rng.uniform(-1.5, 1.5, num_frames), np.full(num_frames, 4.0), rng.uniform(1.5, 3.5, num_frames)], 1
         )
+        y = rng.uniform(-3.4, -2.6, num_frames)
+        centers = np.stack([aims[:, 0] - (4.0 - y) * np.tan(azimuth), y, rng.uniform(1.5, 1.9, num_frames)], 1)
         return np.stack([look_at_cam_from_world(c, a) for c, a in zip(centers, aims)])
     raise ValueError(f"no wide path for layout {layout}")

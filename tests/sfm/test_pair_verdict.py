@@ -1,0 +1,37 @@
+"""A frame the refinement did not hold, judged on its verified pairs: weighed, never removed by one weak pair."""
+
+import numpy as np
+
+from ffrecon.geometry.rotations import axis_angle_to_matrix
+from ffrecon.sfm.evidence import EvidenceOptions, FrameVerdict, _pair_verdict
+
+OPTIONS = EvidenceOptions()
+
+
+def _pair(inliers: int, gap_deg: float, axis=(0.0, 0.0, 1.0)) -> tuple:
+    """(partner, inliers, gap, the frame's rotation the pair implies): the implied rotation is the gap away
+    from the identity (the model's) about ``axis``."""
+    return ("partner", inliers, gap_deg, axis_angle_to_matrix(np.radians(gap_deg) * np.asarray(axis)))
+
+
+def test_one_weak_pair_does_not_remove_a_frame():
+    """The street family's case (tuning seed 101): 21 matches, 13.7 deg from a model pose 3.1 deg off."""
+    e = _pair_verdict("f", "weak", [_pair(21, 13.7)], OPTIONS)
+    assert e.verdict is FrameVerdict.UNCHECKED and e.status.kept and "too weak" in e.why
+
+
+def test_a_decisive_pair_contradicts():
+    e = _pair_verdict("f", "weak", [_pair(150, 24.0)], OPTIONS)
+    assert e.verdict is FrameVerdict.CONTRADICTED and not e.status.kept
+
+
+def test_two_weak_pairs_that_agree_contradict_two_that_do_not_agree_do_not():
+    agree = _pair_verdict("f", "weak", [_pair(30, 25.0), _pair(25, 23.0)], OPTIONS)
+    assert agree.verdict is FrameVerdict.CONTRADICTED
+    apart = _pair_verdict("f", "weak", [_pair(30, 25.0), _pair(25, 23.0, axis=(1.0, 0.0, 0.0))], OPTIONS)
+    assert apart.verdict is FrameVerdict.UNCHECKED
+
+
+def test_disagreeing_pairs_outweighed_by_agreeing_ones_do_not_contradict():
+    e = _pair_verdict("f", "weak", [_pair(120, 15.0), _pair(100, 2.0), _pair(90, 1.0)], OPTIONS)
+    assert e.verdict is FrameVerdict.UNCHECKED
