@@ -8,13 +8,13 @@ Usage (from the repository root):
 
 Families (``ffrecon.synthetic.layouts``), 8 views at 320x240 unless set:
 
-- ``room``: a furnished room seen from inside, each view turned 30-60 or 45-75 deg from the last;
+- ``room``: a furnished room seen from inside, each view turned 30-50 or 35-55 deg from the last;
 - ``object``: one object on a plinth in a hall, orbited at 30-60 or 50-90 deg steps;
 - ``street``: a facade with bay windows from the far pavement, azimuth turns of 20-40 or 30-50 deg.
 
 Each seed draws (``variant``) the texture (crops of the real photos in ``../shared/data/lund``,
 ``--photos``; the same with the layout's plain walls; one repeated tile everywhere), which of the
-family's two turn ranges, and a 50, 65 or 85 deg field of view.
+family's two turn ranges, and a 50, 65 or 85 deg field of view (70 or 85 in the room).
 
 Errors of the simulated model (VGGT contract, exported to ONNX as a user would run it):
 
@@ -60,11 +60,13 @@ FAMILIES = {"room": Layout.ROOM, "object": Layout.OBJECT, "street": Layout.STREE
 # covers photo, plain-wall and repeated-pattern surfaces, 30-90 degree turns and 50-85 degree lenses.
 TEXTURES = (Texture.PHOTOS, Texture.PHOTOS_PLAIN_WALLS, Texture.REPEATED)
 STEPS = {
-    "room": ((30.0, 60.0), (45.0, 75.0)),
+    "room": ((30.0, 50.0), (35.0, 55.0)),
     "object": ((30.0, 60.0), (50.0, 90.0)),
     "street": ((20.0, 40.0), (30.0, 50.0)),
 }
-FOVS = (50.0, 65.0, 85.0)
+# A room seen from inside shares nothing between two views turned further apart than the lens is wide, so its
+# lenses are the wider ones (a 50-deg lens turned 30-60 deg left frames overlapping no other: nothing can check those).
+FOVS = {"room": (70.0, 85.0), "object": (50.0, 65.0, 85.0), "street": (50.0, 65.0, 85.0)}
 
 
 def variant(family: str, seed: int) -> dict:
@@ -73,7 +75,7 @@ def variant(family: str, seed: int) -> dict:
     return {
         "texture": TEXTURES[int(rng.integers(len(TEXTURES)))],
         "step_deg": STEPS[family][int(rng.integers(len(STEPS[family])))],
-        "fov_x_deg": FOVS[int(rng.integers(len(FOVS)))],
+        "fov_x_deg": FOVS[family][int(rng.integers(len(FOVS[family])))],
     }
 
 
