@@ -10,13 +10,27 @@ import os
 import shlex
 import signal
 import sys
+import warnings
+from collections.abc import Callable
 from pathlib import Path
+from typing import NamedTuple
 
 from ffrecon import __version__
 from ffrecon.concurrency import interrupts_deferred
 from ffrecon.errors import FFReconError, InputError, Interrupted
 
 log = logging.getLogger("ffrecon")
+
+VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".m4v", ".webm")  # ffrecon.capture.images.VIDEO_EXTENSIONS
+
+SEED_MAX = 2**32 - 1  # seeds are 0 to 2^32 - 1 (what numpy's and torch's generators all take)
+# The demo scene's frames: a side from capture's smallest cap (ffrecon.capture.MIN_IMAGE_SIZE, below which SIFT
+# and the models find next to nothing) to DEMO_MAX_SIDE; from DEMO_MIN_FRAMES to DEMO_MAX_FRAMES of them.
+DEMO_MIN_SIDE, DEMO_MAX_SIDE = 64, 4096
+DEMO_MIN_FRAMES, DEMO_MAX_FRAMES = 8, 1000  # 8: the demo's model makes frame 7 badly wrong (DemoOptions)
+# export-model's opsets: ModelExportOptions refuses older ones; torch.onnx.export with dynamo=False (the export's)
+# writes up to torch.onnx._constants.ONNX_TORCHSCRIPT_EXPORTER_MAX_OPSET (20 in torch 2.13)
+MIN_OPSET, TORCHSCRIPT_MAX_OPSET = 15, 20
 
 
 def _setup_logging(verbose: int) -> None:
@@ -28,6 +42,186 @@ def _setup_logging(verbose: int) -> None:
     root.setLevel(level)
 
 
+def _log_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """``warnings.showwarning`` while a command runs: a Python warning (numpy's RuntimeWarning, a library's
+    UserWarning) as one logged line without the source path and code line that Python prints."""
+    log.warning("%s: %s", category.__name__, " ".join(str(message).split()))
+
+
+# Argument types: every value is checked as the command line is read, before any work. A value an options
+# class holds is checked by that class (its __post_init__: the CLI and the Python API say the same); the
+# InputError goes through argparse untouched (argparse catches only ValueError, TypeError and its own) to
+# main, which prints it in one line with the fix (exit 2).
+
+
+def _as_number(text: str, integer: bool) -> int | float | str:
+    """The text as a number where it reads as one (an int first where a whole number is wanted, so the check
+    shows it as given; else a float), else the text itself (the check names it)."""
+    for convert in (int, float) if integer else (float,):
+        try:
+            return convert(text)
+        except ValueError:
+            pass
+    return text
+
+
+def _number(check, *, integer: bool = True):
+    """An argparse ``type``: the text as a number that ``check(value)`` accepts (it raises InputError; for a
+    value an options class holds, ``check`` builds that class with it)."""
+
+    def parse(text: str) -> int | float:
+        value = _as_number(text, integer)
+        check(value)
+        return int(value) if integer else float(value)
+
+    return parse
+
+
+def _in_range(name: str, flag: str, *, low: float, high: float | None = None, integer: bool = True, note: str = ""):
+    """A number no options class checks: ``low`` to ``high`` (``note`` ends the fix)."""
+
+    def check(value) -> None:
+        from ffrecon.checks import check_number  # numpy: loaded by main once signals are held
+
+        try:
+            check_number(name, value, low=low, high=high, integer=integer, flag=flag)
+        except InputError as err:
+            raise InputError(err.problem, err.fix + note) from None
+
+    return _number(check, integer=integer)
+
+
+def _seed(flag: str):
+    return _in_range("seed", flag, low=0, high=SEED_MAX)
+
+
+def _text(flag: str):
+    """A non-empty string."""
+
+    def parse(text: str) -> str:
+        if not text.strip():
+            raise InputError(f"{flag} is empty", f"pass {flag} with a value")
+        return text
+
+    return parse
+
+
+def _path(flag: str):
+    """A non-empty path (``Path("")`` would be the current folder)."""
+    text = _text(flag)
+    return lambda value: Path(text(value))
+
+
+def _model_file(flag: str, usage: str):
+    """A model path that is not a folder (the runner says when the file is missing or unreadable); ``usage``
+    starts the example the fix gives (``--model``, ``ffrecon inspect-model``)."""
+    path = _path(flag)
+
+    def parse(text: str) -> Path:
+        model = path(text)
+        if model.is_dir():
+            inside = sorted(model.glob("*.onnx"))
+            example = f", e.g. {usage} {inside[0]}" if inside else " (docs/models.md says how to make one)"
+            raise InputError(f"{flag} {model} is a folder, not a model file", f"pass the .onnx file itself{example}")
+        return model
+
+    return parse
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse's own refusals (an unknown option, a missing argument, a choice not offered) as ffrecon's: an
+    InputError, which main prints in one line with the fix (exit 2), instead of the usage text."""
+
+    def error(self, message: str):
+        raise InputError(message, f"see `{self.prog} --help`")
+
+
+class _Partner(NamedTuple):
+    """What an option acts with: ``label`` in the message, ``how`` to get it in the fix, ``met(args)``."""
+
+    label: str
+    how: str
+    met: Callable[[argparse.Namespace], bool]
+
+
+def _flag(flag: str, metavar: str = "") -> _Partner:
+    dest = flag.lstrip("-").replace("-", "_")
+    return _Partner(flag, f"add {flag} {metavar}".strip(), lambda a: getattr(a, dest) is not None)
+
+
+_MODEL = _Partner("--model", "add --model MODEL.onnx", lambda a: a.command == "demo" or a.model is not None)
+_SPLAT = _Partner("the splat", "leave out --no-splat", lambda a: not a.no_splat)
+_COLMAP = _Partner(
+    "the COLMAP cross-check", "leave out --no-colmap and --quick", lambda a: not (a.no_colmap or a.quick)
+)
+_VIDEO = _Partner(
+    "a video input",
+    f"pass a video file ({', '.join(VIDEO_SUFFIXES)})",
+    lambda a: a.input.suffix.lower() in VIDEO_SUFFIXES and not a.input.is_dir(),
+)
+_RUN_DEMO = ("run", "demo")
+
+
+class _Needs(NamedTuple):
+    commands: tuple[str, ...]
+    option: str  # as the message names it
+    partner: _Partner
+    given: Callable[[argparse.Namespace], bool] | None = None  # None: the option is on the command line
+
+
+# Every option that acts only together with another, in one table and under one rule: given without its
+# partner it is refused as the command line is read, "OPTION needs PARTNER" (exit 2), never silently ignored.
+# (--quick without a model is refused by ffrecon.pipeline.check_run_options, before any work, for the Python API
+# too.)
+OPTION_NEEDS = (
+    _Needs(_RUN_DEMO, "--intrinsics-prior", _flag("--intrinsics", "FILE")),
+    _Needs(_RUN_DEMO, "--poses-prior", _flag("--poses", "MODEL_OR_JSON")),
+    _Needs(_RUN_DEMO, "--ray-workers", _flag("--ray")),
+    _Needs(_RUN_DEMO, "--ray-gpus", _flag("--ray")),
+    _Needs(("run",), "--video-frames", _VIDEO),
+    _Needs(("run",), "--compare-seeds", _MODEL),
+    _Needs(("run",), "--pairing model", _MODEL, lambda a: a.pairing == "model"),
+    _Needs(_RUN_DEMO, "--pairing vocab_tree", _flag("--vocab-tree", "FILE"), lambda a: a.pairing == "vocab_tree"),
+    _Needs(_RUN_DEMO, "--compare-seeds", _COLMAP),  # it trains the splat from COLMAP's points
+    _Needs(_RUN_DEMO, "--compare-seeds", _SPLAT),
+    _Needs(_RUN_DEMO, "--pairing", _COLMAP),
+    _Needs(_RUN_DEMO, "--vocab-tree", _COLMAP),
+    _Needs(_RUN_DEMO, "--min-registration", _COLMAP),  # the registration gate is COLMAP's
+    _Needs(_RUN_DEMO, "--sog", _SPLAT),
+    _Needs(_RUN_DEMO, "--splat-seconds", _SPLAT),
+    _Needs(("export-model",), "--height", _flag("--width", "W")),
+    _Needs(("export-model",), "--width", _flag("--height", "H")),
+    _Needs(
+        ("export-model",),
+        "--keep-untrained-heads",
+        _Partner("random weights", "add --random-init or --tiny", lambda a: a.random_init or a.tiny),
+    ),
+)
+
+
+def _given_option(args: argparse.Namespace, option: str) -> bool:
+    value = getattr(args, option.lstrip("-").replace("-", "_"))
+    return value is not None and value is not False
+
+
+def check_partners(args: argparse.Namespace) -> None:
+    """Raise :class:`InputError` for the first option of :data:`OPTION_NEEDS` given without its partner."""
+    for rule in OPTION_NEEDS:
+        if args.command not in rule.commands:
+            continue
+        given = rule.given(args) if rule.given else _given_option(args, rule.option)
+        if given and not rule.partner.met(args):
+            name = rule.option.split()[0]
+            raise InputError(f"{rule.option} needs {rule.partner.label}", f"{rule.partner.how}, or leave out {name}")
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    """The command line, every value and every option's partner checked (an InputError else)."""
+    args = build_parser().parse_args(argv)
+    check_partners(args)
+    return args
+
+
 def _field_default(options_class, name: str):
     """The default of a field of an options dataclass, for help texts (the value lives in the class alone;
     tests/test_cli_defaults.py checks every help text's default against its field)."""
@@ -35,7 +229,9 @@ def _field_default(options_class, name: str):
 
 
 def _add_output_folder_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("-o", "--out", type=Path, required=True, help="output folder (see the README for its layout)")
+    p.add_argument(
+        "-o", "--out", type=_path("--out"), required=True, help="output folder (see the README for its layout)"
+    )
     p.add_argument("--overwrite", action="store_true", help="replace results already in the output folder")
     p.add_argument(
         "--resume",
@@ -57,7 +253,12 @@ def _add_extra_output_options(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="also write splat.sog (PlayCanvas) with splat-transform (`make clients`); minutes for 10k+ Gaussians",
     )
-    p.add_argument("--reference", type=Path, default=None, help="a reference COLMAP model to score the cameras against")
+    p.add_argument(
+        "--reference",
+        type=_path("--reference"),
+        default=None,
+        help="a reference COLMAP model to score the cameras against",
+    )
 
 
 def _add_model_call_options(p: argparse.ArgumentParser) -> None:
@@ -65,17 +266,18 @@ def _add_model_call_options(p: argparse.ArgumentParser) -> None:
     FeedForwardOptions')."""
     from ffrecon.models.memory import MEMORY_FRACTION
     from ffrecon.models.multiview import MultiviewOptions
+    from ffrecon.models.stage import FeedForwardOptions
 
     p.add_argument(
         "--chunk-size",
-        type=int,
+        type=_number(lambda v: MultiviewOptions(chunk_size=v, chunk_overlap=1)),
         default=None,
         help=f"frames per model call (default: as many as fit in {MEMORY_FRACTION * 100:g}%% of the free memory; "
         "docs/benchmarks.md)",
     )
     p.add_argument(
         "--chunk-overlap",
-        type=int,
+        type=_number(lambda v: MultiviewOptions(chunk_overlap=v)),
         default=None,
         help="frames shared by consecutive chunks, at least 1 and less than the chunk size "
         f"(default {_field_default(MultiviewOptions, 'chunk_overlap')})",
@@ -92,12 +294,19 @@ def _add_model_call_options(p: argparse.ArgumentParser) -> None:
         help="no loop calls where a long path revisits a place (default: found from the chunks, and a pose graph "
         "spreads the drift; report.json feedforward.chunks.loops)",
     )
-    p.add_argument("--threads", type=int, default=None, help="CPU threads for inference, >= 1 (default: all)")
+    p.add_argument(
+        "--threads",
+        type=_number(lambda v: FeedForwardOptions(threads=v)),
+        default=None,
+        help="CPU threads for inference, >= 1 (default: all)",
+    )
     _add_ray_options(p)
 
 
 def _add_ray_options(p: argparse.ArgumentParser) -> None:
     """The model's chunks on Ray (defaults: RayOptions')."""
+    from ffrecon.models.distributed import RayOptions
+
     p.add_argument(
         "--ray",
         nargs="?",
@@ -109,13 +318,13 @@ def _add_ray_options(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--ray-workers",
-        type=int,
+        type=_number(lambda v: RayOptions(workers=v)),
         default=None,
         help="with --ray: model sessions (default: as many as the cluster's CPUs allow, one per chunk at most)",
     )
     p.add_argument(
         "--ray-gpus",
-        type=float,
+        type=_number(lambda v: RayOptions(gpus_per_worker=v), integer=False),
         default=None,
         help="with --ray: GPUs per model session (1 on a GPU cluster: onnxruntime runs on CUDA there; "
         "default: none, the CPU)",
@@ -126,7 +335,7 @@ def _add_known_input_options(p: argparse.ArgumentParser) -> None:
     """What the user knows about the capture: intrinsics, poses, masks."""
     p.add_argument(
         "--intrinsics",
-        type=Path,
+        type=_path("--intrinsics"),
         default=None,
         metavar="FILE",
         help="known intrinsics in COLMAP's cameras.txt form (one camera for all photos, or a line per photo with "
@@ -135,7 +344,7 @@ def _add_known_input_options(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--poses",
-        type=Path,
+        type=_path("--poses"),
         default=None,
         metavar="MODEL_OR_JSON",
         help="known poses: a COLMAP model folder or a nerfstudio transforms.json, by photo name (three or more); "
@@ -148,7 +357,7 @@ def _add_known_input_options(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--masks",
-        type=Path,
+        type=_path("--masks"),
         default=None,
         metavar="FOLDER",
         help="a PNG per photo (<stem>.png or <name>.png, nerfstudio's and COLMAP's convention), 0 where the photo "
@@ -177,7 +386,7 @@ def _add_pairing_options(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--vocab-tree",
-        type=Path,
+        type=_path("--vocab-tree"),
         default=None,
         metavar="FILE",
         help="a COLMAP vocabulary tree (from colmap.github.io) for vocab_tree pairing and sequential loop closure",
@@ -189,12 +398,13 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     their checks (each class's ``__post_init__``: a bad value is an InputError naming the flag)."""
     from ffrecon.capture import CaptureOptions
     from ffrecon.sfm.gates import GateOptions
+    from ffrecon.splat.optimize import OptimizeOptions
 
     _add_output_folder_options(p)
     _add_model_call_options(p)
     p.add_argument(
         "--max-image-size",
-        type=int,
+        type=_number(lambda v: CaptureOptions(max_image_size=v)),
         default=None,
         metavar="N",
         help="long side in pixels of the frames every stage works on; larger photos are downscaled at capture "
@@ -215,14 +425,14 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--force", action="store_true", help="go on past failed verification gates")
     p.add_argument(
         "--min-registration",
-        type=float,
+        type=_number(lambda v: GateOptions(min_registration_ratio=v), integer=False),
         default=None,
         help="registration-ratio gate: the share of the images COLMAP must register, 0 to 1 "
         f"(default {_field_default(GateOptions, 'min_registration_ratio')})",
     )
     p.add_argument(
         "--splat-seconds",
-        type=float,
+        type=_number(lambda v: OptimizeOptions.brief(max_seconds=v), integer=False),
         default=None,
         help="splat optimisation budget in seconds, > 0 (default: OptimizeOptions.brief()'s)",
     )
@@ -233,25 +443,24 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     from ffrecon.capture import CaptureOptions
-    from ffrecon.view import ViewOptions
 
-    parser = argparse.ArgumentParser(
-        prog="ffrecon", description="Photos or a video in, a verified 3D reconstruction out."
-    )
+    parser = _Parser(prog="ffrecon", description="Photos or a video in, a verified 3D reconstruction out.")
     parser.add_argument("--version", action="version", version=f"ffrecon {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     run = sub.add_parser("run", help="reconstruct a folder of photos or a video")
-    run.add_argument("input", type=Path, help="folder of images (jpg, png, tiff, webp, bmp) or a video file")
+    run.add_argument(
+        "input", type=_path("the input"), help="folder of images (jpg, png, tiff, webp, bmp) or a video file"
+    )
     run.add_argument(
         "--model",
-        type=Path,
+        type=_model_file("--model", "--model"),
         default=None,
         help="ONNX model (any family in docs/models.md; make one with `ffrecon export-model`); "
         "without one, COLMAP makes the cameras and the splat is seeded from its points",
     )
     run.add_argument(
         "--video-frames",
-        type=int,
+        type=_number(lambda v: CaptureOptions(video_frames=v)),
         default=None,
         help=f"frames to keep from a video (default {_field_default(CaptureOptions, 'video_frames')})",
     )
@@ -261,34 +470,52 @@ def build_parser() -> argparse.ArgumentParser:
     _add_run_options(run)
     _add_demo_parser(sub)
     inspect = sub.add_parser("inspect-model", help="show a model's family, inputs, outputs and preprocessing")
-    inspect.add_argument("model", type=Path)
+    inspect.add_argument("model", type=_model_file("the model", "ffrecon inspect-model"), help="an .onnx file")
     _add_export_parser(sub)
+    _add_view_parser(sub)
+    return parser
+
+
+def _add_view_parser(sub) -> None:
+    """``view``: the caps' defaults are :class:`~ffrecon.view.ViewOptions`'s (at least 1, as it checks)."""
+    from ffrecon.view import ViewOptions
+
     view = sub.add_parser("view", help="open an output folder's cameras, points and splat in the browser")
-    view.add_argument("out", type=Path, help="an output folder of `ffrecon run -o OUT`")
-    view.add_argument("--host", default="127.0.0.1", help="address to listen on (default %(default)s: this machine)")
-    view.add_argument("--port", type=int, default=8080, help="port to listen on (default %(default)s)")
+    view.add_argument("out", type=_path("the output folder"), help="an output folder of `ffrecon run -o OUT`")
+    view.add_argument(
+        "--host",
+        type=_text("--host"),
+        default="127.0.0.1",
+        help="address to listen on (default %(default)s: this machine)",
+    )
+    view.add_argument(
+        "--port",
+        type=_in_range("viewer port", "--port", low=0, high=65535, note=" (0: any free port)"),
+        default=8080,
+        help="port to listen on, 0 to 65535; 0: any free port (default %(default)s)",
+    )
     view.add_argument(
         "--max-points",
-        type=int,
+        type=_in_range("ViewOptions.max_points", "--max-points", low=1),
         default=None,
         help=f"points drawn at most (default {_field_default(ViewOptions, 'max_points')}; the rest subsampled)",
     )
     view.add_argument(
         "--max-gaussians",
-        type=int,
+        type=_in_range("ViewOptions.max_gaussians", "--max-gaussians", low=1),
         default=None,
         help=f"Gaussians drawn at most, most opaque first (default {_field_default(ViewOptions, 'max_gaussians')})",
     )
     view.add_argument("-v", "--verbose", action="count", default=0)
-    return parser
 
 
-# demo's flags for fields of ffrecon.synthetic.SceneOptions: (dest, field, help); the flag is --dest
+# demo's flags for fields of ffrecon.synthetic.SceneOptions, which does not check them: (dest, field, help, low,
+# high); the flag is --dest
 _DEMO_SCENE_FLAGS = (
-    ("frames", "num_frames", "frames of the synthetic scene"),
-    ("width", "width", "frame width in pixels"),
-    ("height", "height", "frame height in pixels"),
-    ("seed", "seed", "seed of the scene's random textures and jitter"),
+    ("frames", "num_frames", "frames of the synthetic scene", DEMO_MIN_FRAMES, DEMO_MAX_FRAMES),
+    ("width", "width", "frame width in pixels", DEMO_MIN_SIDE, DEMO_MAX_SIDE),
+    ("height", "height", "frame height in pixels", DEMO_MIN_SIDE, DEMO_MAX_SIDE),
+    ("seed", "seed", "seed of the scene's random textures and jitter", 0, SEED_MAX),
 )
 
 
@@ -298,9 +525,10 @@ def _add_demo_parser(sub) -> None:
     from ffrecon.synthetic import SceneOptions
 
     demo = sub.add_parser("demo", help="synthetic scene + simulated model through every stage (no downloads)")
-    for dest, name, what in _DEMO_SCENE_FLAGS:
+    for dest, name, what, low, high in _DEMO_SCENE_FLAGS:
         default = _field_default(SceneOptions, name)
-        demo.add_argument(f"--{dest}", type=int, default=None, help=f"{what} (default {default})")
+        check = _in_range(f"SceneOptions.{name}", f"--{dest}", low=low, high=high)
+        demo.add_argument(f"--{dest}", type=check, default=None, help=f"{what}, {low} to {high} (default {default})")
     _add_run_options(demo)
 
 
@@ -308,7 +536,7 @@ def _scene_options(args: argparse.Namespace):
     """The demo scene's :class:`~ffrecon.synthetic.SceneOptions`: the flags given, the class's defaults else."""
     from ffrecon.synthetic import SceneOptions
 
-    return SceneOptions(**_given(**{name: getattr(args, dest) for dest, name, _ in _DEMO_SCENE_FLAGS}))
+    return SceneOptions(**_given(**{name: getattr(args, dest) for dest, name, *_ in _DEMO_SCENE_FLAGS}))
 
 
 def _add_export_parser(sub) -> None:
@@ -338,12 +566,14 @@ def _add_export_arguments(export: argparse.ArgumentParser) -> None:
     export.add_argument(
         "-o",
         "--out",
-        type=Path,
+        type=_path("--out"),
         required=True,
         help="output .onnx file (weights over 2 GB go to OUT.onnx.data beside it)",
     )
     weights = export.add_mutually_exclusive_group(required=True)
-    weights.add_argument("--checkpoint", help="the checkpoint file or folder you downloaded")
+    weights.add_argument(
+        "--checkpoint", type=_text("--checkpoint"), help="the checkpoint file or folder you downloaded"
+    )
     weights.add_argument(
         "--random-init",
         action="store_true",
@@ -354,20 +584,23 @@ def _add_export_arguments(export: argparse.ArgumentParser) -> None:
     )
     export.add_argument(
         "--upstream",
-        type=Path,
+        type=_path("--upstream"),
         default=None,
         help="root of the upstream code clone, when it is not an installed package",
     )
     export.add_argument(
         "--height",
-        type=int,
+        type=_in_range("export height", "--height", low=1),
         default=None,
-        help="network input height (default: from --photos, else the family's default)",
+        help="network input height, a multiple of the family's patch size (default: from --photos, else the "
+        "family's default)",
     )
-    export.add_argument("--width", type=int, default=None, help="network input width")
+    export.add_argument(
+        "--width", type=_in_range("export width", "--width", low=1), default=None, help="network input width"
+    )
     export.add_argument(
         "--photos",
-        type=Path,
+        type=_path("--photos"),
         default=None,
         help="a photo or folder the model will be used on: sets --height/--width by the family's preprocessing",
     )
@@ -382,13 +615,17 @@ def _add_export_arguments(export: argparse.ArgumentParser) -> None:
     )
     export.add_argument(
         "--frames",
-        type=int,
+        type=_in_range("ModelExportOptions.count", "--frames", low=1),
         default=None,
-        help="frames (pairs for pairwise models) in the traced example; the check runs one more "
+        help="frames (pairs for pairwise models) in the traced example, >= 1; the check runs one more "
         f"(default {_field_default(ModelExportOptions, 'count')})",
     )
     export.add_argument(
-        "--opset", type=int, default=None, help=f"ONNX opset (default {_field_default(ModelExportOptions, 'opset')})"
+        "--opset",
+        type=_in_range("ModelExportOptions.opset", "--opset", low=MIN_OPSET, high=TORCHSCRIPT_MAX_OPSET),
+        default=None,
+        help=f"ONNX opset, {MIN_OPSET} to {TORCHSCRIPT_MAX_OPSET} "
+        f"(default {_field_default(ModelExportOptions, 'opset')})",
     )
     export.add_argument("--skip-verify", action="store_true", help="do not compare onnxruntime with PyTorch")
     export.add_argument(
@@ -398,15 +635,16 @@ def _add_export_arguments(export: argparse.ArgumentParser) -> None:
     )
     export.add_argument(
         "--variant",
+        type=_text("--variant"),
         default=None,
         help="upstream configuration to build with --random-init "
         "(da3: da3-small|base|large|giant; monodepth: small|base|large, optionally -metric)",
     )
     export.add_argument(
         "--seed",
-        type=int,
+        type=_seed("--seed"),
         default=None,
-        help="seed of the random weights and of the traced example's inputs "
+        help=f"seed of the random weights and of the traced example's inputs, 0 to {SEED_MAX} "
         f"(default {_field_default(ModelExportOptions, 'seed')})",
     )
     export.add_argument("-v", "--verbose", action="count", default=0)
@@ -418,10 +656,6 @@ def _export_options(args: argparse.Namespace):
     (None) leave the class's defaults."""
     from ffrecon.models.exporting import ModelExportOptions
 
-    if (args.height is None) != (args.width is None):
-        raise FFReconError(
-            "--height and --width go together", "pass both, or neither (then --photos or the family's default decides)"
-        )
     return ModelExportOptions(
         family=args.family,
         out=args.out,
@@ -475,10 +709,7 @@ def _colmap_options(args: argparse.Namespace, preset):
 def _ray_options(args: argparse.Namespace):
     from ffrecon.models.distributed import RayOptions
 
-    if args.ray is None:
-        for flag, value in (("--ray-workers", args.ray_workers), ("--ray-gpus", args.ray_gpus)):
-            if value is not None:
-                raise InputError(f"{flag} is given without --ray", "add --ray (and a cluster address if any)")
+    if args.ray is None:  # --ray-workers and --ray-gpus need --ray (OPTION_NEEDS)
         return None
     return RayOptions(address=args.ray or None, **_given(workers=args.ray_workers, gpus_per_worker=args.ray_gpus))
 
@@ -637,7 +868,7 @@ def _parse_with_imports(argv: list[str] | None) -> argparse.Namespace:
         import PIL.Image  # noqa: F401
         import pycolmap  # noqa: F401
     with interrupts_deferred():  # seconds of imports: the option classes, then the pipeline
-        args = build_parser().parse_args(argv)
+        args = parse_args(argv)
         _setup_logging(-1 if getattr(args, "quiet", False) else getattr(args, "verbose", 0))
         if args.command in ("run", "demo"):
             import ffrecon.pipeline  # noqa: F401
@@ -676,13 +907,15 @@ def _run_command(args: argparse.Namespace):
     if args.command == "demo":
         from ffrecon.demo import DemoOptions, prepare_demo
 
+        options = _run_options(args)  # checked before the scene is rendered
         demo = prepare_demo(DemoOptions(scene=_scene_options(args)))
-        return run(demo.images, args.out, demo.model, _run_options(args, ground_truth=demo.scene_dir))
+        return run(demo.images, args.out, demo.model, dataclasses.replace(options, ground_truth=demo.scene_dir))
     return run(args.input, args.out, args.model, _run_options(args))
 
 
 def main(argv: list[str] | None = None) -> int:
     previous = signal.signal(signal.SIGTERM, _terminate)
+    showwarning, warnings.showwarning = warnings.showwarning, _log_warning
     try:
         args = _parse_with_imports(argv)
         if args.command == "inspect-model":
@@ -709,6 +942,7 @@ def main(argv: list[str] | None = None) -> int:
         return Interrupted.exit_code
     finally:
         signal.signal(signal.SIGTERM, previous)
+        warnings.showwarning = showwarning
     if not getattr(args, "quiet", False):
         _print_summary(results)
     return results.exit_code
