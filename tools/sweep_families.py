@@ -149,7 +149,7 @@ def run_case(case: Case, args) -> dict:
         proc = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO)
         row = dict(case.__dict__, code=proc.returncode, seconds=round(time.perf_counter() - start, 1))
         row["model_median"] = float(np.median(model_errors))
-        if not (out / "report.json").is_file() or not (out / "sparse" / "0").is_dir():
+        if not all((out / f).exists() for f in ("report.json", "sparse/0", "transforms.json")):
             return row | {"failed": proc.stderr.strip().splitlines()[-1:] or ["no report"]}
         report = json.loads((out / "report.json").read_text())
         per_image = {e["name"]: e for e in report["evidence"]["per_image"]}
