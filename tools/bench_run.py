@@ -13,10 +13,14 @@ child too, so that this process stays small: a child starts at its parent's high
   ground truth written as a COLMAP model, so that the report scores the final cameras against it.
 
 Per-stage seconds come from each run's ``report.json`` ("timings"); "other" is the wall time no stage
-accounts for (interpreter start, imports, writing the report). Accuracy is AUC@5 and the median rotation
-error against ground truth (the refined cameras; the feed-forward ones when refinement did not run).
+accounts for (interpreter start, imports, writing the report; stages that ran side by side count once).
+Each stage's steps come from its own section's ``timings_s`` (wall) and ``cpu_s`` (user + system CPU, where
+the stage records it: the splat does), with how much of the stage they cover; each run's whole CPU seconds
+(user + system, the child and its children, from ``os.wait4``) are the "cpu s" column. Accuracy is AUC@5
+and the median rotation error against ground truth (the refined cameras; the feed-forward ones when
+refinement did not run).
 PSNR is the splat's mean held-out PSNR after cleaning. The growth summary fits ``seconds = a * n^b`` over
-the frame counts (least squares in log-log) and prints ``b`` per stage. The splat stops at its time budget
+the frame counts (least squares in log-log) and prints ``b`` per stage. The splat stage ends within its budget
 (``--splat-seconds``; 60 s by default) unless its training loss plateaus first, so its exponent says little
 about its cost.
 
@@ -51,8 +55,8 @@ STAGES = ("capture", "feedforward", "colmap", "refine", "splat", "exports")
 # with the checks between them (gates, dense evidence, comparisons): the cost of poses one can trust
 POSE_STAGES = ("feedforward", "colmap", "refine", "checks")
 CHECKS = ("gates", "evidence", "comparisons", "seed_comparison")
-# Steps inside a stage, from its own timer in report.json: stage -> steps (the rest of the stage is not listed).
-STEPS = {"colmap": ("feature_extraction", "matching", "mapping"), "splat": ("optimize", "evaluate", "video")}
+# Steps of COLMAP alone (its own timer).
+STEPS = {"colmap": ("feature_extraction", "matching", "mapping")}
 GIB = 2.0**30
 RESULT_FILE = "bench_colmap.json"  # what the COLMAP-alone child writes into its output folder
 
@@ -174,8 +178,9 @@ class GpuPeak:
             self.peak_gb = max(self._peak - self._base, 0) / GIB
 
 
-def measured(cmd: list[str], log_path: Path) -> tuple[int, float, float, float | None]:
-    """Run ``cmd`` (output to ``log_path``): ``(exit code, wall seconds, peak resident GB, peak GPU GB or None)``.
+def measured(cmd: list[str], log_path: Path) -> tuple[int, float, float, float | None, float]:
+    """Run ``cmd`` (output to ``log_path``): ``(exit code, wall seconds, peak resident GB, peak GPU GB or None,
+    CPU seconds)``; the CPU seconds are user + system of the child and of its own waited-for children.
 
     The peak is the kernel's high-water mark of the child (and of its own waited-for children), from
     ``os.wait4``: ``ru_maxrss`` of RUSAGE_CHILDREN would be the largest of all children so far.
@@ -186,7 +191,8 @@ def measured(cmd: list[str], log_path: Path) -> tuple[int, float, float, float |
         _, status, usage = os.wait4(proc.pid, 0)
         wall = time.perf_counter() - start
     proc.returncode = os.waitstatus_to_exitcode(status)  # reaped here; tell Popen so it does not wait again
-    return proc.returncode, wall, usage.ru_maxrss * 1024 / GIB, gpu.peak_gb  # ru_maxrss is in KiB on Linux
+    cpu = usage.ru_utime + usage.ru_stime
+    return proc.returncode, wall, usage.ru_maxrss * 1024 / GIB, gpu.peak_gb, cpu  # ru_maxrss is in KiB on Linux
 
 
 def _tail(path: Path, lines: int = 8) -> str:
@@ -295,8 +301,8 @@ def run_colmap_alone(images: Path, scene_dir: Path, out: Path, args) -> dict:
     cmd += ["--colmap-pairing", args.colmap_pairing]
     if args.colmap_mapping_seconds is not None:
         cmd += ["--colmap-mapping-seconds", str(args.colmap_mapping_seconds)]
-    code, wall, peak, _ = measured([*cmd, "--truth", str(scene_dir)], out.parent / "colmap_alone.log")
-    row = {"method": "COLMAP alone", "exit": code, "wall_s": wall, "peak_gb": peak}
+    code, wall, peak, _, cpu = measured([*cmd, "--truth", str(scene_dir)], out.parent / "colmap_alone.log")
+    row = {"method": "COLMAP alone", "exit": code, "wall_s": wall, "peak_gb": peak, "cpu_s": cpu}
     if code != 0 or not (out / RESULT_FILE).is_file():
         row["error"] = _tail(out.parent / "colmap_alone.log")
         return row
@@ -345,8 +351,34 @@ def _accuracy(report: dict) -> dict:
     return {"accuracy": scores, **({"scored": scored, **scores[scored]} if scored else {})}
 
 
+def stage_steps(report: dict) -> tuple[dict, dict, dict]:
+    """``(steps, cpu, coverage)`` of a run's ``report.json``: ``{"stage step": wall s}`` and ``{"stage step": CPU
+    s}`` from each stage's section (``timings_s``, ``cpu_s``), and ``{stage: steps' sum / stage's seconds}``."""
+    steps, cpu, coverage = {}, {}, {}
+    for stage, t in report.get("timings", {}).items():
+        section = report.get(stage)
+        own = section.get("timings_s") if isinstance(section, dict) else None
+        if not isinstance(own, dict) or t.get("reused"):
+            continue
+        own_cpu = section.get("cpu_s") or {}
+        for step, seconds in own.items():
+            if step != "total":
+                steps[f"{stage} {step}"] = seconds
+                if own_cpu.get(step) is not None:
+                    cpu[f"{stage} {step}"] = own_cpu[step]
+        if t["seconds"] > 0:
+            coverage[stage] = sum(v for k, v in own.items() if k != "total") / t["seconds"]
+    return steps, cpu, coverage
+
+
+def stages_wall(report: dict) -> float:
+    """The stages' wall clock: their sum, stages that ran side by side counted once (``concurrent_stages``)."""
+    total = sum(t["seconds"] for t in report.get("timings", {}).values())
+    return total - sum(g["sum_seconds"] - g["wall_seconds"] for g in report.get("concurrent_stages", []))
+
+
 def report_row(report: dict, wall: float) -> dict:
-    """Stage seconds, COLMAP's steps, accuracy and splat PSNR from a run's ``report.json``."""
+    """Stage seconds, each stage's steps, accuracy and splat PSNR from a run's ``report.json``."""
     timings = {name: t["seconds"] for name, t in report.get("timings", {}).items()}
     stages = {name: timings.get(name, 0.0) for name in STAGES}
     stages["checks"] = sum(timings.get(name, 0.0) for name in CHECKS)
@@ -354,15 +386,14 @@ def report_row(report: dict, wall: float) -> dict:
     for name in unknown:  # stages this script does not know yet still count, under their own names
         stages[name] = timings[name]
     splat = report.get("splat") or {}
-    steps = {
-        f"{stage} {step}": seconds
-        for stage, names in STEPS.items()
-        for step, seconds in ((report.get(stage) or {}).get("timings_s") or {}).items()
-        if step in names
-    }
+    steps, step_cpu, coverage = stage_steps(report)
     row = {
         "stages": stages,
-        "other_s": wall - sum(timings.values()),
+        "other_s": wall - stages_wall(report),
+        "step_cpu": step_cpu,
+        "coverage": coverage,
+        "splat_budget_s": splat.get("budget_s"),
+        "splat_skipped": splat.get("skipped_steps") or {},
         "skipped": [s["stage"] for s in report.get("skipped_stages", [])],
         "verdict": report.get("verdict", {}).get("status"),
         "steps": steps,
@@ -393,8 +424,9 @@ def run_ffrecon(inputs, mode: str, work: Path, reference: Path, args, model: Pat
     out = work / f"ffrecon_{label.replace(' ', '_')}"
     log = work / f"ffrecon_{label.replace(' ', '_')}.log"
     cmd = ffrecon_command(inputs.images, model or inputs.model, out, reference, mode, args)
-    code, wall, peak, gpu_peak = measured(cmd, log)
+    code, wall, peak, gpu_peak, cpu = measured(cmd, log)
     row = {"method": f"ffrecon {label}", "exit": code, "wall_s": wall, "peak_gb": peak, "gpu_peak_gb": gpu_peak}
+    row["cpu_s"] = cpu
     if not (out / "report.json").is_file():
         row["error"] = _tail(log)
         return row
@@ -462,7 +494,7 @@ def print_table(rows: list[dict]) -> None:
     columns = [*STAGES, "checks", *extra]
     short = {"feedforward": "ff", "exports": "export"}
     head = "".join(f"{short.get(c, c)[:8]:>9}" for c in columns)
-    print(f"{'method':<16}{'wall s':>8}{'xCOLMAP':>8}{head}{'other':>8}{'peakGB':>7}{'exit':>5}", end="")
+    print(f"{'method':<16}{'wall s':>8}{'xCOLMAP':>8}{head}{'other':>8}{'cpu s':>8}{'peakGB':>7}{'exit':>5}", end="")
     print(f"{'reg':>7}{'AUC@5':>7}{'medrot':>8}{'PSNR':>6}")
     for r in rows:
         if "error" in r:
@@ -471,7 +503,8 @@ def print_table(rows: list[dict]) -> None:
         cells = "".join(_num(r["stages"].get(c), ".2f", 9) if c in r["stages"] else f"{'':>9}" for c in columns)
         print(
             f"{r['method']:<16}{r['wall_s']:>8.2f}{_num(r['ratio'], '.2f', 8)}{cells}{r['other_s']:>8.2f}"
-            f"{r['peak_gb']:>7.2f}{r['exit']:>5}{r.get('registered', '-'):>7}{_num(r.get('auc5'), '.3f', 7)}"
+            f"{_num(r.get('cpu_s'), '.1f', 8)}{r['peak_gb']:>7.2f}{r['exit']:>5}{r.get('registered', '-'):>7}"
+            f"{_num(r.get('auc5'), '.3f', 7)}"
             f"{_num(r.get('med_rot'), '.3f', 8)}{_num(r.get('psnr'), '.1f', 6)}"
         )
     for r in rows:
@@ -483,7 +516,16 @@ def print_table(rows: list[dict]) -> None:
                 f"{_num(r.get('splat_it_per_s'), '.1f', 0)} it/s, held-out PSNR at {at}"
             )
         if r.get("steps"):
-            print(f"  {r['method']} steps: " + ", ".join(f"{k} {v:.2f}" for k, v in r["steps"].items()))
+            cpu = r.get("step_cpu") or {}
+            cells = (f"{k} {v:.2f}" + (f" (cpu {cpu[k]:.2f})" if k in cpu else "") for k, v in r["steps"].items())
+            print(f"  {r['method']} steps: " + ", ".join(cells))
+        if r.get("coverage"):
+            print(f"  {r['method']} steps / stage: " + ", ".join(f"{k} {v:.0%}" for k, v in r["coverage"].items()))
+        if r.get("splat_skipped"):
+            print(
+                f"  {r['method']} splat steps the budget left out: "
+                + "; ".join(f"{k}: {v}" for k, v in r["splat_skipped"].items())
+            )
         if r.get("stage_peak_gb"):
             peaks = ", ".join(f"{k} {v:.2f}" for k, v in r["stage_peak_gb"].items())
             print(f"  {r['method']} peak GB by stage: {peaks}")

@@ -422,6 +422,8 @@ def _timings(report: dict, run_dir: Path) -> tuple[list[dict], str]:
         peak = t.get("peak_rss_gb")
         row |= {"peak memory (GB)": None if peak is None else round(peak, 2)}
         rows.append(row | {"at the same time as": t.get("concurrent_with")})
+        if not t["reused"]:
+            rows += _step_rows(stage, report.get(stage))
     together = []
     for group in report.get("concurrent_stages", []):
         names = " + ".join(group["stages"])
@@ -433,9 +435,29 @@ def _timings(report: dict, run_dir: Path) -> tuple[list[dict], str]:
     rows.append({"stage": "total (wall clock)", "seconds": wall_seconds(report)})
     reused = {s for s, t in timings.items() if t["reused"]}
     shown = {s: (t["first_seconds"] or 0.0) if t["reused"] else t["seconds"] for s, t in timings.items()}
-    caption = "Wall-clock seconds per stage on this machine; grey bars: reused from an earlier run (its time then)."
+    caption = "Wall-clock seconds per stage on this machine, and per step of the stages that time theirs (with their "
+    caption += (
+        "CPU seconds: user + system, of the whole process); grey bars: reused from an earlier run (its time then)."
+    )
     caption += "".join(f" {text}." for text in together)
     return rows, _figure("Time per stage", timings_png(shown, reused), caption)
+
+
+def _step_rows(stage: str, section) -> list[dict]:
+    """One row per step of a stage that times its steps (``timings_s``, and ``cpu_s`` where recorded: user +
+    system CPU seconds, the whole process's), under the stage's row."""
+    own = section.get("timings_s") if isinstance(section, dict) else None
+    if not isinstance(own, dict):
+        return []
+    cpu = section.get("cpu_s") or {}
+    skipped = section.get("skipped_steps") or {}
+    rows = [
+        {"stage": f"{stage}: {step}", "seconds": seconds, "status": "step", "CPU (s)": cpu.get(step)}
+        for step, seconds in own.items()
+        if step != "total"
+    ]
+    rows += [{"stage": f"{stage}: {step}", "status": f"left out: {why}"} for step, why in skipped.items()]
+    return rows
 
 
 def wall_seconds(report: dict) -> float:

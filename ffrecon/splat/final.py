@@ -20,6 +20,7 @@ from ffrecon.sfm.compare import compare_poses
 from ffrecon.sfm.crosscheck import ColmapResult
 from ffrecon.splat.seed import seed_from_reconstruction
 from ffrecon.splat.stage import SplatOptions, SplatResult, run_splat, run_splat_from_prediction
+from ffrecon.timing import StageTimer
 from ffrecon.types import Skipped
 
 CURVE_EVERY = 20  # iterations between held-out scores when the two seeds are compared
@@ -33,24 +34,36 @@ def splat_final_cameras(
     options: SplatOptions,
     work: Path,
 ) -> SplatResult:
-    """The run's splat on the final cameras, in ``work``."""
-    images = capture.read_images(list(final.indices))
-    masks = capture.read_masks(list(final.indices))
+    """The run's splat on the final cameras, in ``work``; reading the photos is the stage's first step (its
+    time budget, ``options.optimize.max_seconds``, counts from the start)."""
+    timer = StageTimer()
+    with timer.stage("read_images"):
+        images = capture.read_images(list(final.indices))
+        masks = capture.read_masks(list(final.indices))
     cameras = final.cameras
     if final.distortion is not None:  # the rasteriser is a pinhole camera: train on undistorted photos
-        if masks is not None:  # undistorted the same way, carried as the image's 4th channel
-            images = [np.dstack([im, np.where(m, 255, 0).astype(np.uint8)]) for im, m in zip(images, masks)]
-        pairs = [undistort_image(im, c, d) for im, c, d in zip(images, cameras, final.distortion)]
-        images, cameras = [p[0] for p in pairs], tuple(p[1] for p in pairs)
-        if masks is not None:
-            masks, images = [im[..., 3] > 127 for im in images], [im[..., :3] for im in images]
+        with timer.stage("undistort"):
+            images, cameras, masks = _undistorted(images, cameras, masks, final.distortion)
     if final.source is not CameraSource.COLMAP and isinstance(ff, FeedForwardResult):
         args = (ff.prediction.subset(final.indices), images, final.cam_from_world, cameras, options, work)
-        return run_splat_from_prediction(*args, unconfirmed=final.unconfirmed, masks=masks)
+        return run_splat_from_prediction(*args, unconfirmed=final.unconfirmed, masks=masks, timer=timer)
     if not isinstance(colmap, ColmapResult):
         raise AssertionError(f"final cameras from {final.source} without the result they come from")
-    xyz, rgb = seed_from_reconstruction(colmap.reconstruction)  # COLMAP's cameras: its points
-    return run_splat(images, final.names, final.cam_from_world, cameras, xyz, rgb, options, work, masks=masks)
+    with timer.stage("seed_points"):
+        xyz, rgb = seed_from_reconstruction(colmap.reconstruction)  # COLMAP's cameras: its points
+    args = (images, final.names, final.cam_from_world, cameras, xyz, rgb, options, work)
+    return run_splat(*args, masks=masks, timer=timer)
+
+
+def _undistorted(images, cameras, masks, distortion):
+    """``(images, pinhole cameras, masks)`` undistorted (masks the same way, as the image's 4th channel)."""
+    if masks is not None:
+        images = [np.dstack([im, np.where(m, 255, 0).astype(np.uint8)]) for im, m in zip(images, masks)]
+    pairs = [undistort_image(im, c, d) for im, c, d in zip(images, cameras, distortion)]
+    images, cameras = [p[0] for p in pairs], tuple(p[1] for p in pairs)
+    if masks is not None:
+        masks, images = [im[..., 3] > 127 for im in images], [im[..., :3] for im in images]
+    return images, cameras, masks
 
 
 def with_curves(options: SplatOptions) -> SplatOptions:
@@ -81,8 +94,10 @@ def splat_from_colmap_points(
     names = capture.names
     full = np.stack([np.eye(3, 4)] * len(names))
     full[list(final.indices)] = final.cam_from_world
-    to_final = compare_poses(colmap.cam_from_world, full, names, colmap.registered).errors.est_to_ref
-    xyz, rgb = seed_from_reconstruction(colmap.reconstruction)
-    images, masks = capture.read_images(list(final.indices)), capture.read_masks(list(final.indices))
+    timer = StageTimer()
+    with timer.stage("read_images"):
+        to_final = compare_poses(colmap.cam_from_world, full, names, colmap.registered).errors.est_to_ref
+        xyz, rgb = seed_from_reconstruction(colmap.reconstruction)
+        images, masks = capture.read_images(list(final.indices)), capture.read_masks(list(final.indices))
     args = (images, final.names, final.cam_from_world, final.cameras, to_final.apply(xyz), rgb)
-    return run_splat(*args, options, work / "seed_comparison", masks=masks)
+    return run_splat(*args, options, work / "seed_comparison", masks=masks, timer=timer)

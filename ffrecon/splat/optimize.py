@@ -244,6 +244,7 @@ def optimize(
     callback_every: int = 0,
     pose_views: Sequence[int] | None = None,
     depths: Sequence[np.ndarray | None] | None = None,
+    deadline: float | Callable[[], float] | None = None,
 ) -> OptimizeResult:
     """Optimise ``gaussians`` on the training views (torch threads set by ``options.threads``).
 
@@ -261,6 +262,11 @@ def optimize(
             None: every training view but the first with ``options.refine_poses``, none without.
         depths: per view ``[h, w]`` z-depth priors in the poses' scale (0 where unknown; None: no prior for
             that view), resized to each training resolution; used when ``options.depth_weight > 0``.
+        deadline: a ``time.perf_counter()`` by which the loop must end, its callbacks' time included (the
+            splat stage's budget, :mod:`ffrecon.splat.budget`), or a function returning it (asked before each
+            step: the stage moves it as it measures what its later steps cost): the loop then has
+            ``min(max_seconds, deadline - its start)`` of wall clock, and the plan is compressed to that.
+            None: ``max_seconds`` of optimisation alone, callbacks not counted.
     """
     threads = torch_threads(cpu_threads(options.threads)) if options.device == "cpu" else contextlib.nullcontext()
     with threads:
@@ -275,6 +281,7 @@ def optimize(
             callback=callback,
             callback_every=callback_every,
             priors=(pose_views, depths),
+            deadline=deadline,
         )
 
 
@@ -555,6 +562,16 @@ class _Plateau:
         return done
 
 
+def _loop_budget(o: OptimizeOptions, deadline, loop_start: float, elapsed: float) -> tuple[float, float]:
+    """``(the loop's seconds, seconds spent)``: ``max_seconds`` and the optimisation's own ``elapsed``, or with
+    a ``deadline`` (see :func:`optimize`) what is left to it from the loop's start and the loop's wall clock
+    (callbacks included)."""
+    if deadline is None:
+        return o.max_seconds, elapsed
+    end = deadline() if callable(deadline) else deadline
+    return max(1e-9, min(o.max_seconds, end - loop_start)), time.perf_counter() - loop_start
+
+
 def _pixels(views: _TrainingViews, view: int, factor: int) -> int:
     image = views.levels.get(factor, (views.images, views.k_mats))[0][view]
     return int(image.shape[0] * image.shape[1])
@@ -573,12 +590,23 @@ def _prepare(gaussians, images, cam_from_world, Ks, train, o: OptimizeOptions, s
 
 
 def _optimize(
-    gaussians, images, cam_from_world, Ks, train, options: OptimizeOptions, *, scale, callback, callback_every, priors
+    gaussians,
+    images,
+    cam_from_world,
+    Ks,
+    train,
+    options: OptimizeOptions,
+    *,
+    scale,
+    callback,
+    callback_every,
+    priors,
+    deadline=None,
 ) -> OptimizeResult:
     """The loop: visit the training views in shuffled rounds until the plan's iterations, the time budget
     or a plateau of the training loss ends it; learning rate, resolution, SH degree and densification
     follow the fraction of the plan done (iterations or time, whichever is further on). ``priors``: the
-    ``(pose_views, depths)`` of :func:`optimize`."""
+    ``(pose_views, depths)`` of :func:`optimize`; ``deadline``: see there."""
     o = options
     train = list(train)
     if not train:
@@ -593,13 +621,15 @@ def _optimize(
     clock = StepClock()
     disable = None if o.progress else True  # None: off when not a terminal
     bar = tqdm(total=o.iterations, desc="splat", unit="it", disable=disable, leave=False)
+    loop_start, fraction = time.perf_counter(), 0.0
     while it < o.iterations:
-        fraction = max(it / o.iterations, elapsed / o.max_seconds)
+        budget, spent = _loop_budget(o, deadline, loop_start, elapsed)
+        fraction = min(1.0, max(fraction, it / o.iterations, spent / budget))
         factor = resolution_factor(o, fraction)
         if not order:
             order = [train[j] for j in rng.permutation(len(train))]
         pixels = _pixels(views, order[-1], factor)
-        if elapsed + clock.predict(pixels) > o.max_seconds:  # the budget is an upper bound
+        if spent + clock.predict(pixels) > budget:  # the budget is an upper bound
             reason = "time budget"
             break
         start = time.perf_counter()
@@ -621,6 +651,10 @@ def _optimize(
             reason = "plateau"
             break
     bar.close()
+    return _result(params, views, it, elapsed, history, reason)
+
+
+def _result(params, views: _TrainingViews, it: int, elapsed: float, history, reason: str) -> OptimizeResult:
     rate = it / max(elapsed, 1e-9)
     logger.info("splat: %d iterations in %.1f s (%.2f it/s), stopped by %s", it, elapsed, rate, reason)
     return OptimizeResult(

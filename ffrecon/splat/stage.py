@@ -19,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 import enum
 import logging
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,6 +37,15 @@ from ffrecon.gaussians import Gaussians
 from ffrecon.geometry.poses import camera_centers
 from ffrecon.geometry.rotations import rotation_angle_deg
 from ffrecon.splat.appearance import apply_color_transform, fit_color_transform
+from ffrecon.splat.budget import (
+    AfterSteps,
+    StageBudget,
+    Step,
+    ViewCosts,
+    after_steps,
+    budget_reason,
+    plan_budget,
+)
 from ffrecon.splat.clean import CleanOptions, CleanReport, clean_gaussians
 from ffrecon.splat.memory import splat_peak_bytes, training_side
 from ffrecon.splat.optimize import (
@@ -47,11 +57,12 @@ from ffrecon.splat.optimize import (
     torch_threads,
     unit_float,
 )
+from ffrecon.splat.render import warm_up
 from ffrecon.splat.render_gsplat import gsplat_available, render_view_on
 from ffrecon.splat.seed import initial_gaussians, reduce_points, seed_from_prediction
 from ffrecon.splat.ssim import ssim_mean
 from ffrecon.splat.video import write_flythrough
-from ffrecon.timing import StageTimer, Timings
+from ffrecon.timing import StageTimer, Timings, cpu_seconds
 from ffrecon.types import PinholeCamera, Prediction, capped_size
 
 logger = logging.getLogger("ffrecon.splat")
@@ -162,7 +173,7 @@ class SplatResult:
     train: tuple[int, ...]  # frame indices optimised on (and, from a prediction, seeded from)
     heldout: tuple[int, ...]  # frame indices held out for evaluation
     heldout_metrics: tuple[ViewMetrics, ...]  # one per held-out frame, in the order of `heldout`
-    timings: Timings  # seconds per step (seed, optimize, clean, evaluate, write_ply, video)
+    timings: Timings  # wall and CPU seconds per step of the whole stage (they sum to its wall clock)
     iterations: int
     iterations_per_second: float
     count_seed: int
@@ -183,6 +194,8 @@ class SplatResult:
     max_side: int | None = None  # views longer than this (px) were shrunk to it to fit memory (splat.memory)
     pose_changes: tuple[PoseChange, ...] = ()  # one per frame whose pose the splat refined
     depth_prior: bool = False  # whether the model's depth was a prior in the loss
+    budget_s: float | None = None  # the stage's time budget (optimize.max_seconds, --splat-seconds)
+    skipped_steps: tuple[tuple[str, str], ...] = ()  # (step, why) the budget left out or shortened
 
     def mean(self, key: str) -> float:
         """Mean over held-out views of a :class:`ViewMetrics` field (nan without held-out views)."""
@@ -228,6 +241,9 @@ class SplatResult:
             "gaussians": {"seed": self.count_seed, "optimized": self.count_optimized, "cleaned": self.count_cleaned},
             "cleaning": self.clean.to_dict(),
             "timings_s": self.timings.to_report(),
+            "cpu_s": self.timings.cpu_report(),
+            "budget_s": self.budget_s,
+            "skipped_steps": dict(self.skipped_steps),
             "heldout_curve": [
                 {"iteration": i, "seconds": t, "psnr": p, "ssim": q} for i, t, p, q in self.heldout_curve
             ],
@@ -369,6 +385,7 @@ def run_splat(
     out_dir: Path,
     *,
     masks: Sequence[np.ndarray] | None = None,
+    timer: StageTimer | None = None,
 ) -> SplatResult:
     """Optimise, clean and export a Gaussian splat from an explicit seed; measure it on held-out views.
 
@@ -380,11 +397,14 @@ def run_splat(
             held-out PSNR honest, they should come from the training views of :func:`split_views` only.
         masks: per frame ``[H, W]`` bool (True: use the pixel; ``--masks``), or None: the loss and the held-out
             scores ignore the pixels they leave out.
+        timer: the stage's timer when the caller's work (reading the photos) belongs to it: the stage's time
+            budget (``optimize.max_seconds``) counts from when it was made. None: from now.
     """
+    timer = timer or StageTimer()
     images = with_masks(images, masks)
     split = split_views(len(images), options.holdout_every)
     with torch_threads(cpu_threads(options.optimize.threads)):
-        return _splat(images, names, cam_from_world, cameras, seed_xyz, seed_rgb, split, options, out_dir, StageTimer())
+        return _splat(images, names, cam_from_world, cameras, seed_xyz, seed_rgb, split, options, out_dir, timer)
 
 
 def run_splat_from_prediction(
@@ -397,6 +417,7 @@ def run_splat_from_prediction(
     *,
     unconfirmed: Sequence[int] = (),
     masks: Sequence[np.ndarray] | None = None,
+    timer: StageTimer | None = None,
 ) -> SplatResult:
     """The splat stage seeded from feed-forward depth: split the views, seed from the training views, optimise.
 
@@ -411,12 +432,12 @@ def run_splat_from_prediction(
     Each training view's depth map is unprojected with its final camera (see :func:`prediction_seed`),
     then :func:`run_splat`'s optimisation follows with the same split. With fewer than
     ``depth_prior_below`` frames and some frame unconfirmed, the depth maps are also a prior in the loss
-    (``optimize.depth_weight``).
+    (``optimize.depth_weight``). ``timer``: as :func:`run_splat`'s.
     """
+    timer = timer or StageTimer()
     images = with_masks(images, masks)  # the prediction's depth is already masked (no seed from there)
     split = split_views(len(images), options.holdout_every)
     _validate_views(images, prediction.names, cam_from_world, cameras)
-    timer = StageTimer()
     with torch_threads(cpu_threads(options.optimize.threads)):
         with timer.stage("fuse_depth"):
             xyz, rgb = prediction_seed(prediction, images, cam_from_world, cameras, split[0], options)
@@ -459,6 +480,40 @@ def prediction_seed(
     )
 
 
+@dataclass
+class _Run:
+    """What the stage's steps share: its timer and budget, the steps after the optimiser at work (see
+    :class:`~ffrecon.splat.budget.AfterSteps`), why steps were left out, the held-out curve, and the held-out
+    scores already known (``(iteration, view) -> (psnr, ssim)``; the seed's renders of the report views)."""
+
+    timer: StageTimer
+    budget: StageBudget
+    costs: ViewCosts = ViewCosts(0.0, 0.0)
+    after: AfterSteps | None = None
+    skipped: dict[str, str] = field(default_factory=dict)
+    curve: list[tuple[int, float, float, float]] = field(default_factory=list)
+    curve_timer: StageTimer = field(default_factory=StageTimer)
+    curve_every: int = 0  # iterations between the held-out curve's points (0: no curve)
+    known: dict[tuple[int, int], tuple[float, float]] = field(default_factory=dict)
+    seed_renders: dict[int, torch.Tensor] = field(default_factory=dict)
+    # The optimiser's deadline is the budget's less ``reserve``, the seconds the steps after it kept by the plan
+    # (``kept``) are estimated to take; ``estimate(gaussians)`` re-estimates them (the curve's points do).
+    reserve: float = 0.0
+    kept: tuple[str, ...] = ()
+    estimate: Callable[[int], list[Step]] | None = None
+
+    def reestimate(self, gaussians: int) -> None:
+        if self.estimate is not None:
+            self.reserve = sum(s.seconds for s in self.estimate(gaussians) if s.name in self.kept)
+
+    def optimizer_deadline(self) -> float:
+        return self.budget.deadline - self.reserve
+
+
+CURVE_SHARE = 0.15  # the held-out curve's points stop once they would take more of the stage's budget than this
+MIN_VIDEO_FRAMES = 15  # a video the budget would cut shorter than this is left out
+
+
 def _splat(
     images,
     names,
@@ -474,31 +529,31 @@ def _splat(
 ) -> SplatResult:
     """Both entries' implementation, from the seed cloud and the ``(train, heldout)`` split on.
 
-    ``timer`` holds what the entry already measured and receives the rest of the steps."""
+    ``timer`` holds what the entry already measured and receives the rest of the steps; the stage's budget
+    (``options.optimize.max_seconds``) counts from when it was made."""
     _validate_views(images, names, cam_from_world, cameras, seed=(seed_xyz, seed_rgb))
     train, heldout = split
     out_dir = Path(out_dir)
-    device = resolve_device(options.device)  # training and every later render (scores, renders, video)
-    options = dataclasses.replace(options, optimize=dataclasses.replace(options.optimize, device=device))
-    logger.info("splat: %d training and %d held-out views, device %s", len(train), len(heldout), device)
-    max_side = check_splat_memory([(im.shape[1], im.shape[0]) for im in images], options)
-    images, cameras = _capped(images, cameras, max_side)
-    curve: list[tuple[int, float, float, float]] = []
+    options, max_side, images, cameras = _on_device(options, images, cameras, split)
+    run = _Run(timer, StageBudget(options.optimize.max_seconds, timer.started))
     seed, result, cleaned, clean_report = _fit_and_clean(
-        images, cam_from_world, cameras, seed_xyz, seed_rgb, split, options, device, timer, curve, priors
+        images, cam_from_world, cameras, seed_xyz, seed_rgb, split, options, run, priors
     )
     poses = result.cam_from_world
-    with timer.stage("pose_check"):
-        changes = _pose_changes(names, images, cam_from_world, cameras, result, split, options)
+    changes = _pose_check(timer, names, images, cam_from_world, cameras, result, split, options)
     splats = {"seed": seed, "optimized": result.gaussians, "cleaned": cleaned}
+    known = (_known_scores(run, heldout, result.iterations), run.seed_renders)  # scored by the held-out curve
     with timer.stage("evaluate"):
-        metrics, render_paths = _evaluate_heldout(heldout, names, images, poses, cameras, splats, options, out_dir)
-    ply_path, video_path, web_paths = _write_outputs(out_dir, cleaned, poses, cameras[0], options, timer)
+        metrics, renders = _evaluate_heldout(
+            heldout, names, images, poses, cameras, splats, options, out_dir, known=known
+        )
+    ply_path, video_path, web_paths = _write_outputs(out_dir, cleaned, poses, cameras[0], options, run)
+    timer.close()  # what no step holds (validation, the result itself): the steps sum to the stage
     res = SplatResult(
         out_dir=out_dir,
         ply_path=ply_path,
         renders_dir=out_dir / "renders",
-        render_paths=render_paths,
+        render_paths=renders,
         video_path=video_path,
         train=tuple(train),
         heldout=tuple(heldout),
@@ -510,77 +565,191 @@ def _splat(
         count_optimized=len(result.gaussians),
         count_cleaned=len(cleaned),
         clean=clean_report,
-        backend="gsplat" if device == "cuda" else "cpu",
+        backend="gsplat" if options.optimize.device == "cuda" else "cpu",
         cam_from_world=poses,
         color_transforms=result.color_transforms,
-        heldout_curve=tuple(curve),
+        heldout_curve=tuple(run.curve),
         stop_reason=result.stop_reason,
         max_side=max_side,
         pose_changes=changes,
         depth_prior=priors.depths is not None and options.optimize.depth_weight > 0,
+        budget_s=run.budget.seconds,
+        skipped_steps=tuple(run.skipped.items()),
         **web_paths,
     )
-    _log_summary(res)
-    return res
+    return _log_summary(res)
+
+
+def _on_device(options: SplatOptions, images, cameras, split) -> tuple[SplatOptions, int | None, list, list]:
+    """``(options, max_side, images, cameras)``: the options with the device the splat trains and renders on,
+    and the views shrunk to what memory allows (see :func:`check_splat_memory`)."""
+    device = resolve_device(options.device)  # training and every later render (scores, renders, video)
+    options = dataclasses.replace(options, optimize=dataclasses.replace(options.optimize, device=device))
+    logger.info("splat: %d training and %d held-out views, device %s", len(split[0]), len(split[1]), device)
+    max_side = check_splat_memory([(im.shape[1], im.shape[0]) for im in images], options)
+    return (options, max_side, *_capped(images, cameras, max_side))
+
+
+def _known_scores(run: _Run, heldout, iterations: int) -> dict[tuple[str, int], tuple[float, float]]:
+    """The held-out scores of the seed and of the optimised splat the curve already measured."""
+    known = {("seed", i): run.known[0, i] for i in heldout if (0, i) in run.known}
+    return known | {("optimized", i): run.known[iterations, i] for i in heldout if (iterations, i) in run.known}
 
 
 def _fit_and_clean(
-    images,
-    cam_from_world,
-    cameras,
-    seed_xyz,
-    seed_rgb,
-    split,
-    options: SplatOptions,
-    device: str,
-    timer,
-    curve: list,
-    priors: ViewPriors,
+    images, cam_from_world, cameras, seed_xyz, seed_rgb, split, options: SplatOptions, run: _Run, priors: ViewPriors
 ) -> tuple[Gaussians, OptimizeResult, Gaussians, CleanReport]:
-    """Seed Gaussians, optimise them on the training views, clean the result; adds the step times to ``timer``
-    and, with ``options.curve_every``, the held-out scores over the optimisation to ``curve``."""
+    """Seed Gaussians, optimise them on the training views within what the stage's budget leaves after the
+    steps to come, clean the result; adds the step times to ``run.timer`` and, with ``options.curve_every``,
+    the held-out scores over the optimisation to ``run.curve``."""
     train, heldout = split
-    opt = dataclasses.replace(options.optimize, device=device)  # the only optimiser field the stage sets
+    opt, timer = options.optimize, run.timer
     cam_from_world = np.asarray(cam_from_world, np.float64)
     with timer.stage("seed"):
         seed, seed_points = _initial_splat(seed_xyz, seed_rgb, options)
         scale = scene_scale(cam_from_world[train], seed_points)
-
     targets = [torch.from_numpy(np.ascontiguousarray(im)) for im in images]  # uint8, as the photos (unit_float)
-    Ks = np.stack([c.K for c in cameras])
-    score = None
-    if options.curve_every > 0 and heldout:
+    if opt.device == "cpu":
+        with timer.stage("compile"):  # numba's kernels: compiled on first use, then loaded from its cache
+            warm_up()
+    score = _scorer(run, heldout, cameras, targets, options) if options.curve_every > 0 and heldout else None
+    run.curve_every = options.curve_every if score is not None else 0
+    if score is not None:
+        score(0, 0.0, seed, cam_from_world)  # also measures a view's render and score for the budget
+    else:
+        with timer.stage("budget_probe"):
+            run.costs = _probe(seed, cam_from_world, cameras, (heldout or train)[0], targets, opt)
+    _plan(run, len(seed), split, options, priors, curve=score is not None)
+    result = _optimize_timed(run, seed, targets, cam_from_world, cameras, split, opt, scale, score, priors)
+    if score is not None and run.curve[-1][0] < result.iterations and run.after.allowed("heldout_curve"):
+        score(result.iterations, result.seconds, result.gaussians, result.cam_from_world)  # ends where it did
+    curve = run.curve_timer.freeze()
+    timer.add("heldout_curve", curve.total_s, sum(c for c in curve.cpu if c is not None))
+    run.after.update(_after(run, len(result.gaussians), split, options, priors, curve=score is not None))
+    logger.debug("splat: the steps after the optimiser, estimated: %s", {s.name: s.seconds for s in run.after.steps})
+    poses = result.cam_from_world
+    with timer.stage("clean"):
+        optimized = [run.known.get((result.iterations, i), (None,))[0] for i in heldout]
+        first = float(np.mean(optimized)) if heldout and None not in optimized else None
+        judged = heldout and run.after.allowed("clean_judge")
+        judge = _heldout_psnr(heldout, poses, cameras, targets, opt, first) if judged else None
+        train_cameras = [cameras[i] for i in train]
+        cleaned, report = clean_gaussians(result.gaussians, poses[train], train_cameras, options.clean, judge=judge)
+    return seed, result, cleaned, report
 
-        def score(iteration: int, seconds: float, g: Gaussians, poses: np.ndarray) -> None:
-            views = _render_views(g, poses, cameras, heldout, opt)
-            m = np.mean([image_metrics(v, unit_float(targets[i])) for v, i in zip(views, heldout)], axis=0)
-            curve.append((iteration, seconds, float(m[0]), float(m[1])))
 
-        score(0, 0.0, seed, cam_from_world)
-    every = options.curve_every if score is not None else 0
+def _after(run: _Run, gaussians: int, split, options: SplatOptions, priors: ViewPriors, *, curve: bool) -> list:
+    """The steps after the optimiser with their seconds estimated from ``run.costs`` (see
+    :func:`~ffrecon.splat.budget.after_steps`)."""
+    refined = len(priors.pose_views) if options.refine_unconfirmed_poses else 0
+    return after_steps(
+        run.costs,
+        gaussians=gaussians,
+        heldout=len(split[1]),
+        pose_views=refined,
+        video_frames=options.video_frames if options.video else 0,
+        spz=options.spz,
+        curve=curve,
+    )
+
+
+def _plan(run: _Run, seed_count: int, split, options: SplatOptions, priors: ViewPriors, *, curve: bool) -> None:
+    """Split what the stage's budget leaves after the steps so far between the optimiser and the estimated
+    steps after it (optional ones left out when they would take more than half of it): sets ``run.reserve``,
+    ``run.kept``, ``run.estimate`` and ``run.after``. The splat may grow to ``optimize.max_gaussians``: the
+    first estimate assumes renders slow down with it (the seed's own render, measured, is slower than a
+    trained splat's: its Gaussians are larger); the held-out curve's points measure them again."""
+    o = options.optimize
+    grown = o.max_gaussians if o.densify is not None else seed_count
+    factor = 1.0 + 0.25 * np.log2(max(1.0, grown / max(seed_count, 1)))
+    run.estimate = lambda count: _after(run, count, split, options, priors, curve=curve)
+    measured = run.costs
+    run.costs = ViewCosts(measured.render_s * factor, measured.score_s)
+    steps = run.estimate(grown)
+    run.costs = measured
+    plan = plan_budget(run.budget.seconds, run.timer.elapsed(), steps)
+    run.skipped.update(plan.skipped)
+    run.after = AfterSteps(run.budget, steps, run.skipped)
+    run.kept = plan.kept
+    run.reserve = sum(s.seconds for s in steps if s.name in plan.kept)
+    logger.info(
+        "splat: %.1f s of the stage's %g s budget for the optimiser (%.1f s spent, about %.1f s for the steps after)",
+        plan.optimizer_s,
+        run.budget.seconds,
+        run.timer.elapsed(),
+        run.reserve,
+    )
+
+
+def _optimize_timed(run: _Run, seed, targets, cam_from_world, cameras, split, opt, scale, score, priors):
+    """:func:`optimize` until ``run.optimizer_deadline()``, its time in ``run.timer`` as ``optimize`` (the
+    held-out curve's points scored meanwhile apart: they are ``heldout_curve``)."""
+    every = 0 if score is None else run.curve_every
+    start, cpu, before = time.perf_counter(), cpu_seconds(), run.curve_timer.freeze()
     result = optimize(
         seed,
         targets,
         cam_from_world,
-        Ks,
-        train,
+        np.stack([c.K for c in cameras]),
+        split[0],
         opt,
         scale=scale,
         callback=score,
         callback_every=every,
         pose_views=priors.pose_views if priors.pose_views else None,
         depths=priors.depths,
+        deadline=run.optimizer_deadline,
     )
-    timer.add("optimize", result.seconds)  # the optimiser's own clock (callbacks left out)
-    if score is not None and curve[-1][0] < result.iterations:  # the curve ends where the optimisation did
-        score(result.iterations, result.seconds, result.gaussians, result.cam_from_world)
+    curve = run.curve_timer.freeze()
+    curve_cpu = sum(c for c in curve.cpu if c is not None) - sum(c for c in before.cpu if c is not None)
+    wall = time.perf_counter() - start - (curve.total_s - before.total_s)
+    run.timer.add("optimize", wall, cpu_seconds() - cpu - curve_cpu)
+    return result
 
-    poses = result.cam_from_world
-    with timer.stage("clean"):
-        judge = _heldout_psnr(heldout, poses, cameras, targets, opt) if heldout else None
-        train_cameras = [cameras[i] for i in train]
-        cleaned, report = clean_gaussians(result.gaussians, poses[train], train_cameras, options.clean, judge=judge)
-    return seed, result, cleaned, report
+
+def _scorer(run: _Run, heldout, cameras, targets, options: SplatOptions) -> Callable:
+    """The held-out curve's callback: mean PSNR and SSIM of plain renders of the held-out views, each view's
+    scores kept in ``run.known`` and the seed's renders of the report views in ``run.seed_renders``; timed in
+    ``run.curve_timer``, each point's cost measured into ``run.costs``. Points past iteration 0 stop once the
+    curve would take more than ``CURVE_SHARE`` of the stage's budget (said in ``run.skipped``)."""
+    opt = options.optimize
+
+    def score(iteration: int, seconds: float, g: Gaussians, poses: np.ndarray) -> None:
+        point = len(heldout) * (run.costs.render_s + run.costs.score_s)
+        if iteration > 0 and run.curve_timer.freeze().total_s + point > CURVE_SHARE * run.budget.seconds:
+            run.skipped.setdefault(
+                "heldout_curve",
+                f"points from iteration {iteration} on left out: {CURVE_SHARE:.0%} "
+                f"of the stage's budget ({run.budget.seconds:g} s, --splat-seconds) spent on it",
+            )
+            return
+        with run.curve_timer.stage("heldout_curve"):
+            g = g.to(opt.device)
+            render_s = score_s = 0.0
+            for i in heldout:
+                t0 = time.perf_counter()
+                view = render_view_on(opt.device, g, poses[i], cameras[i], background=opt.background, raster=opt.raster)
+                t1 = time.perf_counter()
+                run.known[iteration, i] = image_metrics(view, unit_float(targets[i]))
+                render_s, score_s = render_s + t1 - t0, score_s + time.perf_counter() - t1
+                if iteration == 0 and len(run.seed_renders) < options.report_views:
+                    run.seed_renders[i] = view
+            m = np.mean([run.known[iteration, i] for i in heldout], axis=0)
+            run.curve.append((iteration, seconds, float(m[0]), float(m[1])))
+            run.costs = ViewCosts(render_s / len(heldout), score_s / len(heldout))
+            if iteration > 0:
+                run.reestimate(len(g))  # moves the optimiser's deadline
+
+    return score
+
+
+def _probe(g: Gaussians, poses, cameras, view: int, targets, opt: OptimizeOptions) -> ViewCosts:
+    """Seconds of one plain render of ``view`` and of scoring it, for the budget's estimates."""
+    t0 = time.perf_counter()
+    image = render_view_on(opt.device, g, poses[view], cameras[view], background=opt.background, raster=opt.raster)
+    t1 = time.perf_counter()
+    image_metrics(image, unit_float(targets[view]))
+    return ViewCosts(t1 - t0, time.perf_counter() - t1)
 
 
 def _render_views(g: Gaussians, poses, cameras, views, opt: OptimizeOptions) -> list[torch.Tensor]:
@@ -591,14 +760,25 @@ def _render_views(g: Gaussians, poses, cameras, views, opt: OptimizeOptions) -> 
     ]
 
 
-def _heldout_psnr(heldout, poses, cameras, targets, opt) -> Callable[[Gaussians], float]:
-    """The cleaning's judge: mean PSNR (dB) of plain renders of the held-out views (the figure the report shows)."""
+def _heldout_psnr(heldout, poses, cameras, targets, opt, first: float | None = None) -> Callable[[Gaussians], float]:
+    """The cleaning's judge: mean PSNR (dB) of plain renders of the held-out views (the figure the report shows).
+    ``first``: the judge's first answer when known already (the trained splat's, from the held-out curve)."""
+    known = [first]
 
     def judge(g: Gaussians) -> float:
+        if known[0] is not None:
+            value, known[0] = known[0], None
+            return value
         views = _render_views(g, poses, cameras, heldout, opt)
         return float(np.mean([image_metrics(v, unit_float(targets[i]))[0] for v, i in zip(views, heldout)]))
 
     return judge
+
+
+def _pose_check(timer: StageTimer, *args) -> tuple[PoseChange, ...]:
+    """:func:`_pose_changes`, timed as the step ``pose_check``."""
+    with timer.stage("pose_check"):
+        return _pose_changes(*args)
 
 
 def _pose_changes(
@@ -613,10 +793,10 @@ def _pose_changes(
     fixed = [fixed[k] for k in np.linspace(0, len(fixed) - 1, min(8, len(fixed))).round().astype(int)] if fixed else []
     o = options.optimize
     psnr = {}
+    g = result.gaussians.to(o.device)  # moved once, not per view
     for i in dict.fromkeys(refined + fixed):
-        view = render_view_on(
-            o.device, result.gaussians, result.cam_from_world[i], cameras[i], background=o.background, raster=o.raster
-        )
+        pose = result.cam_from_world[i]
+        view = render_view_on(o.device, g, pose, cameras[i], background=o.background, raster=o.raster)
         view = apply_color_transform(view, torch.from_numpy(result.color_transforms[i]).float())
         psnr[i] = image_metrics(view, torch.from_numpy(np.ascontiguousarray(images[i])).float() / 255.0)[0]
     reference = float(np.median([psnr[i] for i in (fixed or refined)]))
@@ -694,24 +874,33 @@ def _evaluate_heldout(
     splats: dict[str, Gaussians],
     options: SplatOptions,
     out_dir: Path,
+    *,
+    known: tuple[dict, dict] = ({}, {}),
 ) -> tuple[tuple[ViewMetrics, ...], tuple[tuple[str, Path, Path, Path], ...]]:
     """Metrics of the ``seed``, ``optimized`` and ``cleaned`` splats on each held-out view (and of the
     ``cleaned`` one after :func:`color_corrected`), and ``renders/<stem>_{truth,seed,splat}.png`` (plain
-    renders) for the first ``report_views`` of them."""
+    renders) for the first ``report_views`` of them. ``known``: ``({(splat, view): (psnr, ssim)}, {view: seed
+    render})`` already measured (by the held-out curve), not rendered again."""
     renders_dir = out_dir / "renders"
     renders_dir.mkdir(parents=True, exist_ok=True)
     o = options.optimize
+    scores, seed_renders = known
+    splats = {key: g.to(o.device) for key, g in splats.items()}  # moved once, not per view
     metrics, render_paths = [], []
     for j, i in enumerate(heldout):
         truth = torch.from_numpy(np.ascontiguousarray(images[i])).float() / 255.0
+        report = j < options.report_views
         views = {
-            key: render_view_on(o.device, g, poses[i], cameras[i], background=o.background, raster=o.raster)
+            key: seed_renders[i]
+            if key == "seed" and i in seed_renders
+            else render_view_on(o.device, g, poses[i], cameras[i], background=o.background, raster=o.raster)
             for key, g in splats.items()
+            if (key, i) not in scores or (key == "seed" and report)
         }
-        m = {key: image_metrics(img, truth) for key, img in views.items()}
+        m = {key: scores.get((key, i)) or image_metrics(views[key], truth) for key in splats}
         corrected = image_metrics(color_corrected(views["cleaned"], truth), truth)
         metrics.append(ViewMetrics(names[i], *m["seed"], *m["optimized"], *m["cleaned"], *corrected))
-        if j < options.report_views:
+        if report:
             stem = Path(names[i]).stem
             paths = tuple(
                 _write_png(renders_dir / f"{stem}_{kind}.png", img)
@@ -733,15 +922,16 @@ def _write_outputs(
     poses: np.ndarray,
     camera: PinholeCamera,
     options: SplatOptions,
-    timer: StageTimer,
+    run: _Run,
 ) -> tuple[Path, Path | None, dict[str, Path | None]]:
-    """``splat.ply``, (when ``options.video``) ``flythrough.mp4`` and the web formats asked for
-    (``{"spz_path": ..., "sog_path": ...}``, see :mod:`ffrecon.formats.web`); adds their times to ``timer``."""
-    o = options.optimize
+    """``splat.ply``, (when ``options.video`` and the stage's budget allow) ``flythrough.mp4`` and the web
+    formats asked for (``{"spz_path": ..., "sog_path": ...}``, see :mod:`ffrecon.formats.web`; splat.spz when
+    the budget allows, splat.sog, opt-in, whatever it takes); adds their times to ``run.timer``."""
+    o, timer = options.optimize, run.timer
     with timer.stage("write_ply"):
         ply_path = write_splat_ply(out_dir / "splat.ply", cleaned, sh_degree=o.sh_degree)
     web_paths: dict[str, Path | None] = {"spz_path": None, "sog_path": None}
-    if options.spz:
+    if options.spz and run.after.allowed("write_spz"):
         with timer.stage("write_spz"):
             web_paths["spz_path"] = write_splat_spz(out_dir / "splat.spz", cleaned, sh_degree=o.sh_degree)
     if options.sog:
@@ -750,7 +940,8 @@ def _write_outputs(
                 web_paths["sog_path"] = write_sog(ply_path, out_dir / "splat.sog")
             except WebExportError as err:  # an optional extra: the splat itself is written, say why not this
                 logger.warning("splat.sog not written: %s", err)
-    if not options.video:
+    frames = _video_frames(run, options) if options.video else 0
+    if not frames:
         return ply_path, None, web_paths
     with timer.stage("video"):
         video_path = write_flythrough(
@@ -758,7 +949,7 @@ def _write_outputs(
             cleaned,
             poses,
             camera,
-            num_frames=options.video_frames,
+            num_frames=frames,
             background=o.background,
             raster=o.raster,
             device=o.device,
@@ -766,7 +957,24 @@ def _write_outputs(
     return ply_path, video_path, web_paths
 
 
-def _log_summary(res: SplatResult) -> None:
+def _video_frames(run: _Run, options: SplatOptions) -> int:
+    """The fly-through's frames: ``options.video_frames``, fewer when the stage's budget has room for fewer
+    (0: none, when under ``MIN_VIDEO_FRAMES`` would fit); said in ``run.skipped``. Only the video is shortened:
+    it is the last step, so nothing after it needs time."""
+    per_frame = next((s.seconds for s in run.after.steps if s.name == "video"), 0.0) / options.video_frames
+    fit = int(run.budget.left() / per_frame) if per_frame > 0 else options.video_frames
+    run.skipped.pop("video", None)  # left out of the plan, it still runs when the optimiser left time for it
+    if fit >= options.video_frames:
+        return options.video_frames
+    why = budget_reason(options.video_frames * per_frame, run.budget.left(), run.budget.seconds, "when it was due")
+    if fit < MIN_VIDEO_FRAMES:
+        run.skipped["video"] = why
+        return 0
+    run.skipped["video"] = f"shortened to {fit} of {options.video_frames} frames: {why}"
+    return fit
+
+
+def _log_summary(res: SplatResult) -> SplatResult:
     if res.heldout_metrics:
         logger.info(
             "splat: held-out PSNR %.2f -> %.2f dB (cleaned %.2f, colour-corrected %.2f), SSIM %.3f -> %.3f; "
@@ -781,3 +989,4 @@ def _log_summary(res: SplatResult) -> None:
             res.iterations_per_second,
             res.stop_reason,
         )
+    return res

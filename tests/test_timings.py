@@ -1,0 +1,70 @@
+"""Every second accounted for (issue 40): wall and CPU seconds per step, and the splat stage's steps
+summing to its wall clock."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+
+from ffrecon.splat.optimize import OptimizeOptions
+from ffrecon.splat.stage import SplatOptions, run_splat
+from ffrecon.timing import StageTimer, Timings, cpu_seconds
+
+
+def test_cpu_seconds_of_a_step_and_its_children():
+    timer = StageTimer()
+    with timer.stage("spin"):
+        end = time.perf_counter() + 0.2
+        while time.perf_counter() < end:
+            pass
+    with timer.stage("child"):  # a subprocess's CPU counts once it is waited for
+        subprocess.run(
+            [sys.executable, "-c", "import time\nt = time.process_time()\nwhile time.process_time() - t < 0.3: pass"],
+            check=True,
+        )
+    with timer.stage("sleep"):
+        time.sleep(0.2)
+    cpu = timer.freeze().cpu_report()
+    assert cpu["spin"] > 0.1 and cpu["child"] > 0.25 and cpu["sleep"] < 0.1
+    assert cpu["total"] >= cpu["spin"] + cpu["child"]
+    assert cpu_seconds() >= cpu["total"]
+
+
+def test_close_records_what_no_step_did():
+    timer = StageTimer()
+    with timer.stage("a"):
+        time.sleep(0.05)
+    time.sleep(0.1)  # glue between steps
+    timer.close()
+    timings = timer.freeze()
+    assert timings.seconds("other") >= 0.09
+    assert abs(timings.total_s - timer.elapsed()) < 0.01
+    assert Timings((("a", 1.0),)).cpu_report() == {"a": None, "total": 0.0}  # records without CPU (older)
+
+
+def test_splat_steps_sum_to_the_stage(tmp_path):
+    """The splat stage's steps (timings_s, cpu_s in report.json) sum to its wall clock within 5 %, and
+    the held-out curve's renders are their own step, not hidden in nor added to the optimiser's."""
+    from tests.splat.conftest import seeded_scene
+
+    scene, xyz, rgb = seeded_scene(48, 36)
+    options = SplatOptions(
+        max_seed_points=1000,
+        video_frames=4,
+        curve_every=5,
+        device="cpu",
+        optimize=OptimizeOptions.brief(iterations=30, max_seconds=60, progress=False, sh_degree=0),
+    )
+    start = time.perf_counter()
+    result = run_splat(
+        list(scene.images), scene.names, scene.cam_from_world, [scene.camera] * len(scene), xyz, rgb, options, tmp_path
+    )
+    wall = time.perf_counter() - start
+    report = result.to_report()
+    steps = {k: v for k, v in report["timings_s"].items() if k != "total"}
+    assert abs(sum(steps.values()) - wall) <= 0.05 * wall + 0.01, (steps, wall)
+    assert {"optimize", "heldout_curve", "clean", "evaluate", "video"} <= set(steps)
+    assert steps["other"] < 0.03 * wall
+    assert set(report["cpu_s"]) == set(report["timings_s"]) and report["cpu_s"]["optimize"] > 0
+    assert len(result.heldout_curve) == 7  # iterations 0, 5, ..., 30
