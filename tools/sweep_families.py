@@ -150,7 +150,8 @@ def run_case(case: Case, args) -> dict:
         row = dict(case.__dict__, code=proc.returncode, seconds=round(time.perf_counter() - start, 1))
         row["model_median"] = float(np.median(model_errors))
         if not all((out / f).exists() for f in ("report.json", "sparse/0", "transforms.json")):
-            return row | {"failed": proc.stderr.strip().splitlines()[-1:] or ["no report"]}
+            said = [line for line in proc.stderr.splitlines() if line.startswith("ffrecon:")]
+            return row | {"failed": said[-1:] or proc.stderr.strip().splitlines()[-1:] or ["no report"]}
         report = json.loads((out / "report.json").read_text())
         per_image = {e["name"]: e for e in report["evidence"]["per_image"]}
         final = _final_errors(out, scene)
