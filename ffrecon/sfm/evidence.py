@@ -425,7 +425,10 @@ def _verdicts(n, refine: RefineResult, colmap, per_image, compared: bool, option
             options.max_contradicted_share,
             f"{contradicted} of {n} frames contradicted by the evidence ({left_out} left out, "
             f"{contradicted - left_out} corrected)",
-            "the model's cameras are wrong on most frames: try another model, or run without one",
+            "the refined cameras and the model's disagree on most frames: either the model is wrong on this capture "
+            "(try another model, or run without one) or the matches are (look-alike surfaces, repeated patterns: "
+            "on a synthetic room tiled with one pattern the refinement, not the model, was 10-18 deg off); "
+            "--force keeps the refined cameras",
         ),
         _verdict(
             "reprojection",
