@@ -115,10 +115,11 @@ class ViewCosts:
 
 
 # Seconds per Gaussian of the steps that do not render, with a margin (measured on the 2-core machine, 60k
-# Gaussians: the cleaning less its judge 0.2-0.7 s, splat.ply 0.01-0.02 s, splat.spz 0.04-0.09 s), and of
+# Gaussians: the cleaning less its judge 0.2-0.7 s, splat.ply 0.01-0.03 s, splat.spz 0.04-0.33 s), and of
 # encoding a video frame.
 CLEAN_S_PER_GAUSSIAN = 8e-6
 WRITE_S_PER_GAUSSIAN = 1.5e-6
+SPZ_S_PER_GAUSSIAN = 5e-6
 VIDEO_ENCODE_S = 0.005
 JUDGE_CALLS = 5  # the cleaning's judge: the splat less each of its steps (the splat itself is known)
 
@@ -142,7 +143,7 @@ def after_steps(
     ...                     spz=True, curve=True)
     >>> [(s.name, round(s.seconds, 2)) for s in steps]  # doctest: +NORMALIZE_WHITESPACE
     [('heldout_curve', 0.3), ('clean_judge', 1.0), ('clean', 0.08), ('evaluate', 0.4), ('write_ply', 0.02),
-     ('write_spz', 0.02), ('video', 9.45)]
+     ('write_spz', 0.05), ('video', 9.45)]
     """
     view = costs.render_s + costs.score_s
     steps = []
@@ -158,7 +159,7 @@ def after_steps(
         steps.append(Step("evaluate", heldout * (renders * costs.render_s + (renders + 1) * costs.score_s), False))
     steps.append(Step("write_ply", gaussians * WRITE_S_PER_GAUSSIAN, optional=False))
     if spz:
-        steps.append(Step("write_spz", gaussians * WRITE_S_PER_GAUSSIAN, value=2))
+        steps.append(Step("write_spz", gaussians * SPZ_S_PER_GAUSSIAN, value=2))
     if video_frames:
         steps.append(Step("video", video_frames * (costs.render_s + VIDEO_ENCODE_S), value=1))
     return steps
