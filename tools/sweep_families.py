@@ -207,14 +207,17 @@ def _line(row: dict) -> str:
 def summarise(rows: list[dict]) -> None:
     """The issue's acceptance figures, per family and mode."""
     print(
-        "\nfamily  mode     runs  median(med)  <=half model  all in sparse/0 (no bad)  max confirmed  "
+        "\nfamily  mode     runs  exit!=0  median(med)  <=half model  all in sparse/0 (no bad)  max confirmed  "
         "good contradicted  bad frame ok / unchecked-exported"
     )
     for (family, quick), group in itertools.groupby(
         sorted(rows, key=lambda r: (r["family"], r["quick"])), key=lambda r: (r["family"], r["quick"])
     ):
+        group = list(group)
+        runs, failed = len(group), sum(r["code"] != 0 for r in group)
         group = [r for r in group if "failed" not in r]
         if not group:
+            print(f"{family:7s} {'quick' if quick else 'default':8s} {runs:4d}  {failed:7d}  (every run failed)")
             continue
         clean = [r for r in group if r["bad"] is None]
         bads = [r for r in group if r["bad"] is not None]
@@ -225,8 +228,8 @@ def summarise(rows: list[dict]) -> None:
         ok = sum(r["bad_outcome"] in ("left out", "within 5 deg") for r in bads)
         unchecked = sum(r["bad_unchecked_exported"] for r in bads)
         print(
-            f"{family:7s} {'quick' if quick else 'default':8s} {len(group):4d}  "
-            f"{sum(r['code'] != 0 for r in group):7d}  {med:11.2f}  "
+            f"{family:7s} {'quick' if quick else 'default':8s} {runs:4d}  "
+            f"{failed:7d}  {med:11.2f}  "
             f"{half:5d}/{len(clean):<6d} "
             f"{full:5d}/{len(clean):<18d} {max(r['max_confirmed'] for r in group):13.2f}  "
             f"{sum(r['good_contradicted'] for r in group):5d}/{frames:<11d} {ok}/{len(bads)} / {unchecked}"
