@@ -434,7 +434,8 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
         "--splat-seconds",
         type=_number(lambda v: OptimizeOptions.brief(max_seconds=v), integer=False),
         default=None,
-        help="splat optimisation budget in seconds, > 0 (default: OptimizeOptions.brief()'s)",
+        help="the splat stage's budget in seconds, > 0: its optimisation, held-out scores, cleaning, pose check, "
+        "renders, video and SPZ together (default: OptimizeOptions.brief()'s)",
     )
     _add_extra_output_options(p)
     p.add_argument("-v", "--verbose", action="count", default=0)
