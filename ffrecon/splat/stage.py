@@ -511,7 +511,7 @@ class _Run:
 
 
 CURVE_SHARE = 0.15  # the held-out curve's points stop once they would take more of the stage's budget than this
-MIN_VIDEO_FRAMES = 15  # a video the budget would cut shorter than this is left out
+MIN_VIDEO_FRAMES = 15  # the budget shortens the fly-through to no fewer frames (it is an output the README promises)
 
 
 def _splat(
@@ -931,7 +931,8 @@ def _write_outputs(
     with timer.stage("write_ply"):
         ply_path = write_splat_ply(out_dir / "splat.ply", cleaned, sh_degree=o.sh_degree)
     web_paths: dict[str, Path | None] = {"spz_path": None, "sog_path": None}
-    if options.spz and run.after.allowed("write_spz"):
+    if options.spz:  # a promised output, and cheap (0.04-0.33 s): written even when the plan had no room for it
+        run.skipped.pop("write_spz", None)
         with timer.stage("write_spz"):
             web_paths["spz_path"] = write_splat_spz(out_dir / "splat.spz", cleaned, sh_degree=o.sh_degree)
     if options.sog:
@@ -958,18 +959,17 @@ def _write_outputs(
 
 
 def _video_frames(run: _Run, options: SplatOptions) -> int:
-    """The fly-through's frames: ``options.video_frames``, fewer when the stage's budget has room for fewer
-    (0: none, when under ``MIN_VIDEO_FRAMES`` would fit); said in ``run.skipped``. Only the video is shortened:
-    it is the last step, so nothing after it needs time."""
+    """The fly-through's frames: ``options.video_frames``, fewer when the stage's budget has room for fewer, but
+    never under ``MIN_VIDEO_FRAMES`` (flythrough.mp4 is a promised output: a short one over budget rather than
+    none); said in ``run.skipped``. Only the video is shortened: it is the last step, so nothing after it needs
+    time."""
     per_frame = next((s.seconds for s in run.after.steps if s.name == "video"), 0.0) / options.video_frames
     fit = int(run.budget.left() / per_frame) if per_frame > 0 else options.video_frames
     run.skipped.pop("video", None)  # left out of the plan, it still runs when the optimiser left time for it
     if fit >= options.video_frames:
         return options.video_frames
     why = budget_reason(options.video_frames * per_frame, run.budget.left(), run.budget.seconds, "when it was due")
-    if fit < MIN_VIDEO_FRAMES:
-        run.skipped["video"] = why
-        return 0
+    fit = min(max(fit, MIN_VIDEO_FRAMES), options.video_frames)
     run.skipped["video"] = f"shortened to {fit} of {options.video_frames} frames: {why}"
     return fit
 
