@@ -112,8 +112,15 @@ def test_lund_thinned_to_every_4th_photo_confirms_only_what_agrees(lund_runs, tm
     ref_model = Path(thin.options.reconstruction)
     options = RunOptions(splat=SplatOptions(enabled=False), reference=ref_model)
     result = run(photos, tmp_path / "out", tmp_path / "thin.onnx", options)
-    assert result.exit_code == 0
     per_image = result.evidence.per_image
+    if not any(e.verdict is FrameVerdict.CONFIRMED for e in per_image):
+        # Nothing checked any camera: since issue 43 (case 10) that fails the run unless forced.
+        assert result.exit_code == 5, result.exit_code
+        assert any(v.name == "checked_share" and v.failed for v in result.evidence.gates.verdicts)
+        forced = dataclasses.replace(options, force=True)
+        result = run(photos, tmp_path / "forced", tmp_path / "thin.onnx", forced)
+        per_image = result.evidence.per_image
+    assert result.exit_code == 0
     assert [e.name for e in per_image] == list(thin.names)
     confirmed = [k for k, e in enumerate(per_image) if e.verdict is FrameVerdict.CONFIRMED]
     if confirmed:
@@ -121,5 +128,5 @@ def test_lund_thinned_to_every_4th_photo_confirms_only_what_agrees(lund_runs, tm
         assert np.max(np.asarray(errors)[confirmed]) < 5.0, errors
     unchecked = [e for e in per_image if e.verdict is FrameVerdict.UNCHECKED]
     assert all(e.status is CameraStatus.UNCHECKED and e.status.kept for e in unchecked)
-    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    report = json.loads((result.out_dir / "report.json").read_text())
     assert [e["verdict"] for e in report["evidence"]["per_image"]] == [e.verdict.value for e in per_image]
