@@ -835,8 +835,12 @@ def _view(args: argparse.Namespace) -> int:
         while True:
             time.sleep(3600)
     except KeyboardInterrupt:
-        viewer.stop()
+        stopped = viewer.stop()
         print("ffrecon: viewer stopped", file=sys.stderr)
+        if not stopped:  # a connection held the server: leave without waiting for its threads at exit
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(0)
     return 0
 
 

@@ -56,9 +56,19 @@ class Viewer:
             self.photo.image = image
         self.photo.visible = image is not None
 
-    def stop(self) -> None:
-        with contextlib.redirect_stdout(io.StringIO()):  # viser prints "Server stopped" unconditionally
-            self.server.stop()
+    def stop(self, timeout_s: float = 5.0) -> bool:
+        """Stop the server; False when it had not stopped after ``timeout_s`` (a connection that does not close:
+        the caller then leaves without it rather than hang on Ctrl-C)."""
+        import threading
+
+        def stop() -> None:
+            with contextlib.redirect_stdout(io.StringIO()):  # viser prints "Server stopped" unconditionally
+                self.server.stop()
+
+        stopper = threading.Thread(target=stop, name="ffrecon-viewer-stop", daemon=True)
+        stopper.start()
+        stopper.join(timeout_s)
+        return not stopper.is_alive()
 
 
 def _check_port_free(host: str, port: int) -> None:
