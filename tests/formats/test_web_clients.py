@@ -314,14 +314,24 @@ def test_spark_comparison_fails_for_colours_stored_as_rgb(spark_scores):
     assert spark_scores["rgb_not_sh"] < MIN_PSNR - NEGATIVE_MARGIN, spark_scores
 
 
+def _run_steps():
+    """What the splat stage's steps share (its timer, a budget with room), for calling one step alone."""
+    import time
+
+    from ffrecon.splat.budget import StageBudget
+    from ffrecon.splat.stage import _Run
+    from ffrecon.timing import StageTimer
+
+    return _Run(StageTimer(), StageBudget(60.0, time.perf_counter()))
+
+
 def test_the_splat_stage_writes_sog_when_asked(splat_transform, tmp_path):
     from ffrecon.splat.stage import SplatOptions, _write_outputs
-    from ffrecon.timing import StageTimer
 
     g = _random_gaussians(500, degree=3)
     camera = PinholeCamera(64, 48, 50.0, 50.0, 32.0, 24.0)
     options = SplatOptions(video=False, sog=True)
-    ply, video, web = _write_outputs(tmp_path, g, np.zeros((1, 3, 4)), camera, options, StageTimer())
+    ply, video, web = _write_outputs(tmp_path, g, np.zeros((1, 3, 4)), camera, options, _run_steps())
     assert video is None and web["spz_path"] == tmp_path / "splat.spz"
     assert web["sog_path"] == tmp_path / "splat.sog"
     assert _splat_transform_json(splat_transform, web["sog_path"], "--info")["numGaussians"] == 500
@@ -329,11 +339,10 @@ def test_the_splat_stage_writes_sog_when_asked(splat_transform, tmp_path):
 
 def test_the_splat_stage_keeps_going_without_the_sog_converter(tmp_path, monkeypatch, caplog):
     from ffrecon.splat.stage import SplatOptions, _write_outputs
-    from ffrecon.timing import StageTimer
 
     monkeypatch.setenv(SPLAT_TRANSFORM_ENV, str(tmp_path / "no-such-splat-transform"))
     options = SplatOptions(video=False, sog=True)
     camera = PinholeCamera(64, 48, 50.0, 50.0, 32.0, 24.0)
-    ply, _, web = _write_outputs(tmp_path, _random_gaussians(50, 0), np.zeros((1, 3, 4)), camera, options, StageTimer())
+    ply, _, web = _write_outputs(tmp_path, _random_gaussians(50, 0), np.zeros((1, 3, 4)), camera, options, _run_steps())
     assert ply.exists() and web["sog_path"] is None
     assert "splat.sog not written" in caplog.text and "make clients" in caplog.text
