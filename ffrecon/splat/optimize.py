@@ -629,7 +629,8 @@ def _optimize(
         if not order:
             order = [train[j] for j in rng.permutation(len(train))]
         pixels = _pixels(views, order[-1], factor)
-        if spent + clock.predict(pixels) > budget:  # the budget is an upper bound
+        # The budget is an upper bound, but for one step: a splat optimised for no step at all is only its seed.
+        if it > 0 and spent + clock.predict(pixels) > budget:
             reason = "time budget"
             break
         start = time.perf_counter()
