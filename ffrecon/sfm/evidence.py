@@ -44,7 +44,7 @@ from ffrecon.sfm.compare import DisagreementOptions, compare_poses
 from ffrecon.sfm.crosscheck import ColmapResult
 from ffrecon.sfm.gates import GatesResult, GateStatus, GateVerdict
 from ffrecon.sfm.refine import RefineResult
-from ffrecon.sfm.support import PairSupport, planar_single_pair, single_pair
+from ffrecon.sfm.support import PairSupport, is_planar, planar_single_pair, single_pair
 from ffrecon.sfm.verified_pairs import relative_rotations
 from ffrecon.types import Prediction, Skipped
 
@@ -258,7 +258,7 @@ def _correction(refine: RefineResult, name: str, change: float, options: Evidenc
     model, was adjusted 86.6 deg away on its one pair with frame 6's look-alike wall, and called corrected."""
     limit = options.max_correction_deg
     if (single := _single_pair(refine, name, options)) is not None:
-        held = single.describe() if np.isfinite(single.planar_ratio) else _one_pair_text(single)
+        held = single.describe() if is_planar(single) else _one_pair_text(single)
         why = f"refined on its matches {change:.1f} deg from the model (> {limit:g}), but " + held
         return CameraEvidence(name, CameraStatus.CONTRADICTED, why + ": left out", change)
     why = f"refined on its matches {change:.1f} deg from the model (> {limit:g}): the refined pose is used"
@@ -273,13 +273,12 @@ def _one_pair_text(single) -> str:
 
 
 def _single_pair(refine: RefineResult, name: str, options: EvidenceOptions):
-    """What holds a refined frame when it is one pair (planar: with its ratio), else None."""
+    """What holds a refined frame when it is one pair (planar or not), else None."""
     rec = refine.reconstruction
     image = None if rec is None else rec.find_image_with_name(name)
     if image is None or not image.has_pose:
         return None
-    planar = planar_single_pair(rec, image.image_id, options.min_independent_observations)
-    return planar or single_pair(rec, image.image_id, options.min_independent_observations)
+    return single_pair(rec, image.image_id, options.min_independent_observations)
 
 
 def _planar_pair(refine: RefineResult, name: str, options: EvidenceOptions) -> PairSupport | None:

@@ -63,29 +63,7 @@ def _reaches_two_others(rec: pycolmap.Reconstruction, image: pycolmap.Image, cou
 
 def single_pair(rec: pycolmap.Reconstruction, image_id: int, min_elsewhere: int) -> PairSupport | None:
     """The frame's support when one pair holds it, planar or not (fewer than ``min_elsewhere`` observations
-    in tracks reaching any frame but its main partner; ``planar_ratio`` nan: not measured); None otherwise."""
-    image = rec.images[image_id]
-    if _reaches_two_others(rec, image, min_elsewhere):
-        return None
-    others = [
-        {e.image_id for e in rec.points3D[p.point3D_id].track.elements} - {image_id}
-        for p in image.points2D
-        if p.has_point3D()
-    ]
-    counts = Counter(i for o in others for i in o)
-    if not counts:
-        return None
-    partner = counts.most_common(1)[0][0]
-    elsewhere = sum(bool(o - {partner}) for o in others)
-    if elsewhere >= min_elsewhere:
-        return None
-    return PairSupport(image.name, rec.images[partner].name, len(others), elsewhere, float("nan"))
-
-
-def planar_single_pair(rec: pycolmap.Reconstruction, image_id: int, min_elsewhere: int) -> PairSupport | None:
-    """The frame's support when it hangs on one planar pair (fewer than ``min_elsewhere`` observations
-    in tracks reaching any other frame, and COLMAP's planarity test passes on the pair's shared
-    observations); None otherwise."""
+    in tracks reaching any frame but its main partner), with the pair's planarity measured; None otherwise."""
     image = rec.images[image_id]
     if _reaches_two_others(rec, image, min_elsewhere):
         return None
@@ -99,9 +77,19 @@ def planar_single_pair(rec: pycolmap.Reconstruction, image_id: int, min_elsewher
     if elsewhere >= min_elsewhere:
         return None
     ratio = _planar_ratio(rec, image_id, partner)
-    if not ratio > pycolmap.TwoViewGeometryOptions().max_H_inlier_ratio:
-        return None
     return PairSupport(image.name, rec.images[partner].name, len(tracks), elsewhere, ratio)
+
+
+def is_planar(support: PairSupport) -> bool:
+    """COLMAP's planarity rule on the pair's shared observations (nan, too few to tell: not planar)."""
+    return bool(support.planar_ratio > pycolmap.TwoViewGeometryOptions().max_H_inlier_ratio)
+
+
+def planar_single_pair(rec: pycolmap.Reconstruction, image_id: int, min_elsewhere: int) -> PairSupport | None:
+    """The frame's support when it hangs on one planar pair (:func:`single_pair`, and COLMAP's planarity test
+    passes on the pair's shared observations); None otherwise."""
+    support = single_pair(rec, image_id, min_elsewhere)
+    return support if support is not None and is_planar(support) else None
 
 
 def _planar_ratio(rec: pycolmap.Reconstruction, image_id: int, partner: int) -> float:
