@@ -247,7 +247,13 @@ def _add_extra_output_options(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="with a model, also train the splat from COLMAP's points under the same budget, and compare",
     )
-    p.add_argument("--mesh", action="store_true", help="also write a Poisson mesh (mesh.ply, mesh.glb) of the cloud")
+    p.add_argument(
+        "--mesh",
+        nargs="?",
+        const="tsdf",
+        choices=("tsdf", "poisson"),
+        help="also write a mesh (mesh.ply, mesh.glb): TSDF fusion of the depth maps (plain --mesh) or Poisson",
+    )
     p.add_argument(
         "--sog",
         action="store_true",
