@@ -136,6 +136,16 @@ class _Parser(argparse.ArgumentParser):
         raise InputError(message, f"see `{self.prog} --help`")
 
 
+class _CropBox(argparse.Action):
+    """``--crop-box x0 y0 z0 x1 y1 z1`` or ``--crop-box BOX.json``: read and checked as the command line is
+    read (:func:`~ffrecon.splat.clean.crop_box_from_args`; an InputError, exit 2)."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        from ffrecon.splat.clean import crop_box_from_args
+
+        setattr(namespace, self.dest, crop_box_from_args(values, option_string or "--crop-box"))
+
+
 class _Partner(NamedTuple):
     """What an option acts with: ``label`` in the message, ``how`` to get it in the fix, ``met(args)``."""
 
@@ -188,6 +198,7 @@ OPTION_NEEDS = (
     _Needs(_RUN_DEMO, "--vocab-tree", _COLMAP),
     _Needs(_RUN_DEMO, "--min-registration", _COLMAP),  # the registration gate is COLMAP's
     _Needs(_RUN_DEMO, "--sog", _SPLAT),
+    _Needs(_RUN_DEMO, "--crop-box", _SPLAT),
     _Needs(_RUN_DEMO, "--splat-seconds", _SPLAT),
     _Needs(("export-model",), "--height", _flag("--width", "W")),
     _Needs(("export-model",), "--width", _flag("--height", "H")),
@@ -443,6 +454,17 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
         help="the splat stage's budget in seconds, > 0: its optimisation, held-out scores, cleaning, pose check, "
         "renders, video and SPZ together (default: OptimizeOptions.brief()'s)",
     )
+    p.add_argument(
+        "--crop-box",
+        nargs="+",
+        action=_CropBox,
+        type=_text("--crop-box"),
+        default=None,
+        metavar="BOX",
+        help="six numbers x0 y0 z0 x1 y1 z1, or a box file (ffrecon view writes one; docs/crop_box.md): keep only "
+        "the Gaussians in this axis-aligned box of the final cameras' world (sparse/0, transforms.json) instead of "
+        "the automatic box; splat.ply and splat.spz are cropped",
+    )
     _add_extra_output_options(p)
     p.add_argument("-v", "--verbose", action="count", default=0)
     p.add_argument("-q", "--quiet", action="store_true")
@@ -480,7 +502,39 @@ def build_parser() -> argparse.ArgumentParser:
     inspect.add_argument("model", type=_model_file("the model", "ffrecon inspect-model"), help="an .onnx file")
     _add_export_parser(sub)
     _add_view_parser(sub)
+    _add_render_parser(sub)
     return parser
+
+
+def _add_render_parser(sub) -> None:
+    """``render``: a run's splat along a nerfstudio camera path (:mod:`ffrecon.render_path`)."""
+    render = sub.add_parser("render", help="render an output folder's splat along a camera path (camera_path.json)")
+    render.add_argument("out", type=_path("the output folder"), help="an output folder of `ffrecon run -o OUT`")
+    render.add_argument(
+        "--camera-path",
+        type=_path("--camera-path"),
+        required=True,
+        help="nerfstudio camera_path.json in the run's world (OUT/camera_path.json is the fly-through's)",
+    )
+    render.add_argument("-o", "--output", type=_path("--output"), required=True, help="the video to write (.mp4)")
+    render.add_argument("--overwrite", action="store_true", help="replace the video if it exists")
+    render.add_argument(
+        "--device",
+        choices=["auto", "cpu", "cuda"],
+        default=None,
+        help="auto: gsplat on CUDA when available, else ffrecon's CPU renderer (the splat stage's default)",
+    )
+    render.add_argument("-v", "--verbose", action="count", default=0)
+    render.add_argument("-q", "--quiet", action="store_true")
+
+
+def _render(args: argparse.Namespace) -> int:
+    from ffrecon.render_path import render_path
+
+    done = render_path(args.out, args.camera_path, args.output, overwrite=args.overwrite, device=args.device or "auto")
+    if not args.quiet:
+        print(done.summary())
+    return 0
 
 
 def _add_view_parser(sub) -> None:
@@ -729,6 +783,7 @@ def _run_options(args: argparse.Namespace, ground_truth: Path | None = None):
     from ffrecon.models.stage import FeedForwardOptions
     from ffrecon.pipeline import RunOptions
     from ffrecon.sfm.gates import GateOptions
+    from ffrecon.splat.clean import CleanOptions
     from ffrecon.splat.optimize import OptimizeOptions
     from ffrecon.splat.stage import SplatOptions
 
@@ -753,6 +808,7 @@ def _run_options(args: argparse.Namespace, ground_truth: Path | None = None):
         compare_seeds=args.compare_seeds,
         sog=args.sog,
         optimize=OptimizeOptions.brief(**_given(max_seconds=args.splat_seconds)),
+        **_given(clean=args.crop_box and CleanOptions(crop_box=args.crop_box)),
     )
     preset = RunOptions.quick() if args.quick else RunOptions()  # the flags below override the preset's fields
     return dataclasses.replace(
@@ -937,6 +993,8 @@ def main(argv: list[str] | None = None) -> int:
             return 0
         if args.command == "view":
             return _view(args)
+        if args.command == "render":
+            return _render(args)
         results = _run_command(args)
     except Interrupted as err:
         print(f"ffrecon: {err.problem}; {err.fix}", file=sys.stderr)

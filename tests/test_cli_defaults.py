@@ -42,6 +42,7 @@ FIELDS = {
         "--seed": (ModelExportOptions, "seed"),
     },
     "inspect-model": {},
+    "render": {},
 }
 # Defaults written in the CLI because no options class holds them (ffrecon.view.start_viewer's keywords do).
 CLI_ONLY_DEFAULTS = {("view", "--host"), ("view", "--port")}
@@ -52,6 +53,7 @@ REQUIRED = {
     "view": ["out"],
     "export-model": ["vggt", "-o", "model.onnx", "--tiny"],
     "inspect-model": ["model.onnx"],
+    "render": ["out", "--camera-path", "camera_path.json", "-o", "video.mp4"],
 }
 EXPORT_DEFAULTS = ModelExportOptions(family="vggt", out=Path("model.onnx"), tiny=True)
 # Flags whose value is a count, a switch or an action of argparse's own: no options class holds their default.

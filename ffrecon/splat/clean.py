@@ -8,9 +8,11 @@ above the typical one (open3d's statistical outlier test).
 
 from __future__ import annotations
 
+import json
 import logging
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import open3d as o3d
@@ -23,12 +25,16 @@ from ffrecon.types import PinholeCamera
 
 logger = logging.getLogger("ffrecon.splat")
 
+# A crop box is axis-aligned in the world of the run's final cameras: sparse/0's, which transforms.json
+# (applied_transform identity), points.ply and splat.ply share. Its file (docs/crop_box.md) says so.
+CROP_BOX_FRAME = "sparse/0"
+CropBox = tuple[tuple[float, float, float], tuple[float, float, float]]
+_BOX_FIX = "give x0 < x1, y0 < y1, z0 < z1, finite"
+
 
 @dataclass(frozen=True, kw_only=True)
 class CleanOptions:
-    crop_box: tuple[tuple[float, float, float], tuple[float, float, float]] | None = (
-        None  # (lo, hi) world; None = automatic
-    )
+    crop_box: CropBox | None = None  # (lo, hi) in the final cameras' world (CROP_BOX_FRAME); None = automatic
     box_percentile: float = 0.5  # automatic box: per-axis percentiles [p, 100 - p] of the seen Gaussians
     box_margin: float = 0.1  # automatic box: widen each side by this fraction of its size
     min_opacity: float = 0.02  # prune Gaussians less opaque than this
@@ -42,13 +48,12 @@ class CleanOptions:
 
     def __post_init__(self) -> None:
         if self.crop_box is not None:
-            box = np.asarray(self.crop_box, dtype=np.float64)
-            if box.shape != (2, 3) or not np.isfinite(box).all() or not (box[0] < box[1]).all():
-                raise InputError(
-                    f"CleanOptions.crop_box {self.crop_box} is not a box",
-                    "set crop_box to ((x0, y0, z0), (x1, y1, z1)) with finite x0 < x1, y0 < y1, z0 < z1, "
-                    "or None for the automatic box",
-                )
+            fix = "set crop_box to ((x0, y0, z0), (x1, y1, z1)) with finite x0 < x1, y0 < y1, z0 < z1, or None"
+            try:
+                lo, hi = self.crop_box
+            except (TypeError, ValueError):
+                raise InputError(f"CleanOptions.crop_box {self.crop_box!r} is not two corners", fix) from None
+            object.__setattr__(self, "crop_box", check_crop_box(lo, hi, "CleanOptions.crop_box", fix))
         check_number("CleanOptions.box_percentile", self.box_percentile, low=0, high=50)
         check_number("CleanOptions.min_opacity", self.min_opacity, low=0, high=1)
         for name in ("box_margin", "floater_std_ratio", "max_psnr_drop_db"):  # floater_std_ratio 0: no floater pruning
@@ -56,6 +61,78 @@ class CleanOptions:
         for name in ("far_factor", "max_scale_fraction"):
             check_number(f"CleanOptions.{name}", getattr(self, name), low=0, low_open=True)
         check_number("CleanOptions.floater_neighbours", self.floater_neighbours, low=1, integer=True)
+
+
+def check_crop_box(lo, hi, where: str, fix: str) -> CropBox:
+    """``((x0, y0, z0), (x1, y1, z1))`` as floats, or an :class:`InputError` (``where`` names the box, ``fix``
+    says how to give a good one) when ``lo``/``hi`` are not 3 finite numbers each with ``lo < hi``.
+
+    >>> check_crop_box([0, 0, 0], [1, 2, 3], "box", "")
+    ((0.0, 0.0, 0.0), (1.0, 2.0, 3.0))
+    """
+    try:
+        box = np.asarray([lo, hi], dtype=np.float64)
+    except (TypeError, ValueError):
+        box = None
+    if box is None or box.shape != (2, 3):
+        raise InputError(f"{where} is not two corners of 3 numbers each (got {lo!r} and {hi!r})", fix)
+    if not np.isfinite(box).all():
+        raise InputError(f"{where} has a value that is not a finite number: {box.tolist()}", fix)
+    axes = [name for name, a, b in zip("xyz", box[0], box[1]) if not a < b]
+    if axes:
+        raise InputError(f"{where} is empty along {', '.join(axes)}: lo {box[0].tolist()}, hi {box[1].tolist()}", fix)
+    return tuple(map(float, box[0])), tuple(map(float, box[1]))
+
+
+def read_crop_box(file: Path) -> CropBox:
+    """The box of a crop-box file ``{"frame": "sparse/0", "lo": [x0, y0, z0], "hi": [x1, y1, z1]}`` (what
+    :func:`write_crop_box` and ``ffrecon view`` write); every problem an :class:`InputError`."""
+    file = Path(file)
+    fix = f'write it as {{"frame": "{CROP_BOX_FRAME}", "lo": [x0, y0, z0], "hi": [x1, y1, z1]}} with x0 < x1 ...'
+    if not file.is_file():
+        raise InputError(f"crop box file {file} does not exist", "pass six numbers x0 y0 z0 x1 y1 z1, or a box file")
+    try:
+        data = json.loads(file.read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise InputError(f"crop box file {file} is not JSON ({err})", fix) from None
+    if not isinstance(data, dict) or "lo" not in data or "hi" not in data:
+        raise InputError(f"crop box file {file} has no lo and hi", fix)
+    if data.get("frame", CROP_BOX_FRAME) != CROP_BOX_FRAME:
+        raise InputError(f"crop box file {file} is in frame {data['frame']!r}, not {CROP_BOX_FRAME!r}", fix)
+    return check_crop_box(data["lo"], data["hi"], f"crop box file {file}", fix)
+
+
+def write_crop_box(file: Path, box: CropBox) -> Path:
+    """Write ``box`` as a crop-box file (see :func:`read_crop_box`); returns ``file``."""
+    lo, hi = check_crop_box(box[0], box[1], "the crop box", _BOX_FIX)
+    Path(file).write_text(json.dumps({"frame": CROP_BOX_FRAME, "lo": list(lo), "hi": list(hi)}, indent=1) + "\n")
+    return Path(file)
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+def crop_box_from_args(values: Sequence[str], flag: str = "--crop-box") -> CropBox:
+    """The box of a command line's ``values``: six numbers ``x0 y0 z0 x1 y1 z1``, or one crop-box file."""
+    fix = f"pass {flag} x0 y0 z0 x1 y1 z1 (x0 < x1, y0 < y1, z0 < z1) or {flag} BOX.json"
+    if len(values) == 1 and not Path(values[0]).exists() and _is_number(values[0]):
+        fix += " (argparse takes -2.5 as a number, -2.5e0 as an option: write negative numbers without exponents)"
+    elif len(values) == 1:
+        return read_crop_box(Path(values[0]))
+    if len(values) != 6:
+        raise InputError(
+            f"{flag} takes 6 numbers or 1 file, not {len(values)} value{'' if len(values) == 1 else 's'}", fix
+        )
+    try:
+        numbers = [float(v) for v in values]
+    except ValueError:
+        raise InputError(f"{flag} {' '.join(values)} is not six numbers", fix) from None
+    return check_crop_box(numbers[:3], numbers[3:], f"{flag} {' '.join(values)}", fix)
 
 
 @dataclass(frozen=True)
@@ -90,7 +167,12 @@ class CleanReport:
             "count_before": self.count_before,
             "count_after": self.count_after,
             "removed": dict(self.removed),
-            "crop_box": {"lo": list(self.crop_box[0]), "hi": list(self.crop_box[1]), "automatic": self.automatic_box},
+            "crop_box": {
+                "frame": CROP_BOX_FRAME,
+                "lo": list(self.crop_box[0]),
+                "hi": list(self.crop_box[1]),
+                "automatic": self.automatic_box,
+            },
             "steps": [step.to_dict() for step in self.steps],
         }
 
