@@ -2,7 +2,8 @@
 
 ``run_exports`` writes ``points.ply`` (the depth maps fused with the final cameras, or COLMAP's
 sparse points when no model was given), the nerfstudio
-``transforms.json`` and, on request, a Poisson mesh (``mesh.ply``, ``mesh.glb``). The COLMAP models
+``transforms.json`` and, on request, a mesh (``mesh.ply``, ``mesh.glb``: TSDF fusion of the depth maps with the
+final cameras, or Poisson of the cloud; :mod:`ffrecon.export.mesh`). The COLMAP models
 are written by the stages that make them; the report by :mod:`ffrecon.report.build`.
 
 An empty cloud (every pixel masked out, or the model unsure of every pixel) is a result, not a failure:
@@ -21,8 +22,9 @@ from pathlib import Path
 import numpy as np
 
 from ffrecon.capture import Capture
+from ffrecon.export.mesh import DepthMaps, MeshResult, write_mesh
 from ffrecon.final_cameras import CameraSource, FinalCameras
-from ffrecon.formats.mesh import MeshOptions, write_mesh
+from ffrecon.formats.mesh import MeshMethod, MeshOptions
 from ffrecon.formats.nerfstudio import write_transforms
 from ffrecon.formats.pointcloud import FuseOptions, fuse_prediction, write_point_cloud
 from ffrecon.geometry.poses import camera_centers
@@ -37,8 +39,21 @@ OUTPUTS = ("points.ply", "transforms.json", "mesh.ply", "mesh.glb")  # relative 
 
 @dataclass(frozen=True, kw_only=True)
 class ExportOptions:
-    mesh: bool = False  # Poisson mesh of the fused cloud: mesh.ply and mesh.glb
+    # mesh.ply and mesh.glb: None (no mesh), a method, or its name; True means TSDF. It sets mesh_options.method.
+    mesh: MeshMethod | None = None
     mesh_options: MeshOptions = field(default_factory=MeshOptions)
+
+    def __post_init__(self) -> None:
+        mesh = self.mesh
+        if mesh is True:
+            mesh = MeshMethod.TSDF
+        elif mesh is False or mesh is None:
+            mesh = None
+        else:
+            mesh = MeshMethod(mesh)
+        object.__setattr__(self, "mesh", mesh)
+        if mesh is not None and self.mesh_options.method is not mesh:
+            object.__setattr__(self, "mesh_options", dataclasses.replace(self.mesh_options, method=mesh))
 
 
 @dataclass(frozen=True)
@@ -53,6 +68,7 @@ class ExportsResult:
     mesh_glb: Path | None
     cameras_from: CameraSource  # FinalCameras.source
     not_written: dict[str, str] = field(default_factory=dict)  # file name -> why it was not written
+    mesh_about: str = ""  # the mesh's method, size, voxel and cleaning, in one line ("" without a mesh)
 
 
 def empty_cloud_reason(points_from: str, masks: bool) -> str:
@@ -72,18 +88,23 @@ def empty_cloud_reason(points_from: str, masks: bool) -> str:
     return f"no depth pixel of the final frames is left to fuse; {why}"
 
 
+def with_final_cameras(prediction: Prediction, final: FinalCameras) -> Prediction:
+    """The depth maps of the final cameras' frames (frames left out, contradicted, stay out) with those
+    cameras (poses and intrinsics) instead of the model's."""
+    kept = prediction.subset(final.indices)
+    return dataclasses.replace(kept, cam_from_world=final.cam_from_world, cameras=final.cameras)
+
+
 def fuse_with_final_cameras(
     prediction: Prediction,
     final: FinalCameras,
     read_images: Callable[[list[int]], Sequence[np.ndarray]],
     fuse: FuseOptions,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The depth maps of the final cameras' frames (frames left out, contradicted, stay out) fused again with
-    those cameras, so points.ply agrees with sparse/0. ``read_images(indices)`` gives the capture's photos
-    (read one at a time as the fusion goes: :meth:`~ffrecon.capture.Capture.frames_on_demand`)."""
-    kept = prediction.subset(final.indices)
-    moved = dataclasses.replace(kept, cam_from_world=final.cam_from_world, cameras=final.cameras)
-    return fuse_prediction(moved, read_images(list(final.indices)), fuse)
+    """The depth maps of the final cameras' frames fused again with those cameras (:func:`with_final_cameras`),
+    so points.ply agrees with sparse/0. ``read_images(indices)`` gives the capture's photos (read one at a
+    time as the fusion goes: :meth:`~ffrecon.capture.Capture.frames_on_demand`)."""
+    return fuse_prediction(with_final_cameras(prediction, final), read_images(list(final.indices)), fuse)
 
 
 def run_exports(
@@ -94,6 +115,7 @@ def run_exports(
     out_dir: Path,
     *,
     masks: bool = False,
+    depth: DepthMaps | None = None,
 ) -> ExportsResult:
     """Write the point cloud, transforms.json (the final cameras) and the optional mesh.
 
@@ -102,6 +124,8 @@ def run_exports(
         points: ``(xyz [M, 3] world, rgb [M, 3] in [0, 1])`` in the frame of ``final``.
         points_from: what the points are, for the report.
         masks: the run has masks (``masks/<name>.png``), which transforms.json names per frame.
+        depth: the depth maps with the final cameras, for a TSDF mesh (None: no model's depth agrees with
+            these cameras; a TSDF mesh is then not written, and says why).
     """
     out_dir = Path(out_dir)
     xyz, rgb = points
@@ -123,14 +147,22 @@ def run_exports(
         distortion=final.distortion,
         mask_paths=[f"masks/{n}.png" for n in final.names] if masks else None,
     )
-    mesh_ply = mesh_glb = None
+    mesh = None
     if options.mesh and cloud is not None:
-        centers = camera_centers(final.cam_from_world)
-        mesh_ply, mesh_glb = write_mesh(
-            out_dir / "mesh.ply", out_dir / "mesh.glb", xyz, rgb, centers, options.mesh_options
-        )
+        mesh = write_mesh(out_dir, options.mesh_options, points, camera_centers(final.cam_from_world), depth)
+        if isinstance(mesh, Skipped):
+            not_written |= {"mesh.ply": mesh.reason, "mesh.glb": mesh.reason}
+    made = isinstance(mesh, MeshResult)
     return ExportsResult(
-        cloud, int(len(xyz)), points_from, transforms, mesh_ply, mesh_glb, final.source, not_written=not_written
+        cloud,
+        int(len(xyz)),
+        points_from,
+        transforms,
+        mesh.ply if made else None,
+        mesh.glb if made else None,
+        final.source,
+        not_written=not_written,
+        mesh_about=mesh.about if made else "",
     )
 
 
@@ -146,6 +178,9 @@ def export_final_cameras(
     """The exports of a run: the cloud that agrees with the final cameras (COLMAP's sparse points for its
     cameras; the depth maps fused again with the refined cameras; the model's own fused cloud for its
     cameras), then :func:`run_exports`."""
+    depth = None
+    if isinstance(ff, FeedForwardResult) and final.source is not CameraSource.COLMAP:
+        depth = DepthMaps(with_final_cameras(ff.prediction, final), capture.frames_on_demand(final.indices), fuse)
     if final.source is CameraSource.COLMAP and isinstance(colmap, ColmapResult):
         rec = colmap.reconstruction
         points = seed_from_reconstruction(rec) if rec.num_points3D() else (np.zeros((0, 3)), np.zeros((0, 3)))
@@ -157,4 +192,4 @@ def export_final_cameras(
         points, what = (ff.points_xyz, ff.points_rgb), "depth maps fused with the model's cameras"
     else:
         raise AssertionError(f"final cameras from {final.source} without the result they come from")
-    return run_exports(final, points, what, options, out_dir, masks=capture.mask_dir is not None)
+    return run_exports(final, points, what, options, out_dir, masks=capture.mask_dir is not None, depth=depth)
