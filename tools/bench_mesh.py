@@ -14,9 +14,15 @@ The truth is every frame's exact depth unprojected (the surface the cameras see)
 of its extent, the extent being its bounding-box diagonal. Chamfer = mean of accuracy and completeness, F-score
 at 1 % of the extent (:mod:`ffrecon.export.mesh_accuracy`). Prints a Markdown table.
 
+With ``--run OUT --scene DIR`` it measures instead what a run wrote (``OUT/mesh.ply``, ``OUT/points.ply``, in the
+frame of ``OUT/sparse/0``, the final cameras) against the scene it ran on (``DIR``: the demo's cache folder with
+``ground_truth.json`` and ``depth.npz``), after the Sim(3) that best maps the final camera centres onto the true
+ones (Umeyama): the mesh with the refined cameras, as ``ffrecon demo --mesh`` makes it.
+
 Usage (from the repository root)::
 
     .venv/bin/python tools/bench_mesh.py [--frames 24] [--size 320x240] [--depth-errors 0 0.01 0.03]
+    .venv/bin/python tools/bench_mesh.py --run OUT --scene ~/.cache/ffrecon/demo-KEY
 """
 
 from __future__ import annotations
@@ -29,13 +35,16 @@ from pathlib import Path
 
 import numpy as np
 import open3d as o3d
+import pycolmap
 
+from ffrecon.colmap_io import cam_from_world_by_name
 from ffrecon.export.mesh import DepthMaps, write_mesh
 from ffrecon.export.mesh_accuracy import bounding_diagonal, sample_surface, surface_accuracy
 from ffrecon.formats.mesh import MeshMethod, MeshOptions
 from ffrecon.formats.pointcloud import FuseOptions, fuse_prediction
+from ffrecon.geometry.alignment import umeyama
 from ffrecon.geometry.poses import camera_centers
-from ffrecon.synthetic import CameraPath, SceneOptions, SyntheticScene, make_scene
+from ffrecon.synthetic import CameraPath, SceneOptions, SyntheticScene, load_scene, make_scene
 from ffrecon.synthetic.simulated_model import SimulationOptions, prediction_from_truth, simulate
 from ffrecon.types import Prediction
 
@@ -79,6 +88,33 @@ def measure(pred: Prediction, scene: SyntheticScene, truth: np.ndarray, extent: 
     return rows
 
 
+def measure_run(run: Path, scene_dir: Path) -> None:
+    """Print the rows of a run's mesh.ply and points.ply, aligned to the true cameras by their centres."""
+    scene = load_scene(scene_dir)
+    truth, extent = truth_points(scene)
+    rec = pycolmap.Reconstruction(str(run / "sparse" / "0"))
+    poses, registered = cam_from_world_by_name(rec, scene.names)
+    true_from_run = umeyama(camera_centers(poses[registered]), camera_centers(scene.cam_from_world[registered]))
+    print(
+        f"| {scene_dir.name} ({extent:.2f}), {int(registered.sum())}/{len(scene)} final cameras | method | "
+        "Chamfer % | acc % | comp % | F@1% | points |"
+    )
+    print("| --- | --- | --- | --- | --- | --- | --- |")
+    for name in ("mesh.ply", "points.ply"):
+        if not (run / name).is_file():
+            print(f"| {run.name} | {name} | not written | | | | |")
+            continue
+        if name == "mesh.ply":
+            points = sample_surface(o3d.io.read_triangle_mesh(str(run / name)), SAMPLES)
+        else:
+            points = np.asarray(o3d.io.read_point_cloud(str(run / name)).points)
+        acc = surface_accuracy(true_from_run.apply(points), truth, extent)
+        print(
+            f"| {run.name} | {name} | {acc.chamfer * 100:.3f} | {acc.accuracy * 100:.3f} "
+            f"| {acc.completeness * 100:.3f} | {acc.fscore:.3f} | {len(points)} |"
+        )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--frames", type=int, default=24)
@@ -87,7 +123,12 @@ def main() -> None:
     parser.add_argument(
         "--paths", nargs="+", default=["orbit", "arc", "forward"], choices=[p.value for p in CameraPath]
     )
+    parser.add_argument("--run", type=Path, help="measure this run folder's mesh.ply and points.ply instead")
+    parser.add_argument("--scene", type=Path, help="with --run: the synthetic scene folder the run was made from")
     args = parser.parse_args()
+    if args.run is not None:
+        measure_run(args.run, args.scene)
+        return
     w, h = (int(v) for v in args.size.split("x"))
     print("| scene (extent) | cameras | depth error | method | Chamfer % | acc % | comp % | F@1% | size | s |")
     print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
