@@ -31,6 +31,19 @@ THREAD_NAME = "ffrecon-beside"  # the thread of the work beside
 _RUNNING: set[threading.Event] = set()  # one per run_beside whose work beside has not ended
 
 
+def available_cores() -> int:
+    """The cores this process may run on: its CPU affinity (``taskset``, a container's cpuset) where the system
+    says, else every core of the machine. ``os.cpu_count()`` counts the machine's cores whatever the affinity, so
+    under ``taskset -c 0`` a 2-core machine's work beside a claim of one core still asked for one more.
+
+    >>> available_cores() >= 1
+    True
+    """
+    if hasattr(os, "sched_getaffinity"):
+        return max(1, len(os.sched_getaffinity(0)))
+    return max(1, os.cpu_count() or 1)
+
+
 class Cancelled(Exception):
     """Raised at the next step of the work beside once the other side failed or was interrupted."""
 
@@ -47,7 +60,7 @@ class CoreShare:
     """
 
     def __init__(self, cores: int | None = None) -> None:
-        self.cores = max(1, cores or os.cpu_count() or 1)
+        self.cores = max(1, cores or available_cores())
         self._claimed: list[int] = []
         self._lock = threading.Lock()
         self._cancelled = threading.Event()

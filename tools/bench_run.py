@@ -15,8 +15,13 @@ child too, so that this process stays small: a child starts at its parent's high
 Per-stage seconds come from each run's ``report.json`` ("timings"); "other" is the wall time no stage
 accounts for (interpreter start, imports, writing the report; stages that ran side by side count once).
 Each stage's steps come from its own section's ``timings_s`` (wall) and ``cpu_s`` (user + system CPU, where
-the stage records it: the splat does), with how much of the stage they cover; each run's whole CPU seconds
-(user + system, the child and its children, from ``os.wait4``) are the "cpu s" column. Accuracy is AUC@5
+the stage records it: the COLMAP cross-check and the splat do), with how much of the stage they cover; each
+run's whole CPU seconds (user + system, the child and its children, from ``os.wait4``) are the "cpu s" column,
+and "xCPU" its ratio to COLMAP alone's. ffrecon runs in this script's own child (:func:`ffrecon_child`, the same
+command) that also records each stage's wall and CPU seconds (stages side by side together), the imports
+before the first stage, the report after the last, and the network's calls, whose wall and CPU the "without
+the network" ratios leave out (issue 40's acceptance excludes inference). ``--cpus 0 0,1`` runs everything
+once per CPU list under ``taskset`` and prints each stage's thread scaling. Accuracy is AUC@5
 and the median rotation error against ground truth (the refined cameras; the feed-forward ones when
 refinement did not run).
 PSNR is the splat's mean held-out PSNR after cleaning. The growth summary fits ``seconds = a * n^b`` over
@@ -29,6 +34,7 @@ Usage (from the repository root)::
     .venv/bin/python tools/bench_run.py                                  # 24 48 96 frames of 640x480 (long)
     .venv/bin/python tools/bench_run.py --frames 8 --width 320 --height 240 --modes default --splat-seconds 10
     .venv/bin/python tools/bench_run.py --frames 24 48 --json bench_run.json --keep --out /tmp/bench_run
+    .venv/bin/python tools/bench_run.py --frames 96 --modes quick default --no-splat --cpus 0 0,1  # issue 40
 
 Timings on a shared machine are pessimistic; the load average is printed at the start and the end.
 """
@@ -58,6 +64,8 @@ CHECKS = ("gates", "evidence", "comparisons", "seed_comparison")
 # Steps of COLMAP alone (its own timer).
 STEPS = {"colmap": ("feature_extraction", "matching", "mapping")}
 GIB = 2.0**30
+MODES = ("default", "quick", "default+splat", "quick+splat")
+STATS_FILE = "bench_stages.json"  # what an ffrecon child writes beside its output folder (ffrecon_child)
 RESULT_FILE = "bench_colmap.json"  # what the COLMAP-alone child writes into its output folder
 
 
@@ -66,7 +74,13 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--frames", type=int, nargs="+", default=[24, 48, 96], help="frame counts (scenes)")
     parser.add_argument("--width", type=int, default=640)
     parser.add_argument("--height", type=int, default=480)
-    parser.add_argument("--modes", nargs="+", choices=("default", "quick"), default=["default", "quick"])
+    parser.add_argument(
+        "--modes",
+        nargs="+",
+        choices=MODES,
+        default=["default", "quick"],
+        help="ffrecon runs: default, quick (--quick); '+splat' runs the splat whatever --no-splat says",
+    )
     parser.add_argument("--seed", type=int, default=1, help="scene and model seed (the demo's is 0)")
     parser.add_argument("--splat-seconds", type=float, default=None, help="passed to ffrecon run")
     parser.add_argument("--no-splat", action="store_true", help="passed to ffrecon run (the pose stages alone)")
@@ -110,6 +124,15 @@ def _parser() -> argparse.ArgumentParser:
         default=None,
         help="COLMAP alone's bound per mapper (ColmapOptions.max_mapping_seconds; default: the pipeline's)",
     )
+    parser.add_argument(
+        "--cpus",
+        nargs="+",
+        default=None,
+        metavar="LIST",
+        help="run every method once per CPU list under 'taskset -c LIST' (e.g. --cpus 0 0,1: thread scaling, one "
+        "core against two); default: no taskset",
+    )
+    parser.add_argument("--ffrecon-child", type=Path, default=None, help=argparse.SUPPRESS)  # see main()
     parser.add_argument("--colmap-only", nargs=2, type=Path, metavar=("IMAGES", "OUT"), help=argparse.SUPPRESS)
     parser.add_argument("--truth", type=Path, default=None, help=argparse.SUPPRESS)  # scene folder, for the child
     parser.add_argument("--prepare-only", nargs=5, type=int, default=None, help=argparse.SUPPRESS)  # prepare()'s child
@@ -246,6 +269,58 @@ def colmap_child(images: Path, out: Path, scene_dir: Path | None, pairing: str, 
     (out / RESULT_FILE).write_text(json.dumps(row))
 
 
+# --- the ffrecon child: the command itself, with the CPU seconds of each stage ------------------------
+
+
+def ffrecon_child(stats_path: Path, argv: list[str]) -> int:
+    """``ffrecon ARGV`` in this process, recording into ``stats_path`` (JSON) the wall and CPU seconds (user +
+    system, :func:`ffrecon.timing.cpu_seconds`) of each step of the pipeline's plan (a stage, or stages side by
+    side: their CPU is the process's, so it is theirs together), of the imports and parsing before the first
+    stage and of what follows the last (the report), and of the network's calls (``OnnxModel.run``: wall, and
+    the process's CPU meanwhile, which counts the work beside the inference too).
+
+    ``report.json`` holds each stage's wall seconds but not its CPU seconds: this wraps the plan's step runner
+    (:meth:`ffrecon.state.StagePlan.run`) from outside instead of changing the package for a benchmark.
+    """
+    t0 = time.perf_counter()
+    import ffrecon.models.runner as runner
+    import ffrecon.state as plan_module
+    from ffrecon.cli import main as ffrecon_main
+    from ffrecon.timing import cpu_seconds
+
+    stats: dict = {"steps": [], "inference": {"calls": 0, "wall_s": 0.0, "cpu_s": 0.0}}
+    plan_run, model_run = plan_module.StagePlan.run, runner.OnnxModel.run
+
+    def timed(into: dict, fn, *args):
+        wall, cpu = time.perf_counter(), cpu_seconds()
+        try:
+            return fn(*args)
+        finally:
+            into["wall_s"] += time.perf_counter() - wall
+            into["cpu_s"] += cpu_seconds() - cpu
+
+    def plan_step(self, state, step):
+        names = [stage.name for stage in getattr(step, "stages", (step,))]
+        stats.setdefault("first", (time.perf_counter() - t0, cpu_seconds()))
+        stats["steps"].append(entry := {"stages": names, "wall_s": 0.0, "cpu_s": 0.0})
+        try:
+            return timed(entry, plan_run, self, state, step)
+        finally:
+            stats["last"] = (time.perf_counter() - t0, cpu_seconds())
+
+    def model_call(self, feeds):
+        stats["inference"]["calls"] += 1
+        return timed(stats["inference"], model_run, self, feeds)
+
+    plan_module.StagePlan.run, runner.OnnxModel.run = plan_step, model_call
+    try:
+        return ffrecon_main(argv)
+    finally:
+        stats["end"] = (time.perf_counter() - t0, cpu_seconds())
+        plan_module.StagePlan.run, runner.OnnxModel.run = plan_run, model_run
+        stats_path.write_text(json.dumps(stats))
+
+
 # --- the parent: scenes, runs, rows -------------------------------------------------------------------
 
 
@@ -294,17 +369,18 @@ def write_reference(scene_dir: Path, out: Path) -> Path:
     return write_reconstruction(rec, out)
 
 
-def run_colmap_alone(images: Path, scene_dir: Path, out: Path, args) -> dict:
+def run_colmap_alone(images: Path, scene_dir: Path, out: Path, args, cpus: str | None = None) -> dict:
     shutil.rmtree(out, ignore_errors=True)
     out.mkdir(parents=True)
     cmd = [sys.executable, str(Path(__file__).resolve()), "--colmap-only", str(images), str(out)]
     cmd += ["--colmap-pairing", args.colmap_pairing]
     if args.colmap_mapping_seconds is not None:
         cmd += ["--colmap-mapping-seconds", str(args.colmap_mapping_seconds)]
-    code, wall, peak, _, cpu = measured([*cmd, "--truth", str(scene_dir)], out.parent / "colmap_alone.log")
+    log = out.parent / f"{out.name}.log"
+    code, wall, peak, _, cpu = measured(pinned([*cmd, "--truth", str(scene_dir)], cpus), log)
     row = {"method": "COLMAP alone", "exit": code, "wall_s": wall, "peak_gb": peak, "cpu_s": cpu}
     if code != 0 or not (out / RESULT_FILE).is_file():
-        row["error"] = _tail(out.parent / "colmap_alone.log")
+        row["error"] = _tail(log)
         return row
     child = json.loads((out / RESULT_FILE).read_text())
     steps = child["steps"]
@@ -321,17 +397,47 @@ def run_colmap_alone(images: Path, scene_dir: Path, out: Path, args) -> dict:
 
 
 def ffrecon_command(images: Path, model: Path, out: Path, reference: Path, mode: str, args) -> list[str]:
-    cmd = [sys.executable, "-m", "ffrecon", "run", str(images), "-o", str(out), "--model", str(model)]
-    cmd += ["--reference", str(reference), "--overwrite"]
+    """``ffrecon run ...`` for ``mode`` (``default``/``quick``, ``+splat``, `` no-loops``), run by this script's
+    :func:`ffrecon_child` (the same command, with each stage's CPU seconds written to ``OUT/../STATS_FILE``)."""
+    cmd = ["run", str(images), "-o", str(out), "--model", str(model), "--reference", str(reference), "--overwrite"]
     if mode.startswith("quick"):
         cmd.append("--quick")
     if mode.endswith("no-loops"):
         cmd.append("--no-loop-chunks")
     if args.splat_seconds is not None:
         cmd += ["--splat-seconds", str(args.splat_seconds)]
-    if args.no_splat:
+    if args.no_splat and "+splat" not in mode:
         cmd.append("--no-splat")
-    return cmd
+    stats = out.parent / f"{out.name}.{STATS_FILE}"
+    return [sys.executable, str(Path(__file__).resolve()), "--ffrecon-child", str(stats), "--", *cmd]
+
+
+def pinned(cmd: list[str], cpus: str | None) -> list[str]:
+    """``cmd`` under ``taskset -c cpus`` (None: as it is).
+
+    >>> pinned(["x"], "0")
+    ['taskset', '-c', '0', 'x']
+    """
+    return cmd if cpus is None else ["taskset", "-c", cpus, *cmd]
+
+
+def stage_cpu(stats: dict, ran: set[str]) -> dict:
+    """CPU and wall seconds by step of the plan from :func:`ffrecon_child`'s stats: ``{"cpu": {step: s}, "wall":
+    {step: s}, "before": (wall, cpu), "after": (wall, cpu), "inference": {...}}``; a step is named by the stages of
+    it that ran (``ran``; side by side joined with '+'), steps where none ran are left out."""
+    cpu, wall = {}, {}
+    for step in stats.get("steps", []):
+        names = [n for n in step["stages"] if n in ran]
+        if names:
+            key = "+".join(names)
+            cpu[key] = cpu.get(key, 0.0) + step["cpu_s"]
+            wall[key] = wall.get(key, 0.0) + step["wall_s"]
+    first, last, end = stats.get("first"), stats.get("last"), stats.get("end")
+    out = {"cpu": cpu, "wall": wall, "inference": stats.get("inference") or {}}
+    if first and last and end:
+        out["before"] = tuple(first)
+        out["after"] = (end[0] - last[0], end[1] - last[1])
+    return out
 
 
 def _accuracy(report: dict) -> dict:
@@ -419,21 +525,34 @@ def report_row(report: dict, wall: float) -> dict:
     return row
 
 
-def run_ffrecon(inputs, mode: str, work: Path, reference: Path, args, model: Path | None = None) -> dict:
-    label = mode if model is None else f"{mode} {model.stem}"
-    out = work / f"ffrecon_{label.replace(' ', '_')}"
-    log = work / f"ffrecon_{label.replace(' ', '_')}.log"
+def run_ffrecon(
+    inputs, mode: str, work: Path, reference: Path, args, model: Path | None = None, cpus: str | None = None
+) -> dict:
+    label = (mode if model is None else f"{mode} {model.stem}") + cpus_label(cpus)
+    stem = "ffrecon_" + "".join(c if c.isalnum() or c in "+-." else "_" for c in label)
+    out, log = work / stem, work / f"{stem}.log"
     cmd = ffrecon_command(inputs.images, model or inputs.model, out, reference, mode, args)
-    code, wall, peak, gpu_peak, cpu = measured(cmd, log)
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
+    code, wall, peak, gpu_peak, cpu = measured(pinned(cmd, cpus), log)
     row = {"method": f"ffrecon {label}", "exit": code, "wall_s": wall, "peak_gb": peak, "gpu_peak_gb": gpu_peak}
-    row["cpu_s"] = cpu
+    row.update(cpu_s=cpu, load=load, cpus=cpus, mode=mode)
     if not (out / "report.json").is_file():
         row["error"] = _tail(log)
         return row
-    row.update(report_row(json.loads((out / "report.json").read_text()), wall))
+    report = json.loads((out / "report.json").read_text())
+    row.update(report_row(report, wall))
+    stats = out.parent / f"{out.name}.{STATS_FILE}"
+    if stats.is_file():
+        ran = {name for name, t in report.get("timings", {}).items() if not t.get("reused")}
+        row["by_step"] = stage_cpu(json.loads(stats.read_text()), ran)
     if (out / "sparse" / "0").is_dir():
         row["loop_drift_pct"] = loop_drift_pct(out / "sparse" / "0", inputs.scene_dir)
     return row
+
+
+def cpus_label(cpus: str | None) -> str:
+    """`` [cpus LIST]`` for a run under taskset, else nothing."""
+    return "" if cpus is None else f" [cpus {cpus}]"
 
 
 def loop_drift_pct(model_dir: Path, scene_dir: Path) -> float | None:
@@ -457,29 +576,55 @@ def loop_drift_pct(model_dir: Path, scene_dir: Path) -> float | None:
 
 
 def bench_frames(frames: int, args, root: Path) -> list[dict]:
-    """Every method on one scene of ``frames`` frames; the rows carry ``frames``."""
+    """Every method on one scene of ``frames`` frames (once per ``--cpus`` list); the rows carry ``frames``."""
     inputs, prep_s = prepare(frames, args.width, args.height, args.seed, args.depth_stride, args.drift)
     size = f"{args.width}x{args.height}"
     print(f"\n{frames} frames of {size}: scene and model ready in {prep_s:.1f} s ({inputs.scene_dir})")
     work = root / f"n{frames}"
     work.mkdir(parents=True, exist_ok=True)
     reference = write_reference(inputs.scene_dir, work / "ground_truth_model")
-    alone = work / "colmap_alone"
-    rows = [] if args.no_colmap_alone else [run_colmap_alone(inputs.images, inputs.scene_dir, alone, args)]
-    for model in args.models or [None]:
-        modes = [m + suffix for m in args.modes for suffix in ("", " no-loops")[: 1 + args.without_loops_too]]
-        rows += [run_ffrecon(inputs, mode, work, reference, args, model) for mode in modes]
-    colmap_wall = rows[0]["wall_s"] if rows[0]["method"] == "COLMAP alone" and "error" not in rows[0] else float("nan")
-    colmap_s = rows[0]["stages"]["colmap"] if np.isfinite(colmap_wall) else float("nan")
+    rows = []
+    for cpus in args.cpus or [None]:
+        alone = work / ("colmap_alone" + "".join(c if c.isalnum() else "_" for c in cpus_label(cpus)))
+        group = []
+        if not args.no_colmap_alone:
+            load = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
+            group.append(run_colmap_alone(inputs.images, inputs.scene_dir, alone, args, cpus))
+            group[0].update(method="COLMAP alone" + cpus_label(cpus), load=load, cpus=cpus, mode="colmap")
+        for model in args.models or [None]:
+            modes = [m + suffix for m in args.modes for suffix in ("", " no-loops")[: 1 + args.without_loops_too]]
+            group += [run_ffrecon(inputs, mode, work, reference, args, model, cpus) for mode in modes]
+        compare_with_colmap(group)
+        rows += group
     for row in rows:
-        row.update(frames=frames, ratio=row["wall_s"] / colmap_wall)
-        if row["method"] != "COLMAP alone" and "stages" in row:
-            # The pose stages (feed-forward, cross-check, refinement) against COLMAP alone's own seconds
-            row["pose_s"] = sum(row["stages"].get(k, 0.0) for k in POSE_STAGES)
-            row["pose_speedup"] = colmap_s / row["pose_s"]
+        row["frames"] = frames
     if not args.keep:
         shutil.rmtree(work, ignore_errors=True)
     return rows
+
+
+def compare_with_colmap(rows: list[dict]) -> None:
+    """Each row's ratios to the first row when it is COLMAP alone (NaN otherwise): wall (``ratio``), CPU
+    (``cpu_ratio``), and both without the network's calls (``ex_inference``: wall less the calls' wall, CPU less
+    the process's CPU during them); the pose stages' speed-up over COLMAP alone's own seconds."""
+    first = rows[0] if rows and rows[0]["method"].startswith("COLMAP alone") and "error" not in rows[0] else None
+    colmap_wall = first["wall_s"] if first else float("nan")
+    colmap_cpu = first["cpu_s"] if first else float("nan")
+    colmap_s = first["stages"]["colmap"] if first else float("nan")
+    for row in rows:
+        row.update(ratio=row["wall_s"] / colmap_wall, cpu_ratio=row["cpu_s"] / colmap_cpu)
+        inference = (row.get("by_step") or {}).get("inference") or {}
+        row["ex_inference"] = {
+            "wall_s": row["wall_s"] - inference.get("wall_s", 0.0),
+            "cpu_s": row["cpu_s"] - inference.get("cpu_s", 0.0),
+        }
+        row["ex_inference"].update(
+            ratio=row["ex_inference"]["wall_s"] / colmap_wall, cpu_ratio=row["ex_inference"]["cpu_s"] / colmap_cpu
+        )
+        if not row["method"].startswith("COLMAP alone") and "stages" in row:
+            # The pose stages (feed-forward, cross-check, refinement) against COLMAP alone's own seconds
+            row["pose_s"] = sum(row["stages"].get(k, 0.0) for k in POSE_STAGES)
+            row["pose_speedup"] = colmap_s / row["pose_s"]
 
 
 # --- printing -----------------------------------------------------------------------------------------
@@ -494,55 +639,114 @@ def print_table(rows: list[dict]) -> None:
     columns = [*STAGES, "checks", *extra]
     short = {"feedforward": "ff", "exports": "export"}
     head = "".join(f"{short.get(c, c)[:8]:>9}" for c in columns)
-    print(f"{'method':<16}{'wall s':>8}{'xCOLMAP':>8}{head}{'other':>8}{'cpu s':>8}{'peakGB':>7}{'exit':>5}", end="")
-    print(f"{'reg':>7}{'AUC@5':>7}{'medrot':>8}{'PSNR':>6}")
+    print(f"{'method':<24}{'wall s':>8}{'xCOLMAP':>8}{head}{'other':>8}{'cpu s':>8}{'xCPU':>6}{'peakGB':>7}", end="")
+    print(f"{'exit':>5}{'reg':>7}{'AUC@5':>7}{'medrot':>8}{'PSNR':>6}")
     for r in rows:
         if "error" in r:
-            print(f"{r['method']:<16}{r['wall_s']:>8.1f}  failed (exit {r['exit']}):\n{r['error']}")
+            print(f"{r['method']:<24}{r['wall_s']:>8.1f}  failed (exit {r['exit']}):\n{r['error']}")
             continue
         cells = "".join(_num(r["stages"].get(c), ".2f", 9) if c in r["stages"] else f"{'':>9}" for c in columns)
         print(
-            f"{r['method']:<16}{r['wall_s']:>8.2f}{_num(r['ratio'], '.2f', 8)}{cells}{r['other_s']:>8.2f}"
-            f"{_num(r.get('cpu_s'), '.1f', 8)}{r['peak_gb']:>7.2f}{r['exit']:>5}{r.get('registered', '-'):>7}"
-            f"{_num(r.get('auc5'), '.3f', 7)}"
+            f"{r['method']:<24}{r['wall_s']:>8.2f}{_num(r.get('ratio'), '.2f', 8)}{cells}{r['other_s']:>8.2f}"
+            f"{_num(r.get('cpu_s'), '.1f', 8)}{_num(r.get('cpu_ratio'), '.2f', 6)}{r['peak_gb']:>7.2f}{r['exit']:>5}"
+            f"{r.get('registered', '-'):>7}{_num(r.get('auc5'), '.3f', 7)}"
             f"{_num(r.get('med_rot'), '.3f', 8)}{_num(r.get('psnr'), '.1f', 6)}"
         )
     for r in rows:
-        if r.get("splat_backend"):
-            at = ", ".join(f"{t} s {_num(p, '.2f', 0)} dB" for t, p in (r.get("psnr_at_s") or {}).items())
-            gpu = "" if r.get("gpu_peak_gb") is None else f"; peak GPU {r['gpu_peak_gb']:.1f} GB"
-            print(
-                f"  {r['method']}: model on {', '.join(r.get('providers') or ['-'])}{gpu}; splat {r['splat_backend']} "
-                f"{_num(r.get('splat_it_per_s'), '.1f', 0)} it/s, held-out PSNR at {at}"
-            )
-        if r.get("steps"):
-            cpu = r.get("step_cpu") or {}
-            cells = (f"{k} {v:.2f}" + (f" (cpu {cpu[k]:.2f})" if k in cpu else "") for k, v in r["steps"].items())
-            print(f"  {r['method']} steps: " + ", ".join(cells))
-        if r.get("coverage"):
-            print(f"  {r['method']} steps / stage: " + ", ".join(f"{k} {v:.0%}" for k, v in r["coverage"].items()))
-        if r.get("splat_skipped"):
-            print(
-                f"  {r['method']} splat steps the budget left out: "
-                + "; ".join(f"{k}: {v}" for k, v in r["splat_skipped"].items())
-            )
-        if r.get("stage_peak_gb"):
-            peaks = ", ".join(f"{k} {v:.2f}" for k, v in r["stage_peak_gb"].items())
-            print(f"  {r['method']} peak GB by stage: {peaks}")
-        others = {e: a for e, a in r.get("accuracy", {}).items() if e != r.get("scored")}
-        notes = [f"scored: {r['scored']} cameras"] if r.get("scored") else []
-        notes += [f"{e} {a['registered']} AUC@5 {_num(a['auc5'], '.3f', 0)}" for e, a in others.items()]
-        if r.get("skipped"):
-            notes.append(f"skipped: {', '.join(r['skipped'])}")
-        if r.get("colmap_setup"):
-            notes.append(r["colmap_setup"])
-        if r.get("pose_s") is not None:
-            speedup = _num(r.get("pose_speedup"), ".2f", 0)
-            notes.append(f"pose stages {r['pose_s']:.1f} s, {speedup}x faster than COLMAP alone")
-        if r.get("loop_drift_pct") is not None:
-            notes.append(f"loop drift {r['loop_drift_pct']:.3f}% of the path")
-        if notes:
-            print(f"  {r['method']}: {'; '.join(notes)}")
+        print_details(r)
+
+
+def print_details(r: dict) -> None:
+    """The lines under the table for one row: load, CPU by step, splat, steps, coverage, memory, accuracy."""
+    if r.get("load") is not None:
+        print(f"  {r['method']}: load average {r['load']:.2f} as it started")
+    ex = r.get("ex_inference")
+    step = r.get("by_step")
+    if step and ex:
+        inf = step.get("inference") or {}
+        print(
+            f"  {r['method']} without the network's {inf.get('calls', 0)} calls ({inf.get('wall_s', 0):.2f} s wall, "
+            f"{inf.get('cpu_s', 0):.2f} s CPU meanwhile): wall {ex['wall_s']:.2f} s = {_num(ex['ratio'], '.2f', 0)}x "
+            f"COLMAP alone, CPU {ex['cpu_s']:.1f} s = {_num(ex['cpu_ratio'], '.2f', 0)}x"
+        )
+    if step:
+        cells = [f"{k} {step['wall'][k]:.2f} (cpu {v:.2f})" for k, v in step["cpu"].items()]
+        if "before" in step:
+            cells = [f"imports+parse {step['before'][0]:.2f} (cpu {step['before'][1]:.2f})", *cells]
+            cells.append(f"report+summary {step['after'][0]:.2f} (cpu {step['after'][1]:.2f})")
+        print(f"  {r['method']} wall (CPU) by step: " + ", ".join(cells))
+    if r.get("splat_backend"):
+        at = ", ".join(f"{t} s {_num(p, '.2f', 0)} dB" for t, p in (r.get("psnr_at_s") or {}).items())
+        gpu = "" if r.get("gpu_peak_gb") is None else f"; peak GPU {r['gpu_peak_gb']:.1f} GB"
+        print(
+            f"  {r['method']}: model on {', '.join(r.get('providers') or ['-'])}{gpu}; splat {r['splat_backend']} "
+            f"{_num(r.get('splat_it_per_s'), '.1f', 0)} it/s, held-out PSNR at {at}"
+        )
+    if r.get("steps"):
+        cpu = r.get("step_cpu") or {}
+        cells = (f"{k} {v:.2f}" + (f" (cpu {cpu[k]:.2f})" if k in cpu else "") for k, v in r["steps"].items())
+        print(f"  {r['method']} steps: " + ", ".join(cells))
+    if r.get("coverage"):
+        print(f"  {r['method']} steps / stage: " + ", ".join(f"{k} {v:.0%}" for k, v in r["coverage"].items()))
+    if r.get("splat_skipped"):
+        print(
+            f"  {r['method']} splat steps the budget left out: "
+            + "; ".join(f"{k}: {v}" for k, v in r["splat_skipped"].items())
+        )
+    if r.get("stage_peak_gb"):
+        peaks = ", ".join(f"{k} {v:.2f}" for k, v in r["stage_peak_gb"].items())
+        print(f"  {r['method']} peak GB by stage: {peaks}")
+    others = {e: a for e, a in r.get("accuracy", {}).items() if e != r.get("scored")}
+    notes = [f"scored: {r['scored']} cameras"] if r.get("scored") else []
+    notes += [f"{e} {a['registered']} AUC@5 {_num(a['auc5'], '.3f', 0)}" for e, a in others.items()]
+    if r.get("skipped"):
+        notes.append(f"skipped: {', '.join(r['skipped'])}")
+    if r.get("colmap_setup"):
+        notes.append(r["colmap_setup"])
+    if r.get("pose_s") is not None:
+        speedup = _num(r.get("pose_speedup"), ".2f", 0)
+        notes.append(f"pose stages {r['pose_s']:.1f} s, {speedup}x faster than COLMAP alone")
+    if r.get("loop_drift_pct") is not None:
+        notes.append(f"loop drift {r['loop_drift_pct']:.3f}% of the path")
+    if notes:
+        print(f"  {r['method']}: {'; '.join(notes)}")
+
+
+def scaling(rows: list[dict]) -> list[tuple[str, str, float, float]]:
+    """Thread scaling between the first and the last ``--cpus`` list: ``(method, step, seconds on the first,
+    seconds on the last)`` per method and per stage or step that took over 2 s on either, the whole wall first.
+
+    >>> rows = [{"mode": "quick", "cpus": "0", "wall_s": 9.0, "stages": {"refine": 4.0, "gates": 0.1}},
+    ...         {"mode": "quick", "cpus": "0,1", "wall_s": 5.0, "stages": {"refine": 2.5, "gates": 0.1}}]
+    >>> scaling(rows)
+    [('quick', 'wall', 9.0, 5.0), ('quick', 'refine', 4.0, 2.5)]
+    """
+    cpus = list(dict.fromkeys(r.get("cpus") for r in rows if r.get("cpus") is not None))
+    out = []
+    if len(cpus) < 2:
+        return out
+    for mode in dict.fromkeys(r.get("mode") for r in rows):
+        by_cpus = {r["cpus"]: r for r in rows if r.get("mode") == mode and "error" not in r}
+        few, many = by_cpus.get(cpus[0]), by_cpus.get(cpus[-1])
+        if few is None or many is None:
+            continue
+        out.append((mode, "wall", few["wall_s"], many["wall_s"]))
+        for source in ("stages", "steps"):
+            for name, seconds in (few.get(source) or {}).items():
+                other = (many.get(source) or {}).get(name)
+                if other is not None and max(seconds, other) > 2.0:
+                    out.append((mode, name, seconds, other))
+    return out
+
+
+def print_scaling(rows: list[dict]) -> None:
+    found = scaling(rows)
+    if not found:
+        return
+    cpus = list(dict.fromkeys(r.get("cpus") for r in rows if r.get("cpus") is not None))
+    print(f"\nthread scaling: seconds on cpus {cpus[0]} / on cpus {cpus[-1]} (the issue asks >= 1.6 for 1 -> 2 cores)")
+    for mode, name, few, many in found:
+        print(f"  {mode:<16}{name:<44}{few:>8.2f}{many:>8.2f}{few / max(many, 1e-9):>7.2f}x")
 
 
 def growth(rows: list[dict]) -> dict[str, dict[str, dict]]:
@@ -551,7 +755,8 @@ def growth(rows: list[dict]) -> dict[str, dict[str, dict]]:
     for r in rows:
         if "error" in r:
             continue
-        values = {"wall": r["wall_s"], "peak GB": r["peak_gb"], **r["stages"], **(r.get("steps") or {})}
+        values = {"wall": r["wall_s"], "cpu": r.get("cpu_s"), "peak GB": r["peak_gb"], **r["stages"]}
+        values |= r.get("steps") or {}
         for name, value in values.items():
             if value is not None and value > 1e-3:  # a stage that did not run has no growth
                 series.setdefault(name, {}).setdefault(r["method"], []).append((r["frames"], value))
@@ -571,14 +776,17 @@ def print_growth(fits: dict, methods: list[str]) -> None:
         print("\ngrowth: needs two frame counts or more")
         return
     print("\ngrowth: exponent b of seconds (peak GB for 'peak GB') = a * frames^b, least squares in log-log")
-    print(f"{'stage':<26}" + "".join(f"{m:>16}" for m in methods))
+    print(f"{'stage':<26}" + "".join(f"{m[-22:]:>24}" for m in methods))
     for name, by_method in fits.items():
-        cells = "".join(f"{by_method[m]['b']:>16.2f}" if m in by_method else f"{'-':>16}" for m in methods)
+        cells = "".join(f"{by_method[m]['b']:>24.2f}" if m in by_method else f"{'-':>24}" for m in methods)
         print(f"{name:<26}{cells}")
     print("splat runs to its time budget, so its exponent reflects the budget, not its cost")
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["--ffrecon-child"] and argv[2:3] == ["--"]:
+        return ffrecon_child(Path(argv[1]), argv[3:])
     args = _parser().parse_args(argv)
     if args.colmap_only:
         colmap_child(*args.colmap_only, args.truth, args.colmap_pairing, args.colmap_mapping_seconds)
@@ -600,12 +808,13 @@ def main(argv: list[str] | None = None) -> int:
         for frames in args.frames:
             new = bench_frames(frames, args, root)
             print_table(new)
+            print_scaling(new)
             rows += new
     finally:
         if args.out is None and not args.keep:
             shutil.rmtree(root, ignore_errors=True)
     fits = growth(rows)
-    print_growth(fits, ["COLMAP alone", *(f"ffrecon {m}" for m in args.modes)])
+    print_growth(fits, list(dict.fromkeys(r["method"] for r in rows)))
     end_load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     print(f"load average {end_load:.2f} at the end" + (f"; outputs in {root}" if args.keep else ""))
     if args.json:

@@ -119,6 +119,9 @@ class ColmapResult:
             "num_camera_groups": int(len(set(self.camera_groups.tolist()))),
             "model_path": None if self.model_path is None else str(self.model_path),
             "timings_s": self.timings.to_report(),
+            # user + system CPU seconds of each step: the whole process's, so beside the feed-forward stage
+            # they count its CPU too (ffrecon.timing.cpu_seconds)
+            "cpu_s": self.timings.cpu_report(),
             "features": self.features.to_report(),
         }
 
