@@ -229,6 +229,7 @@ def test_viewer_page_shows_the_scene_and_stops_on_ctrl_c(full_run, chromium, nod
         "final cameras",
         "points",
         "splat",
+        "show crop box",
     ]
     viser_splat_warning = "computeBoundingSphere(): Computed radius is NaN"  # viser's splat mesh, any splat
     assert [e for e in result["console_errors"] if viser_splat_warning not in e] == []
@@ -245,6 +246,11 @@ def test_viewer_page_shows_the_scene_and_stops_on_ctrl_c(full_run, chromium, nod
     assert changed > 0.3, f"only {changed:.0%} of the view differs from the empty one: the scene is not drawn"
     colours = len(np.unique((on // 32).reshape(-1, 3), axis=0))
     assert colours > 60, f"{colours} distinct colours: a flat image, not the splat and points"
+
+    def box_pixels(image):  # the crop box's magenta lines (ffrecon.view.panel.BOX_COLOR); the scene alone has ~15
+        return int(((image[..., 0] > 180) & (image[..., 2] > 180) & (image[..., 1] < 90)).sum())
+
+    assert box_pixels(on) > 80 and box_pixels(off) == 0, (box_pixels(on), box_pixels(off))
 
 
 def test_selecting_a_camera_shows_its_photo_and_errors(scene):

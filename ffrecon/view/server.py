@@ -17,6 +17,7 @@ import numpy as np
 
 from ffrecon.errors import FFReconError, ResourceError
 from ffrecon.view.access import AccessPolicy, Gate, guarded_serve, new_token
+from ffrecon.view.panel import EditPanel
 from ffrecon.view.scene import FLAG_COLOR, CameraLayer, CameraSpec, Estimate, ViewScene
 
 logger = logging.getLogger("ffrecon.view")
@@ -39,6 +40,7 @@ class Viewer:
     scene: ViewScene
     details: object = None  # the "Selected camera" markdown handle
     photo: object = None  # its image handle
+    edit: object = None  # the crop box and camera path tools (ffrecon.view.panel.EditPanel)
 
     def select(self, estimate: Estimate, name: str) -> None:
         """Show ``name``'s photo, status and pose errors in the panel, as a click on its frustum does."""
@@ -276,4 +278,6 @@ def _populate(viewer: Viewer) -> None:
         for label, handle in nodes.items():
             box = gui.add_checkbox(label, initial_value=True)
             box.on_update(lambda event, handle=handle: setattr(handle, "visible", event.target.value))
+    viewer.edit = EditPanel(server, scene, scale)
+    viewer.edit.build()
     _frame_view(server, scene)
