@@ -461,7 +461,7 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
         type=_text("--crop-box"),
         default=None,
         metavar="BOX",
-        help="six numbers x0 y0 z0 x1 y1 z1, or a box file (ffrecon view writes one; docs/crop_box.md): keep only "
+        help="six numbers x0 y0 z0 x1 y1 z1, or a box file (ffrecon view writes one; docs/camera_paths.md): keep only "
         "the Gaussians in this axis-aligned box of the final cameras' world (sparse/0, transforms.json) instead of "
         "the automatic box; splat.ply and splat.spz are cropped",
     )

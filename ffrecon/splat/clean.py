@@ -26,7 +26,7 @@ from ffrecon.types import PinholeCamera
 logger = logging.getLogger("ffrecon.splat")
 
 # A crop box is axis-aligned in the world of the run's final cameras: sparse/0's, which transforms.json
-# (applied_transform identity), points.ply and splat.ply share. Its file (docs/crop_box.md) says so.
+# (applied_transform identity), points.ply and splat.ply share. Its file (docs/camera_paths.md) says so.
 CROP_BOX_FRAME = "sparse/0"
 CropBox = tuple[tuple[float, float, float], tuple[float, float, float]]
 _BOX_FIX = "give x0 < x1, y0 < y1, z0 < z1, finite"

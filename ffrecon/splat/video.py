@@ -148,7 +148,7 @@ def render_camera_path(
             writer.write(cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
     finally:
         writer.release()
-    logger.info("wrote %s (%d frames)", path_file, len(poses))
+    logger.debug("wrote %s (%d frames)", path_file, len(poses))
     return path_file
 
 
@@ -175,4 +175,7 @@ def write_flythrough(
     path.parent.mkdir(parents=True, exist_ok=True)
     fly = flythrough_path(cam_from_world, camera, num_frames=num_frames, fps=fps)
     write_camera_path(path.with_name(CAMERA_PATH_FILE), fly)
-    return render_camera_path(path, gaussians, fly, background=background, raster=raster, device=device)
+    written = render_camera_path(path, gaussians, fly, background=background, raster=raster, device=device)
+    if written is not None:
+        logger.info("wrote %s (%d frames) and %s", path, num_frames, CAMERA_PATH_FILE)
+    return written
