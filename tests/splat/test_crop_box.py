@@ -110,3 +110,37 @@ def test_a_bad_box_file_on_the_command_line_is_one_line_and_exit_2(tmp_path, cap
     assert code == 2 and "Traceback" not in err, err
     assert len(lines) == 2 and lines[0].startswith("ffrecon: error: crop box file") and BAD_FILES[case][1] in lines[0]
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.slow
+def test_a_run_with_a_crop_box_keeps_only_the_gaussians_inside(full_run, demo12, tmp_path):
+    """The demo run resumed with a box (the lower half of its automatic box, from a box file): only the splat
+    stage runs again, and splat.ply holds only Gaussians inside; report.json names the box and its frame."""
+    import dataclasses
+    import shutil
+
+    from ffrecon.formats.splat_ply import read_splat_ply
+    from ffrecon.pipeline import RunOptions, run
+    from ffrecon.splat.optimize import OptimizeOptions
+    from ffrecon.splat.stage import SplatOptions
+
+    auto = json.loads((full_run / "report.json").read_text())["splat"]["cleaning"]["crop_box"]
+    assert auto["automatic"] and auto["frame"] == "sparse/0"
+    lo, hi = np.array(auto["lo"]), np.array(auto["hi"])
+    hi[2] = (lo[2] + hi[2]) / 2
+    box = read_crop_box(write_crop_box(tmp_path / "box.json", (tuple(lo), tuple(hi))))
+    out = tmp_path / "out"
+    shutil.copytree(full_run, out, symlinks=True)
+    splat = SplatOptions(video_frames=12, optimize=OptimizeOptions.brief(max_seconds=8.0, iterations=300))
+    splat = dataclasses.replace(splat, clean=CleanOptions(crop_box=box))
+    options = RunOptions(splat=splat, ground_truth=demo12.scene_dir, resume=True)
+    assert run(demo12.images, out, demo12.model, options).exit_code == 0
+    report = json.loads((out / "report.json").read_text())
+    cleaning = report["splat"]["cleaning"]
+    assert cleaning["crop_box"] == {"frame": "sparse/0", "lo": list(box[0]), "hi": list(box[1]), "automatic": False}
+    assert cleaning["steps"][0]["step"] == "outside_crop_box" and cleaning["steps"][0]["applied"]
+    assert cleaning["removed"]["outside_crop_box"] > 1000
+    means = read_splat_ply(out / "splat.ply").means.numpy()
+    assert len(means) == cleaning["count_after"]
+    assert np.all(means >= np.array(box[0]) - 1e-5) and np.all(means <= np.array(box[1]) + 1e-5)
+    assert (out / "camera_path.json").is_file() and (out / "flythrough.mp4").is_file()
