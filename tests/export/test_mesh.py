@@ -157,3 +157,20 @@ def test_an_unknown_mesh_method_is_one_line_and_exit_2(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "invalid choice: 'marching'" in err and "Traceback" not in err
     assert len([line for line in err.splitlines() if line.strip() and "fix:" not in line]) == 1, err
+
+
+def test_a_run_with_mesh_writes_the_tsdf_mesh_of_the_models_depth(small_demo, tmp_path, capsys):
+    out = tmp_path / "out"
+    run = ["run", str(small_demo.images), "-o", str(out), "--model", str(small_demo.model)]
+    assert cli.main([*run, "--no-colmap", "--no-refine", "--no-splat", "-q", "--mesh", "--force"]) == 0
+    assert "Traceback" not in capsys.readouterr().err
+    exports = json.loads((out / "report.json").read_text())["exports"]
+    assert exports["mesh"] is not None and "mesh.ply" not in exports["not_written"]
+    ply = trimesh.load(out / "mesh.ply", process=False)
+    assert len(ply.faces) > 1000 and len(trimesh.load(out / "mesh.glb", force="mesh", process=False).vertices) == len(
+        ply.vertices
+    )
+    points = trimesh.load(out / "points.ply")  # the mesh lies where the cloud is (the same depth, the same cameras)
+    lo, hi = np.percentile(points.vertices, [1, 99], axis=0)
+    inside = np.all((ply.vertices >= lo - 0.05 * (hi - lo)) & (ply.vertices <= hi + 0.05 * (hi - lo)), axis=1)
+    assert inside.mean() > 0.95
