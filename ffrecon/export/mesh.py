@@ -54,7 +54,11 @@ class MeshResult:
 
 def fused_depth(prediction: Prediction, k: int, fuse: FuseOptions) -> np.ndarray:
     """``[h, w]`` float32 depth of frame ``k`` with 0 wherever the point cloud fuses nothing: unknown, masked
-    out (the masks zero depth and confidence), below ``fuse.min_conf`` or the frame's ``fuse.conf_quantile``."""
+    out (the masks zero depth and confidence), below ``fuse.min_conf`` or the frame's ``fuse.conf_quantile``;
+    all 0 when the frame's camera is not finite."""
+    camera = prediction.depth_camera(k)
+    if not (np.isfinite(prediction.cam_from_world[k]).all() and np.isfinite(camera.K).all()):
+        return np.zeros(prediction.depth[k].shape, np.float32)
     valid = prediction.valid_mask(k, fuse.min_conf) & np.isfinite(prediction.depth[k])
     if valid.any():
         conf = prediction.depth_conf[k]

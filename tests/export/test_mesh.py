@@ -21,7 +21,7 @@ from ffrecon.formats.mesh import MeshMethod, MeshOptions
 from ffrecon.formats.pointcloud import FuseOptions, fuse_prediction
 from ffrecon.geometry.poses import camera_centers
 from ffrecon.synthetic import SceneOptions, make_scene
-from ffrecon.types import ModelFamily, ModelInfo, Prediction
+from ffrecon.types import ModelFamily, ModelInfo, Prediction, Skipped
 
 NO_POINTS = (np.zeros((0, 3)), np.zeros((0, 3)))
 
@@ -114,6 +114,18 @@ def test_depth_with_no_surface_skips_the_mesh_with_the_reason(tmp_path, caplog, 
     assert why in result.not_written["mesh.ply"] and result.not_written["mesh.glb"] == result.not_written["mesh.ply"]
     assert result.points_ply is not None and json.loads(result.transforms_json.read_text())["frames"]
     assert "mesh not written" in caplog.text
+
+
+def test_frames_with_broken_cameras_are_left_out_of_the_tsdf(tmp_path):
+    scene, pred, _, _ = _scene()
+    poses = pred.cam_from_world.copy()
+    poses[1:] = np.nan
+    broken = dataclasses.replace(pred, cam_from_world=poses)
+    result = write_mesh(tmp_path, MeshOptions(), NO_POINTS, camera_centers(poses[:1]), _depth(broken, scene.images))
+    assert isinstance(result, MeshResult) and np.isfinite(trimesh.load(result.ply, process=False).vertices).all()
+    none = dataclasses.replace(pred, cam_from_world=np.full_like(poses, np.nan))
+    result = write_mesh(tmp_path / "none", MeshOptions(), NO_POINTS, camera_centers(poses), _depth(none, scene.images))
+    assert isinstance(result, Skipped) and "no depth pixel" in result.reason
 
 
 def test_tsdf_without_the_models_depth_says_to_use_poisson(tmp_path):
