@@ -202,7 +202,7 @@ def build_report(results: RunResults) -> dict:
             "num_points": ex.num_points,
             "points": ex.points_from,
             "transforms_json": rel(ex.transforms_json),
-            "mesh": {"ply": rel(ex.mesh_ply), "glb": rel(ex.mesh_glb)} if ex.mesh_ply else None,
+            "mesh": {"ply": rel(ex.mesh_ply), "glb": rel(ex.mesh_glb), "about": ex.mesh_about} if ex.mesh_ply else None,
             "cameras": ex.cameras_from,
             "not_written": dict(ex.not_written),  # file -> why (an empty cloud: no points.ply, no mesh)
         }

@@ -180,7 +180,8 @@ def test_a_run_with_mesh_writes_the_tsdf_mesh_of_the_models_depth(small_demo, tm
     assert cli.main([*run, "--no-colmap", "--no-refine", "--no-splat", "-q", "--mesh", "--force"]) == 0
     assert "Traceback" not in capsys.readouterr().err
     exports = json.loads((out / "report.json").read_text())["exports"]
-    assert exports["mesh"] is not None and "mesh.ply" not in exports["not_written"]
+    assert exports["mesh"]["about"].startswith("tsdf mesh") and "voxel" in exports["mesh"]["about"]
+    assert "mesh.ply" not in exports["not_written"]
     ply = trimesh.load(out / "mesh.ply", process=False)
     assert len(ply.faces) > 1000 and len(trimesh.load(out / "mesh.glb", force="mesh", process=False).vertices) == len(
         ply.vertices
