@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from ffrecon.capture import Capture
+from ffrecon.errors import InputError
 from ffrecon.export.mesh import DepthMaps, MeshResult, write_mesh
 from ffrecon.final_cameras import CameraSource, FinalCameras
 from ffrecon.formats.mesh import MeshMethod, MeshOptions
@@ -49,6 +50,9 @@ class ExportOptions:
             mesh = MeshMethod.TSDF
         elif mesh is False or mesh is None:
             mesh = None
+        elif mesh not in list(MeshMethod):  # a StrEnum member equals its value
+            choices = ", ".join(m.value for m in MeshMethod)
+            raise InputError(f"ExportOptions.mesh is {mesh!r}, not a mesh method", f"use one of {choices}, or None")
         else:
             mesh = MeshMethod(mesh)
         object.__setattr__(self, "mesh", mesh)

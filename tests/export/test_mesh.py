@@ -13,6 +13,7 @@ import pytest
 import trimesh
 
 from ffrecon import cli
+from ffrecon.errors import InputError
 from ffrecon.export.mesh import DepthMaps, MeshResult, write_mesh
 from ffrecon.export.mesh_accuracy import bounding_diagonal, sample_surface, surface_accuracy
 from ffrecon.export.stage import ExportOptions, run_exports
@@ -165,6 +166,11 @@ def test_the_mesh_flag_picks_the_method(argv, method):
     options = ExportOptions(mesh=args.mesh)
     assert options.mesh is method
     assert options.mesh_options.method is (method or MeshMethod.TSDF)
+
+
+def test_an_unknown_mesh_method_in_python_is_an_input_error():
+    with pytest.raises(InputError, match="not a mesh method"):
+        ExportOptions(mesh="marching")
 
 
 def test_an_unknown_mesh_method_is_one_line_and_exit_2(tmp_path, capsys):
