@@ -239,6 +239,13 @@ def _field_default(options_class, name: str):
     return options_class.__dataclass_fields__[name].default
 
 
+def _keyword_default(function, name: str):
+    """The default of a function's keyword argument, for help texts (the value lives in the signature alone)."""
+    import inspect
+
+    return inspect.signature(function).parameters[name].default
+
+
 def _add_output_folder_options(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "-o", "--out", type=_path("--out"), required=True, help="output folder (see the README for its layout)"
@@ -452,7 +459,7 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
         type=_number(lambda v: OptimizeOptions.brief(max_seconds=v), integer=False),
         default=None,
         help="the splat stage's budget in seconds, > 0: its optimisation, held-out scores, cleaning, pose check, "
-        "renders, video and SPZ together (default: OptimizeOptions.brief()'s)",
+        f"renders, video and SPZ together (default {_field_default(OptimizeOptions, 'max_seconds')})",
     )
     p.add_argument(
         "--crop-box",
@@ -538,22 +545,23 @@ def _render(args: argparse.Namespace) -> int:
 
 
 def _add_view_parser(sub) -> None:
-    """``view``: the caps' defaults are :class:`~ffrecon.view.ViewOptions`'s (at least 1, as it checks)."""
-    from ffrecon.view import ViewOptions
+    """``view``: the caps' defaults are :class:`~ffrecon.view.ViewOptions`'s (at least 1, as it checks), the
+    address's :func:`~ffrecon.view.start_viewer`'s."""
+    from ffrecon.view import ViewOptions, start_viewer
 
     view = sub.add_parser("view", help="open an output folder's cameras, points and splat in the browser")
     view.add_argument("out", type=_path("the output folder"), help="an output folder of `ffrecon run -o OUT`")
     view.add_argument(
         "--host",
         type=_text("--host"),
-        default="127.0.0.1",
-        help="address to listen on (default %(default)s: this machine)",
+        default=None,
+        help=f"address to listen on (default {_keyword_default(start_viewer, 'host')}, this machine)",
     )
     view.add_argument(
         "--port",
         type=_in_range("viewer port", "--port", low=0, high=65535, note=" (0: any free port)"),
-        default=8080,
-        help="port to listen on, 0 to 65535; 0: any free port (default %(default)s)",
+        default=None,
+        help=f"port to listen on, 0 to 65535; 0: any free port (default {_keyword_default(start_viewer, 'port')})",
     )
     view.add_argument(
         "--max-points",
@@ -889,7 +897,7 @@ def _view(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     scene = load_scene(args.out, _view_options(args))
     signal.signal(signal.SIGTERM, _terminate)  # pycolmap, imported by load_scene, installs its own handler
-    viewer = start_viewer(scene, host=args.host, port=args.port)
+    viewer = start_viewer(scene, **_given(host=args.host, port=args.port))
     for what, why in scene.missing:
         log.info("not shown: %s (%s)", what, why)
     print(f"viewer: {viewer.url}  (ready in {time.perf_counter() - started:.1f} s; Ctrl-C stops it)", flush=True)

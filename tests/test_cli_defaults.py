@@ -1,10 +1,13 @@
 """The command line's defaults and help texts come from the options dataclasses (issue 23), so they cannot drift:
 every flag that sets a dataclass field defaults to None (the field's default stands), its help text shows that
 field's default, and parsing no flags gives the dataclasses' defaults. A default written in the CLI is allowed
-only where no options class holds the value (CLI_ONLY_DEFAULTS)."""
+only where no options class holds the value (CLI_ONLY_DEFAULTS); a flag that sets a keyword argument of a function
+takes that keyword's default (KEYWORD_DEFAULTS). The splat's budget has one default (issue 41)."""
 
 import argparse
 import dataclasses
+import inspect
+import logging
 import re
 from pathlib import Path
 
@@ -16,14 +19,19 @@ from ffrecon.models.exporting import ModelExportOptions
 from ffrecon.models.memory import MEMORY_FRACTION
 from ffrecon.models.multiview import MultiviewOptions
 from ffrecon.pipeline import RunOptions
+from ffrecon.report import html
 from ffrecon.sfm.gates import GateOptions
+from ffrecon.splat import stage as splat_stage
+from ffrecon.splat.optimize import OptimizeOptions
+from ffrecon.splat.stage import SplatOptions
 from ffrecon.synthetic import SceneOptions
-from ffrecon.view import ViewOptions
+from ffrecon.view import ViewOptions, start_viewer
 
 _RUN_AND_DEMO = {
     "--chunk-overlap": (MultiviewOptions, "chunk_overlap"),
     "--max-image-size": (CaptureOptions, "max_image_size"),
     "--min-registration": (GateOptions, "min_registration_ratio"),
+    "--splat-seconds": (OptimizeOptions, "max_seconds"),
 }
 # subcommand -> {flag: (options class, field)}: the flags that set a field of an options dataclass
 FIELDS = {
@@ -44,8 +52,10 @@ FIELDS = {
     "inspect-model": {},
     "render": {},
 }
-# Defaults written in the CLI because no options class holds them (ffrecon.view.start_viewer's keywords do).
-CLI_ONLY_DEFAULTS = {("view", "--host"), ("view", "--port")}
+# Defaults written in the CLI because nothing else holds them: none left.
+CLI_ONLY_DEFAULTS: set[tuple[str, str]] = set()
+# (subcommand, flag) -> (function, keyword): flags passed to a function whose signature holds their default.
+KEYWORD_DEFAULTS = {("view", "--host"): (start_viewer, "host"), ("view", "--port"): (start_viewer, "port")}
 # The fewest arguments each subcommand parses with.
 REQUIRED = {
     "run": ["photos", "-o", "out"],
@@ -89,7 +99,12 @@ def _options(command: str, argv: list[str]) -> dict:
     if command == "view":
         return {ViewOptions: cli._view_options(args)}
     run = cli._run_options(args)
-    made = {CaptureOptions: run.capture, MultiviewOptions: run.feedforward.multiview, GateOptions: run.gates}
+    made = {
+        CaptureOptions: run.capture,
+        MultiviewOptions: run.feedforward.multiview,
+        GateOptions: run.gates,
+        OptimizeOptions: run.splat.optimize,
+    }
     if command == "demo":
         made[SceneOptions] = cli._scene_options(args)
     return made
@@ -122,7 +137,7 @@ def test_no_other_default_is_written_in_the_cli():
     written = []
     for command, parser in _subparsers().items():
         for flag, action in _flags(parser).items():
-            if flag in FIELDS[command] or (command, flag) in CLI_ONLY_DEFAULTS:
+            if flag in FIELDS[command] or (command, flag) in CLI_ONLY_DEFAULTS | set(KEYWORD_DEFAULTS):
                 continue
             if not isinstance(action, _ARGPARSE_DEFAULTS) and action.default is not None:
                 written.append(f"{command} {flag} default={action.default!r}")
@@ -163,3 +178,33 @@ def test_each_flag_sets_its_field(command, flag):
     assert getattr(_options(command, [])[options_class], name) == default
     other = default / 2 if isinstance(default, float) else default + 1
     assert getattr(_options(command, [flag, str(other)])[options_class], name) == other
+
+
+@pytest.mark.parametrize(("command", "flag"), sorted(KEYWORD_DEFAULTS))
+def test_help_shows_the_keyword_default(command, flag):
+    function, name = KEYWORD_DEFAULTS[command, flag]
+    action = _flags(_subparsers()[command])[flag]
+    default = inspect.signature(function).parameters[name].default
+    assert action.default is None, f"{command} {flag}: default {action.default!r} written in the CLI"
+    shown = re.findall(r"\bdefault:? ([^\s,;)]+)", _help(action))
+    assert shown == [str(default)], f"{command} {flag} help says default {shown}, {function.__name__}({name}=...)"
+
+
+def test_the_splat_budget_has_one_default():
+    """The run's splat budget is OptimizeOptions.max_seconds's default: the brief preset (what the splat stage
+    trains with) does not write another."""
+    budget = _field_default(OptimizeOptions, "max_seconds")
+    assert SplatOptions().optimize.max_seconds == OptimizeOptions.brief().max_seconds == budget
+    assert "max_seconds" not in inspect.getsource(OptimizeOptions.brief).split('"""')[-1]
+
+
+def test_prose_names_the_options_defaults(monkeypatch, caplog):
+    """The splat's memory warning and the report's held-out caption read their numbers from the options."""
+    monkeypatch.setattr(CaptureOptions.__dataclass_fields__["max_image_size"], "default", 1234)
+    monkeypatch.setattr(SplatOptions.__dataclass_fields__["holdout_every"], "default", 5)
+    assert "every 5th frame by default" in html.curve_caption()
+    monkeypatch.setattr(splat_stage, "training_side", lambda sizes, cap: 320)
+    monkeypatch.setattr(splat_stage, "splat_peak_bytes", lambda sizes, cap: 2**31)
+    with caplog.at_level(logging.WARNING, logger="ffrecon.splat"):
+        splat_stage.check_splat_memory([(640, 480)], SplatOptions(device="cpu"))
+    assert "(--max-image-size, default 1234)" in caplog.text

@@ -16,8 +16,11 @@ import numpy as np
 from ffrecon.report.media import animated_webp, video_frames
 from ffrecon.report.plots import PathSeries, camera_paths_png, curves_png, error_bars_png, thumbnail_png, timings_png
 from ffrecon.report.scene3d import scene_html
+from ffrecon.sfm import DisagreementOptions
+from ffrecon.splat.stage import SplatOptions
 
 MAX_THUMBNAILS = 12
+_DISAGREEMENT = DisagreementOptions()  # the plot's threshold lines: the evidence's defaults
 
 _CSS = """
 body{font-family:system-ui,-apple-system,Segoe UI,Roboto,sans-serif;max-width:1100px;margin:2em auto;padding:0 1em;
@@ -38,6 +41,30 @@ _SIMULATED = (
     "simulated model (ground truth plus injected error), not a trained network. Numbers show the pipeline "
     "working, not a model's accuracy.</div>"
 )
+
+
+def _field_default(options_class, name: str):
+    """A field's default, read from its options dataclass (captions name it, never a copy of it)."""
+    return options_class.__dataclass_fields__[name].default
+
+
+def _ordinal(n: int) -> str:
+    """``"8th"``, ``"1st"``, ``"22nd"``.
+
+    >>> [_ordinal(n) for n in (1, 2, 3, 4, 8, 11, 12, 13, 21, 22)]
+    ['1st', '2nd', '3rd', '4th', '8th', '11th', '12th', '13th', '21st', '22nd']
+    """
+    suffix = "th" if 10 <= n % 100 <= 20 else {1: "st", 2: "nd", 3: "rd"}.get(n % 10, "th")
+    return f"{n}{suffix}"
+
+
+def curve_caption() -> str:
+    """The held-out curve's caption; the held-out frames as :class:`~ffrecon.splat.stage.SplatOptions` picks them."""
+    return (
+        f"Mean held-out PSNR and SSIM (every {_ordinal(_field_default(SplatOptions, 'holdout_every'))} frame "
+        "by default, never trained on; plain renders before cleaning) against optimisation seconds, from the "
+        "seed on."
+    )
 
 
 def _fmt(v) -> str:
@@ -232,8 +259,8 @@ def _poses(report: dict, run_dir: Path) -> tuple[list[dict], str]:
         names,
         {k: as_array(v) for k, v in plot["rotation_deg"].items()},
         {k: as_array(v) / max(extent, 1e-12) for k, v in plot["center_error"].items()},
-        rotation_threshold_deg=5.0,
-        center_threshold=0.05,
+        rotation_threshold_deg=_DISAGREEMENT.max_rotation_deg,
+        center_threshold=_DISAGREEMENT.max_center_error,
         center_unit=f"fraction of the {ref} camera extent",
     )
     parts = [
@@ -280,13 +307,8 @@ def _splat(report: dict, run_dir: Path) -> tuple[list[dict], str]:
     psnr = {v["name"]: v for v in data["heldout_per_view"]}
     curve = ""
     if data.get("heldout_curve"):
-        caption = (
-            "Mean held-out PSNR and SSIM (every 8th frame by default, never trained on; plain renders "
-            "before cleaning) "
-            "against optimisation seconds, from the seed on."
-        )
         curve = _figure(
-            "Held-out quality over optimisation time", curves_png({"splat": data["heldout_curve"]}), caption
+            "Held-out quality over optimisation time", curves_png({"splat": data["heldout_curve"]}), curve_caption()
         )
     thumbs = []
     for r in data["renders"]:

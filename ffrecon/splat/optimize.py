@@ -53,7 +53,9 @@ class OptimizeOptions:
     ``lr_appearance`` 2e-3 adds 0.14 dB to the latter but costs 0.14 dB at constant exposure."""
 
     iterations: int = 3000  # the plan: learning rates, resolution, SH and densification follow it
-    max_seconds: float = 120.0  # upper bound on the optimisation time (the plan is then compressed to fit)
+    # The splat stage's time budget (--splat-seconds): the optimisation's plan is compressed to fit what the
+    # stage's other steps leave of it. The one default of the budget (brief() keeps it).
+    max_seconds: float = 60.0
     # Coarse to fine: (fraction of the plan, downscale factor) from which that resolution is used.
     resolution_schedule: tuple[tuple[float, int], ...] = ((0.0, 1),)
     # Stop on a plateau of the training loss: once the plan is past ``plateau_after`` (full resolution,
@@ -123,7 +125,7 @@ class OptimizeOptions:
     def brief(**overrides) -> OptimizeOptions:
         """Rates and schedule for runs of a few hundred to a thousand iterations: the 3DGS rates with
         positions and scales x10, SH x3, rotations x3 and opacity x2 (the final position rate stays
-        3DGS's); a plan of 1500 iterations compressed into at most 60 s, trained at 1/4 resolution for
+        3DGS's); a plan of 1500 iterations compressed into ``max_seconds``, trained at 1/4 resolution for
         the first 10 % of it, 1/2 until 30 %, full resolution after; one more SH band every 150
         iterations; stop early on a plateau of the training loss.
 
@@ -142,7 +144,6 @@ class OptimizeOptions:
         base = OptimizeOptions()
         schedule = {
             "iterations": 1500,
-            "max_seconds": 60.0,
             "resolution_schedule": ((0.0, 4), (0.1, 2), (0.3, 1)),
             "sh_band_every": 150,
             "plateau_window": 100,

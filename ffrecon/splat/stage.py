@@ -29,6 +29,7 @@ import cv2
 import numpy as np
 import torch
 
+from ffrecon.capture import CaptureOptions
 from ffrecon.checks import check_number, check_shape, require_finite
 from ffrecon.errors import InputError
 from ffrecon.formats.splat_ply import write_splat_ply
@@ -348,7 +349,7 @@ def check_splat_memory(sizes_wh: Sequence[tuple[int, int]], options: SplatOption
         shrunk = sum(max(s) > side for s in sizes_wh)
         logger.warning(
             "splat%s: training %d view(s) at %d px on the long side (%dx%d instead of %dx%d): full size needs "
-            "about %.1f GB, more than memory allows; smaller frames (--max-image-size, default 1600) avoid this",
+            "about %.1f GB, more than memory allows; smaller frames (--max-image-size, default %s) avoid this",
             when,
             shrunk,
             side,
@@ -356,6 +357,7 @@ def check_splat_memory(sizes_wh: Sequence[tuple[int, int]], options: SplatOption
             w,
             h,
             full / 2**30,
+            CaptureOptions.__dataclass_fields__["max_image_size"].default,
         )
     return side
 
