@@ -90,3 +90,16 @@ def test_the_ffrecon_child_runs_the_command_and_records_each_stage(bench, small_
     assert recorded["inference"]["calls"] >= 1 and recorded["inference"]["wall_s"] > 0
     assert recorded["first"][0] <= recorded["last"][0] <= recorded["end"][0]
     assert (StagePlan.run, runner.OnnxModel.run) == (plan_run, model_run)  # the wrapping is undone
+
+
+def test_the_splat_budget_goes_only_to_runs_that_make_a_splat(bench, tmp_path):
+    args = bench._parser().parse_args(["--no-splat", "--splat-seconds", "30"])
+    command = {
+        mode: bench.ffrecon_command(tmp_path, tmp_path / "m.onnx", tmp_path / "out", tmp_path / "gt", mode, args)
+        for mode in ("quick", "default+splat")
+    }
+    run = command["quick"][command["quick"].index("--") + 1 :]
+    assert run[0] == "run" and "--quick" in run and "--no-splat" in run and "--splat-seconds" not in run
+    with_splat = command["default+splat"]
+    assert "--no-splat" not in with_splat and with_splat[with_splat.index("--splat-seconds") + 1] == "30.0"
+    assert "--quick" not in with_splat

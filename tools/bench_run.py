@@ -404,10 +404,10 @@ def ffrecon_command(images: Path, model: Path, out: Path, reference: Path, mode:
         cmd.append("--quick")
     if mode.endswith("no-loops"):
         cmd.append("--no-loop-chunks")
-    if args.splat_seconds is not None:
-        cmd += ["--splat-seconds", str(args.splat_seconds)]
     if args.no_splat and "+splat" not in mode:
-        cmd.append("--no-splat")
+        cmd.append("--no-splat")  # and no --splat-seconds: ffrecon refuses a budget for a splat it does not make
+    elif args.splat_seconds is not None:
+        cmd += ["--splat-seconds", str(args.splat_seconds)]
     stats = out.parent / f"{out.name}.{STATS_FILE}"
     return [sys.executable, str(Path(__file__).resolve()), "--ffrecon-child", str(stats), "--", *cmd]
 
