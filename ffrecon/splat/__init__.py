@@ -3,7 +3,8 @@
 Import from the modules, e.g. ``from ffrecon.splat.stage import SplatOptions, run_splat_from_prediction``:
 
 - :mod:`ffrecon.splat.stage`: ``run_splat_from_prediction`` (the stage), ``run_splat`` (explicit seed),
-  ``SplatOptions``, ``SplatResult``, ``split_views``
+  ``SplatOptions``, ``SplatResult``, ``split_views``; its parts: :mod:`ffrecon.splat.options`,
+  :mod:`ffrecon.splat.result`, :mod:`ffrecon.splat.evaluate` (render and score), :mod:`ffrecon.splat.outputs` (files)
 - :mod:`ffrecon.splat.seed`: ``seed_from_prediction``, ``seed_from_reconstruction``
 - :mod:`ffrecon.splat.render`: ``render`` (CPU, differentiable); :mod:`ffrecon.splat.render_gsplat` (CUDA)
 - :mod:`ffrecon.splat.optimize`, :mod:`ffrecon.splat.densify`, :mod:`ffrecon.splat.clean`
