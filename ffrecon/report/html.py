@@ -6,136 +6,33 @@ from the run folder the report describes (``images/``, ``feedforward/depth/``, `
 
 from __future__ import annotations
 
-import base64
 import html
 from pathlib import Path
 
-import cv2
 import numpy as np
 
-from ffrecon.report.media import animated_webp, video_frames
-from ffrecon.report.plots import PathSeries, camera_paths_png, curves_png, error_bars_png, thumbnail_png, timings_png
-from ffrecon.report.scene3d import scene_html
-from ffrecon.sfm import DisagreementOptions
-from ffrecon.splat.stage import SplatOptions
-
-MAX_THUMBNAILS = 12
-_DISAGREEMENT = DisagreementOptions()  # the plot's threshold lines: the evidence's defaults
-
-_CSS = """
-body{font-family:system-ui,-apple-system,Segoe UI,Roboto,sans-serif;max-width:1100px;margin:2em auto;padding:0 1em;
-color:#222}
-h1{margin-bottom:.2em} h2{border-bottom:1px solid #ddd;padding-bottom:.2em;margin-top:1.6em}
-table{border-collapse:collapse;margin:.6em 0}
-td,th{border:1px solid #ddd;padding:.25em .6em;text-align:left;font-size:.92em}
-th{background:#f5f5f5} .pass{color:#137333;font-weight:600} .fail{color:#c5221f;font-weight:600}
-.skipped{color:#80868b;font-weight:600} .reused{color:#1a73e8;font-weight:600}
-.banner{padding:.7em 1em;border-radius:6px;margin:.8em 0} .ok{background:#e6f4ea} .bad{background:#fce8e6}
-.warn{background:#fef7e0}
-.gallery{display:flex;flex-wrap:wrap;gap:.5em} .gallery figure{margin:0;font-size:.8em;text-align:center}
-img{max-width:100%} .muted{color:#666;font-size:.9em} .scroll{overflow-x:auto} .g3 figure{width:32%}
-.g3 img{width:100%} .flagged img{outline:4px solid #c5221f;outline-offset:-4px} .flagged figcaption{color:#c5221f}
-"""
-_SIMULATED = (
-    "<div class='banner warn'><b>Simulated model.</b> The feed-forward cameras and depth come from ffrecon's "
-    "simulated model (ground truth plus injected error), not a trained network. Numbers show the pipeline "
-    "working, not a model's accuracy.</div>"
+from ffrecon.report.markup import (
+    CSS,
+    MAX_THUMBNAILS,
+    SIMULATED,
+    depth_preview,
+    every,
+    figure,
+    fmt,
+    gallery,
+    table,
+    thumb,
 )
+from ffrecon.report.plots import PathSeries, camera_paths_png, error_bars_png, thumbnail_png, timings_png
+from ffrecon.report.scene3d import scene_html
+from ffrecon.report.splat_html import curve_caption, seeds_section, splat_rows, splat_section
+from ffrecon.sfm import DisagreementOptions
+
+__all__ = ["MAX_THUMBNAILS", "curve_caption", "depth_preview", "render_html", "summary_rows", "wall_seconds"]
+_splat = splat_section  # tests call the sections by their old names
 
 
-def _field_default(options_class, name: str):
-    """A field's default, read from its options dataclass (captions name it, never a copy of it)."""
-    return options_class.__dataclass_fields__[name].default
-
-
-def _ordinal(n: int) -> str:
-    """``"8th"``, ``"1st"``, ``"22nd"``.
-
-    >>> [_ordinal(n) for n in (1, 2, 3, 4, 8, 11, 12, 13, 21, 22)]
-    ['1st', '2nd', '3rd', '4th', '8th', '11th', '12th', '13th', '21st', '22nd']
-    """
-    suffix = "th" if 10 <= n % 100 <= 20 else {1: "st", 2: "nd", 3: "rd"}.get(n % 10, "th")
-    return f"{n}{suffix}"
-
-
-def curve_caption() -> str:
-    """The held-out curve's caption; the held-out frames as :class:`~ffrecon.splat.stage.SplatOptions` picks them."""
-    return (
-        f"Mean held-out PSNR and SSIM (every {_ordinal(_field_default(SplatOptions, 'holdout_every'))} frame "
-        "by default, never trained on; plain renders before cleaning) against optimisation seconds, from the "
-        "seed on."
-    )
-
-
-def _fmt(v) -> str:
-    if isinstance(v, float):
-        return f"{v:.4g}"
-    if v is None or v == [] or v == "":
-        return "—"
-    if isinstance(v, list):
-        return html.escape(", ".join(str(x) for x in v))
-    return html.escape(str(v))
-
-
-def _cell(key: str, value) -> str:
-    if key == "status" and isinstance(value, str):
-        return f'<span class="{value.lower()}">{html.escape(value)}</span>'
-    return _fmt(value)
-
-
-def _table(rows: list[dict]) -> str:
-    if not rows:
-        return ""
-    keys = list(dict.fromkeys(k for r in rows for k in r))
-    head = "".join(f"<th>{html.escape(k)}</th>" for k in keys)
-    body = "".join("<tr>" + "".join(f"<td>{_cell(k, r.get(k))}</td>" for k in keys) + "</tr>" for r in rows)
-    return f"<div class='scroll'><table><tr>{head}</tr>{body}</table></div>"
-
-
-def _img(png: bytes, alt: str) -> str:
-    return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{base64.b64encode(png).decode()}">'
-
-
-def _figure(title: str, png: bytes, caption: str) -> str:
-    return f"<figure>{_img(png, title)}<figcaption class='muted'>{html.escape(caption)}</figcaption></figure>"
-
-
-def _gallery(items: list[tuple[str, bytes]], wide: bool = False, flagged: frozenset[str] = frozenset()) -> str:
-    """Thumbnails with captions; those whose caption is in ``flagged`` are framed in red."""
-    if not items:
-        return ""
-    figures = "".join(
-        f"<figure{' class=flagged' if cap in flagged else ''}>{_img(png, cap)}"
-        f"<figcaption>{html.escape(cap)}</figcaption></figure>"
-        for cap, png in items
-    )
-    return f"<div class='gallery{' g3' if wide else ''}'>{figures}</div>"
-
-
-def _read_rgb(path: Path) -> np.ndarray | None:
-    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
-    return None if bgr is None else cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
-
-
-def _thumb(path: Path, caption: str, max_side: int) -> list[tuple[str, bytes]]:
-    rgb = _read_rgb(path)
-    return [] if rgb is None else [(caption, thumbnail_png(rgb, max_side=max_side))]
-
-
-def depth_preview(depth: np.ndarray) -> np.ndarray:
-    """A colour-mapped depth map (near = bright) for people; unknown pixels black."""
-    valid = depth > 0
-    out = np.zeros(depth.shape + (3,), np.uint8)
-    if valid.any():
-        lo, hi = np.quantile(depth[valid], [0.02, 0.98])
-        norm = np.clip((hi - depth) / max(hi - lo, 1e-9), 0, 1)
-        colour = cv2.applyColorMap((norm * 255).astype(np.uint8), cv2.COLORMAP_TURBO)
-        out[valid] = cv2.cvtColor(colour, cv2.COLOR_BGR2RGB)[valid]
-    return out
-
-
-def _every(items: list, limit: int = MAX_THUMBNAILS) -> list:
-    return items[:: max(1, len(items) // limit)][:limit]
+_DISAGREEMENT = DisagreementOptions()  # the plot's threshold lines: the evidence's defaults
 
 
 def _capture(report: dict, run_dir: Path) -> tuple[list[dict], str]:
@@ -147,13 +44,13 @@ def _capture(report: dict, run_dir: Path) -> tuple[list[dict], str]:
     issues: dict[str, list[str]] = {}
     for f in flags:
         issues.setdefault(f["name"], []).append(str(f["kind"]))
-    shown = set(_every(names)) | set(list(issues)[:MAX_THUMBNAILS])
+    shown = set(every(names)) | set(list(issues)[:MAX_THUMBNAILS])
     captions = {n: f"{n}: {', '.join(issues[n])}" if n in issues else n for n in names}
-    thumbs = [t for n in names if n in shown for t in _thumb(run_dir / "images" / n, captions[n], 160)]
+    thumbs = [t for n in names if n in shown for t in thumb(run_dir / "images" / n, captions[n], 160)]
     note = ""
     if issues:
         note = f"<p class='muted'>Framed in red: the {len(issues)} frame(s) the capture checks flagged.</p>"
-    return rows, note + _gallery(thumbs, flagged=frozenset(captions[n] for n in issues))
+    return rows, note + gallery(thumbs, flagged=frozenset(captions[n] for n in issues))
 
 
 def _given_inputs(given: dict) -> str:
@@ -216,12 +113,12 @@ def _feedforward(report: dict, run_dir: Path) -> tuple[list[dict], str]:
         ("model calls", _calls(ff.get("chunks"))),
     ]
     previews = []
-    for name in _every(report["inputs"]["names"]):
+    for name in every(report["inputs"]["names"]):
         path = run_dir / "feedforward" / "depth" / f"{Path(name).stem}.npz"
         if path.is_file():
             with np.load(path) as data:
                 previews.append((f"{name} depth", thumbnail_png(depth_preview(data["depth"]), max_side=160)))
-    return [{"item": k, "value": v} for k, v in items if v], _gallery(previews)
+    return [{"item": k, "value": v} for k, v in items if v], gallery(previews)
 
 
 def _error_row(comp: dict) -> dict:
@@ -264,13 +161,13 @@ def _poses(report: dict, run_dir: Path) -> tuple[list[dict], str]:
         center_unit=f"fraction of the {ref} camera extent",
     )
     parts = [
-        _figure(
+        figure(
             f"Camera paths aligned to {ref}",
             paths,
             f"Top-down view of the camera centres, each set Sim(3)-aligned to {ref}; "
             "red circles mark images that disagree.",
         ),
-        _figure(
+        figure(
             "Per-image error",
             bars,
             f"Rotation and centre error of each image against {ref}: rotations after their best common "
@@ -281,113 +178,8 @@ def _poses(report: dict, run_dir: Path) -> tuple[list[dict], str]:
     for comp in report["pose_errors"].values():
         for d in comp["disagreeing"][:MAX_THUMBNAILS]:
             caption = f"{d['name']}: {comp['estimate']} vs {comp['reference']}: {d['reason']}"
-            thumbs += _thumb(run_dir / "images" / d["name"], caption, 200)
-    return rows, "".join(parts) + _gallery(thumbs)
-
-
-def _splat(report: dict, run_dir: Path) -> tuple[list[dict], str]:
-    data = report["splat"]
-    if "skipped" in data:
-        return [], ""
-    mean = data["heldout_mean"]
-    rows = [
-        {"measure": f"held-out {label}", **{col: mean.get(f"{key}_{s}") for col, s in _SPLAT_COLUMNS}}
-        for label, key in (("PSNR (dB)", "psnr"), ("SSIM", "ssim"))
-    ]
-    corrected = {f"{key}_cleaned_color_corrected": key for key in ("psnr", "ssim")}
-    rows += [
-        {"measure": f"held-out {key.upper()}, colour-corrected", "after cleaning": mean.get(name)}
-        for name, key in corrected.items()
-        if mean.get(name) is not None
-    ]
-    counts = data["gaussians"]
-    rows.append({"measure": "Gaussians", **{col: counts[s] for col, s in _SPLAT_COLUMNS}})
-    rate = f"{data['iterations']} ({data['iterations_per_second']:.2f}/s)"
-    rows.append({"measure": "iterations (per second)", "seed": None, "optimised": rate, "after cleaning": None})
-    psnr = {v["name"]: v for v in data["heldout_per_view"]}
-    curve = ""
-    if data.get("heldout_curve"):
-        curve = _figure(
-            "Held-out quality over optimisation time", curves_png({"splat": data["heldout_curve"]}), curve_caption()
-        )
-    thumbs = []
-    for r in data["renders"]:
-        m = psnr[r["view"]]
-        for caption, key in (
-            (f"{r['view']}: ground truth", "truth"),
-            (f"{r['view']}: seed, PSNR {m['psnr_seed']:.1f} dB", "seed"),
-            (f"{r['view']}: splat, PSNR {m['psnr_cleaned']:.1f} dB", "splat"),
-        ):
-            thumbs += _thumb(run_dir / r[key], caption, 240)
-    poses = _pose_refinement_table(data.get("pose_refinement", []), data.get("depth_prior", False))
-    cleaning = _cleaning_table(data.get("cleaning", {}).get("steps", []))
-    return rows, _flythrough(run_dir / "flythrough.mp4") + curve + cleaning + poses + _gallery(thumbs, wide=True)
-
-
-def _cleaning_table(steps: list[dict]) -> str:
-    """Each cleaning step: what it would remove, whether it was kept, and its effect on held-out PSNR."""
-    if not steps:
-        return ""
-    rows = [
-        {
-            "step": s["step"].replace("_", " "),
-            "Gaussians it would remove": s["candidates"],
-            "applied": "yes" if s["applied"] else "no",
-            "held-out PSNR with it (dB)": s.get("psnr_after"),
-            "why": s["reason"],
-        }
-        for s in steps
-    ]
-    caption = (
-        "Each step was tried on the held-out views and kept only while the splat stayed within 0.1 dB of the "
-        "trained one (a crop box you gave is always applied)."
-    )
-    return f"<h3>Cleaning</h3><p class='muted'>{html.escape(caption)}</p>" + _table(rows)
-
-
-def _pose_refinement_summary(changes: list[dict]) -> str:
-    rotation = float(np.median([c["rotation_deg"] for c in changes]))
-    flagged = [c["name"] for c in changes if c["flagged"]]
-    text = f"{len(changes)} unconfirmed frame(s) refined photometrically, median change {rotation:.2f} deg"
-    return text + (f"; still fitting poorly: {', '.join(flagged)}" if flagged else "")
-
-
-def _pose_refinement_table(changes: list[dict], depth_prior: bool) -> str:
-    """Per frame the splat's photometric pose correction (frames no evidence confirmed) and its fit."""
-    prior = " The model's depth was a prior in the loss (few views)." if depth_prior else ""
-    if not changes:
-        return f"<p class='muted'>{prior.strip()}</p>" if prior else ""
-    rows = [
-        {
-            "frame": c["name"],
-            "rotation change (deg)": c["rotation_deg"],
-            "centre move (% of scene)": 100 * c["translation"],
-            "PSNR of its own photo (dB)": c["psnr"],
-            "fit": "poor: camera may be wrong" if c["flagged"] else "ok",
-        }
-        for c in changes
-    ]
-    caption = (
-        "Cameras no independent evidence confirmed were optimised with the Gaussians (bounded); a frame whose "
-        "render still misses its photo by several dB more than the others is flagged." + prior
-    )
-    return f"<h3>Photometric pose refinement</h3><p class='muted'>{html.escape(caption)}</p>" + _table(rows)
-
-
-def _flythrough(path: Path) -> str:
-    """flythrough.mp4 as an inline animated WebP ('' when there is no video or it cannot be read)."""
-    frames, fps = video_frames(path) if path.is_file() else ([], 0.0)
-    if not frames:
-        return ""
-    data = base64.b64encode(animated_webp(frames, fps)).decode()
-    caption = "The splat along a smooth path through the cameras (flythrough.mp4, shrunk, every few frames)."
-    return (
-        f"<figure><img alt='fly-through of the splat' src='data:image/webp;base64,{data}'>"
-        f"<figcaption class='muted'>{html.escape(caption)}</figcaption></figure>"
-    )
-
-
-_SPLAT_COLUMNS = (("seed", "seed"), ("optimised", "optimized"), ("after cleaning", "cleaned"))
+            thumbs += thumb(run_dir / "images" / d["name"], caption, 200)
+    return rows, "".join(parts) + gallery(thumbs)
 
 
 def _refine(report: dict, run_dir: Path) -> tuple[list[dict], str]:
@@ -427,7 +219,7 @@ def _evidence(report: dict, run_dir: Path) -> tuple[list[dict], str]:
     counts = ", ".join(f"{k}: {len(v)}" for k, v in data.get("verdicts", {}).items() if v) or ", ".join(
         f"{k}: {v}" for k, v in data["counts"].items() if v
     )
-    body = f"<p>Per image ({html.escape(counts)}):</p>" + _table(per_image)
+    body = f"<p>Per image ({html.escape(counts)}):</p>" + table(per_image)
     if data["model_unsuited"]:
         body = f"<div class='banner warn'>{html.escape(data['unsuited_reason'])}</div>" + body
     return rows, body
@@ -462,7 +254,7 @@ def _timings(report: dict, run_dir: Path) -> tuple[list[dict], str]:
         "CPU seconds: user + system, of the whole process); grey bars: reused from an earlier run (its time then)."
     )
     caption += "".join(f" {text}." for text in together)
-    return rows, _figure("Time per stage", timings_png(shown, reused), caption)
+    return rows, figure("Time per stage", timings_png(shown, reused), caption)
 
 
 def _step_rows(stage: str, section) -> list[dict]:
@@ -488,31 +280,6 @@ def wall_seconds(report: dict) -> float:
     return total - sum(g["sum_seconds"] - g["wall_seconds"] for g in report.get("concurrent_stages", []))
 
 
-def _seeds(report: dict, run_dir: Path) -> tuple[list[dict], str]:
-    other = report.get("seed_comparison")
-    if not other or "skipped" in other or "skipped" in report["splat"]:
-        return [], ""
-    ff = report["splat"]
-    rows = []
-    for label, data in (("feed-forward depth (no SfM)", ff), ("COLMAP's points (SfM)", other)):
-        mean = data["heldout_mean"]
-        rows.append(
-            {
-                "seed": label,
-                "seed Gaussians": data["gaussians"]["seed"],
-                "held-out PSNR (dB)": mean.get("psnr_cleaned"),
-                "held-out SSIM": mean.get("ssim_cleaned"),
-                "colour-corrected PSNR": mean.get("psnr_cleaned_color_corrected"),
-                "iterations": data["iterations"],
-            }
-        )
-    curves = {"feed-forward seed": ff["heldout_curve"], "SfM seed": other["heldout_curve"]}
-    if not all(curves.values()):
-        return rows, ""
-    caption = "Both splats train on the same views and cameras under the same budget; scored on held-out views."
-    return rows, _figure("Held-out quality over time", curves_png(curves), caption)
-
-
 _SECTIONS = (
     ("Capture", _capture),
     ("Feed-forward cameras and depth", _feedforward),
@@ -520,8 +287,8 @@ _SECTIONS = (
     ("Pose error", _poses),
     ("Refinement", _refine),
     ("Final cameras: the evidence", _evidence),
-    ("Gaussian splat", _splat),
-    ("Seeds compared: feed-forward depth vs SfM points", _seeds),
+    ("Gaussian splat", splat_section),
+    ("Seeds compared: feed-forward depth vs SfM points", seeds_section),
     ("Timings", _timings),
 )
 
@@ -535,22 +302,6 @@ def _frame_verdicts(evidence: dict) -> str:
             shown = "" if verdict == "confirmed" else f" ({listed})"
             parts.append(f"{verdict}: {len(names)}{shown}")
     return ", ".join(parts)
-
-
-def _splat_rows(splat: dict) -> list[tuple[str, str]]:
-    """The summary's splat lines: the written splat's held-out PSNR (the trained one beside it), pose changes."""
-    rows = []
-    m = splat["heldout_mean"]
-    if m.get("psnr_seed") is not None and m.get("psnr_cleaned") is not None:
-        value = (
-            f"{m['psnr_seed']:.2f} dB (seed) -> {m['psnr_cleaned']:.2f} dB written (trained "
-            f"{m.get('psnr_optimized') or float('nan'):.2f} dB before cleaning; {splat['iterations']} iterations, "
-            f"{splat['gaussians']['cleaned']} Gaussians)"
-        )
-        rows.append(("splat held-out PSNR", value))
-    if changes := splat.get("pose_refinement"):
-        rows.append(("splat pose refinement", _pose_refinement_summary(changes)))
-    return rows
 
 
 def summary_rows(report: dict) -> list[tuple[str, str]]:
@@ -598,7 +349,7 @@ def summary_rows(report: dict) -> list[tuple[str, str]]:
         value = f"AUC@5 {m['AUC@5']:.3f}, median rotation {rot:.3f} deg, ATE {ate:.2%} of extent"
         rows.append((f"{comp['estimate']} vs {comp['reference']}", value))
     if "skipped" not in splat:
-        rows += _splat_rows(splat)
+        rows += splat_rows(splat)
     evidence = report["evidence"]
     if "skipped" not in evidence:
         rows.append(("final cameras", _frame_verdicts(evidence)))
@@ -618,11 +369,11 @@ def render_html(report: dict, run_dir: Path) -> str:
     """
     run_dir = Path(run_dir)
     inputs = report["inputs"]
-    created = f"{_fmt(report.get('created'))} · ffrecon {_fmt(report.get('ffrecon_version'))}"
+    created = f"{fmt(report.get('created'))} · ffrecon {fmt(report.get('ffrecon_version'))}"
     parts = [
         "<!doctype html><html><head><meta charset='utf-8'><title>ffrecon report</title>"
-        f"<style>{_CSS}</style></head><body>",
-        f"<h1>ffrecon report</h1><p class='muted'>{created} · input {_fmt(inputs.get('source'))}"
+        f"<style>{CSS}</style></head><body>",
+        f"<h1>ffrecon report</h1><p class='muted'>{created} · input {fmt(inputs.get('source'))}"
         f"{_given_inputs(inputs.get('given') or {})}</p>",
     ]
     verdict = report["verdict"]
@@ -634,13 +385,13 @@ def render_html(report: dict, run_dir: Path) -> str:
             f"<div class='banner warn'><b>Not cross-checked.</b> {html.escape(report['cross_check_note'])}</div>"
         )
     if report["feedforward"].get("model", {}).get("simulated"):
-        parts.append(_SIMULATED)
+        parts.append(SIMULATED)
     for item in report["skipped_stages"]:
         stage, reason = html.escape(item["stage"]), html.escape(item["reason"])
         parts.append(f"<div class='banner warn'>Skipped <b>{stage}</b>: {reason}</div>")
     for file, reason in (report["exports"].get("not_written") or {}).items():
         parts.append(f"<div class='banner warn'>Not written <b>{html.escape(file)}</b>: {html.escape(reason)}</div>")
-    parts.append("<h2>Summary</h2>" + _table([{"item": k, "value": v} for k, v in summary_rows(report)]))
+    parts.append("<h2>Summary</h2>" + table([{"item": k, "value": v} for k, v in summary_rows(report)]))
     scene = scene_html(report, run_dir)
     if scene:
         caption = (
@@ -652,8 +403,8 @@ def render_html(report: dict, run_dir: Path) -> str:
     for title, section in _SECTIONS:
         rows, body = section(report, run_dir)
         if rows or body:
-            parts.append(f"<h2>{html.escape(title)}</h2>" + _table(rows) + body)
+            parts.append(f"<h2>{html.escape(title)}</h2>" + table(rows) + body)
     files = [{"file": k, "path": v} for k, v in report["outputs"].items()]
-    parts.append("<h2>Files</h2>" + _table(files))
+    parts.append("<h2>Files</h2>" + table(files))
     parts.append("<p class='muted'>Full machine-readable record: report.json</p></body></html>")
     return "".join(parts)
