@@ -16,12 +16,14 @@ fails or is interrupted, the share is cancelled, and the next :meth:`CoreShare.s
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import logging
 import os
 import signal
 import threading
 import time
 from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import TypeVar
 
 log = logging.getLogger("ffrecon")
@@ -42,6 +44,57 @@ def available_cores() -> int:
     if hasattr(os, "sched_getaffinity"):
         return max(1, len(os.sched_getaffinity(0)))
     return max(1, os.cpu_count() or 1)
+
+
+# numpy's OpenBLAS thread-count functions, by the names its builds export (numpy's wheels: scipy-openblas, 64-bit
+# integers; a system OpenBLAS: plain names)
+_OPENBLAS_THREADS = (
+    ("scipy_openblas_set_num_threads64_", "scipy_openblas_get_num_threads64_"),
+    ("scipy_openblas_set_num_threads", "scipy_openblas_get_num_threads"),
+    ("openblas_set_num_threads64_", "openblas_get_num_threads64_"),
+    ("openblas_set_num_threads", "openblas_get_num_threads"),
+)
+
+
+def numpy_openblas() -> tuple[Callable[[int], None], Callable[[], int]] | None:
+    """``(set_threads, get_threads)`` of the OpenBLAS that numpy's wheel ships (``numpy.libs``, ``numpy/.dylibs``),
+    or None where numpy uses another BLAS or none is found."""
+    import numpy
+
+    root = Path(numpy.__file__).resolve().parent
+    for folder in (root.parent / "numpy.libs", root / ".dylibs"):
+        for path in sorted(folder.glob("*openblas*")) if folder.is_dir() else ():
+            try:
+                lib = ctypes.CDLL(str(path))  # numpy loaded it already: the same library
+            except OSError:
+                continue
+            for set_name, get_name in _OPENBLAS_THREADS:
+                if hasattr(lib, set_name) and hasattr(lib, get_name):
+                    return getattr(lib, set_name), getattr(lib, get_name)
+    return None
+
+
+@contextlib.contextmanager
+def blas_threads(threads: int = 1) -> Iterator[None]:
+    """numpy's OpenBLAS held to ``threads`` threads for the block, as it was after it (nothing where numpy's BLAS
+    is not a known OpenBLAS). For the whole process: every thread's numpy matrix products.
+
+    ffrecon's numpy products are tall and thin (``[N, 3] @ [3, 3]`` over a frame's pixels: unprojection, overlap,
+    fusion), where OpenBLAS's threads cost more than they give: on the 2-core machine, ``[307200, 3] @ [3, 3]``
+    took 3x the wall and CPU on two threads than on one, and ``--quick --no-splat`` at 48 frames used 30-32 CPU s
+    instead of 40 (the exports 4.1-4.4 instead of 7.4-8.6) with the same cameras (docs/benchmarks.md, issue 40).
+    """
+    found = numpy_openblas()
+    if found is None:
+        yield
+        return
+    set_threads, get_threads = found
+    before = int(get_threads())
+    set_threads(threads)
+    try:
+        yield
+    finally:
+        set_threads(before)
 
 
 class Cancelled(Exception):

@@ -12,6 +12,7 @@ import datetime as dt
 import logging
 from pathlib import Path
 
+from ffrecon.concurrency import blas_threads
 from ffrecon.errors import InputError, Interrupted
 from ffrecon.options import RunOptions
 from ffrecon.report.build import write_report
@@ -40,7 +41,8 @@ def run(source: Path, out_dir: Path, model: Path | None, options: RunOptions | N
     check_run_options(model, options)
     created = dt.datetime.now().isoformat(timespec="seconds")
     flags = {"overwrite": options.overwrite, "resume": options.resume, "fresh": options.fresh}
-    with staged_output(Path(out_dir), Path(source), **flags) as staging:
+    # numpy's matrix products in a run are tall and thin: faster on one BLAS thread (ffrecon.concurrency.blas_threads)
+    with blas_threads(1), staged_output(Path(out_dir), Path(source), **flags) as staging:
         work = staging.path
         stages = StageRunner(work, reuse=not options.fresh)
         try:

@@ -1,12 +1,16 @@
-"""The cores work may use are the process's CPU affinity (taskset, a container's cpuset), not the machine's."""
+"""How many threads a run's work uses: the cores of the process's CPU affinity (taskset, a container's cpuset), not
+the machine's; numpy's OpenBLAS on one thread while a run lasts (its products are tall and thin, issue 40)."""
 
 from __future__ import annotations
 
 import os
 
+import numpy as np
 import pytest
 
-from ffrecon.concurrency import CoreShare, available_cores
+from ffrecon import pipeline
+from ffrecon.concurrency import CoreShare, available_cores, blas_threads, numpy_openblas
+from ffrecon.errors import InputError
 
 
 @pytest.mark.skipif(not hasattr(os, "sched_getaffinity"), reason="no CPU affinity on this system")
@@ -22,3 +26,41 @@ def test_the_cores_are_those_the_process_may_run_on(monkeypatch):
 
 def test_given_cores_are_kept():
     assert CoreShare(3).cores == 3
+
+
+needs_openblas = pytest.mark.skipif(numpy_openblas() is None, reason="numpy's BLAS is not a known OpenBLAS")
+
+
+@needs_openblas
+def test_blas_threads_holds_numpys_openblas_for_the_block_and_restores_it():
+    set_threads, get_threads = numpy_openblas()
+    before = get_threads()
+    set_threads(2)
+    try:
+        with blas_threads(1):
+            assert get_threads() == 1
+            a = np.arange(12.0).reshape(4, 3)
+            assert np.array_equal(a @ np.eye(3), a)  # products still work
+        assert get_threads() == 2
+    finally:
+        set_threads(before)
+
+
+@needs_openblas
+def test_a_run_holds_one_blas_thread_while_it_lasts(monkeypatch, tmp_path):
+    set_threads, get_threads = numpy_openblas()
+    before, seen = get_threads(), []
+    set_threads(2)  # as on a machine of two cores or more, where the run's one thread differs
+
+    def stages(*args):
+        seen.append(get_threads())
+        raise InputError("stopped here", "nothing to fix")
+
+    monkeypatch.setattr(pipeline, "_run_stages", stages)
+    (tmp_path / "photos").mkdir()
+    try:
+        with pytest.raises(InputError, match="stopped here"):
+            pipeline.run(tmp_path / "photos", tmp_path / "out", None)
+        assert seen == [1] and get_threads() == 2
+    finally:
+        set_threads(before)
