@@ -208,3 +208,26 @@ def test_prose_names_the_options_defaults(monkeypatch, caplog):
     with caplog.at_level(logging.WARNING, logger="ffrecon.splat"):
         splat_stage.check_splat_memory([(640, 480)], SplatOptions(device="cpu"))
     assert "(--max-image-size, default 1234)" in caplog.text
+
+
+def _printed_entry(command: str, flag: str) -> str:
+    """The help `ffrecon COMMAND --help` prints for ``flag`` (argparse's wrapping undone): from its listing
+    (``--flag METAVAR``) under options, at most 400 characters."""
+    parser = _subparsers()[command]
+    action = _flags(parser)[flag]
+    printed = " ".join(parser.format_help().split())
+    listing = f" {flag} {action.metavar or action.dest.upper()} "
+    options = printed[printed.index("options:") :]
+    return options[options.index(listing) :][:400]
+
+
+@pytest.mark.parametrize("command", sorted(FIELDS))
+def test_printed_help_shows_each_field_default(command):
+    """What `ffrecon COMMAND --help` prints names each flag with its field's default (or its function keyword's)."""
+    defaults = {flag: _field_default(*field) for flag, field in FIELDS[command].items()}
+    for (keyword_command, flag), (function, name) in KEYWORD_DEFAULTS.items():
+        if keyword_command == command:
+            defaults[flag] = inspect.signature(function).parameters[name].default
+    for flag, default in defaults.items():
+        entry = _printed_entry(command, flag)
+        assert re.search(rf"\bdefault:? {re.escape(str(default))}(?![\w.])", entry), f"{command} {flag}: {entry}"
