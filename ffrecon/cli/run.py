@@ -33,23 +33,10 @@ def _ray_options(args: argparse.Namespace):
     return RayOptions(address=args.ray or None, **given(workers=args.ray_workers, gpus_per_worker=args.ray_gpus))
 
 
-def _run_options(args: argparse.Namespace, ground_truth: Path | None = None):
-    from ffrecon.capture import CaptureOptions
-    from ffrecon.export.stage import ExportOptions
-    from ffrecon.models.adapters import PreprocessMode
-    from ffrecon.models.multiview import MultiviewOptions
-    from ffrecon.models.stage import FeedForwardOptions
-    from ffrecon.pipeline import RunOptions
-    from ffrecon.sfm.gates import GateOptions
-    from ffrecon.splat.clean import CleanOptions
-    from ffrecon.splat.optimize import OptimizeOptions
-    from ffrecon.splat.stage import SplatOptions
-
-    mode = PreprocessMode(args.preprocess) if args.preprocess else None
-    multiview = MultiviewOptions(mode=mode, **given(chunk_size=args.chunk_size, chunk_overlap=args.chunk_overlap))
-    if getattr(args, "no_loop_chunks", False):
-        multiview = dataclasses.replace(multiview, loops=dataclasses.replace(multiview.loops, enabled=False))
-    capture = CaptureOptions(
+def _capture_options(args: argparse.Namespace, preset):
+    """The preset's :class:`~ffrecon.capture.CaptureOptions` with the capture flags given laid over it."""
+    return dataclasses.replace(
+        preset,
         **given(
             video_frames=getattr(args, "video_frames", None),
             skip_bad_images=getattr(args, "skip_bad_images", None),
@@ -61,23 +48,48 @@ def _run_options(args: argparse.Namespace, ground_truth: Path | None = None):
         poses_prior=args.poses_prior,
         intrinsics_prior=args.intrinsics_prior,
     )
-    splat = SplatOptions(
+
+
+def _feedforward_options(args: argparse.Namespace, preset):
+    """The preset's :class:`~ffrecon.models.stage.FeedForwardOptions` with the model-call flags laid over it."""
+    from ffrecon.models.adapters import PreprocessMode
+
+    mode = PreprocessMode(args.preprocess) if args.preprocess else None
+    multiview = dataclasses.replace(
+        preset.multiview, mode=mode, **given(chunk_size=args.chunk_size, chunk_overlap=args.chunk_overlap)
+    )
+    if getattr(args, "no_loop_chunks", False):
+        multiview = dataclasses.replace(multiview, loops=dataclasses.replace(multiview.loops, enabled=False))
+    return dataclasses.replace(preset, multiview=multiview, ray=_ray_options(args), **given(threads=args.threads))
+
+
+def _splat_options(args: argparse.Namespace, preset):
+    """The preset's :class:`~ffrecon.splat.stage.SplatOptions` with the splat flags laid over it."""
+    clean = args.crop_box and dataclasses.replace(preset.clean, crop_box=args.crop_box)
+    return dataclasses.replace(
+        preset,
         enabled=not args.no_splat,
         compare_seeds=args.compare_seeds,
         sog=args.sog,
-        optimize=OptimizeOptions.brief(**given(max_seconds=args.splat_seconds)),
-        **given(clean=args.crop_box and CleanOptions(crop_box=args.crop_box)),
+        optimize=dataclasses.replace(preset.optimize, **given(max_seconds=args.splat_seconds)),
+        **given(clean=clean or None),
     )
-    preset = RunOptions.quick() if args.quick else RunOptions()  # the flags below override the preset's fields
+
+
+def _run_options(args: argparse.Namespace, ground_truth: Path | None = None):
+    """The run's options: the preset (``--quick``'s or the full run's) with every flag given laid over its field."""
+    from ffrecon.pipeline import RunOptions
+
+    preset = RunOptions.quick() if args.quick else RunOptions()
     return dataclasses.replace(
         preset,
-        capture=capture,
-        feedforward=FeedForwardOptions(multiview=multiview, ray=_ray_options(args), **given(threads=args.threads)),
+        capture=_capture_options(args, preset.capture),
+        feedforward=_feedforward_options(args, preset.feedforward),
         colmap=_colmap_options(args, preset.colmap),
-        gates=GateOptions(**given(min_registration_ratio=args.min_registration)),
+        gates=dataclasses.replace(preset.gates, **given(min_registration_ratio=args.min_registration)),
         refine=dataclasses.replace(preset.refine, enabled=not args.no_refine),
-        splat=splat,
-        exports=ExportOptions(mesh=args.mesh),
+        splat=_splat_options(args, preset.splat),
+        exports=dataclasses.replace(preset.exports, mesh=args.mesh),
         overwrite=args.overwrite,
         resume=args.resume,
         fresh=args.fresh,
