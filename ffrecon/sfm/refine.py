@@ -57,7 +57,7 @@ from ffrecon.sfm.features import (
 from ffrecon.sfm.guided import GuidanceOptions, GuidanceStats, MatchGuidance, filter_matches, guided_matches
 from ffrecon.sfm.links import LinkOptions, detached_frames
 from ffrecon.sfm.relocalize import Relocalized, RelocalizeOptions, reach_matrix, relocalize, with_poses
-from ffrecon.sfm.screen import ScreenOptions, Suspect, reseeded, screen_rotations
+from ffrecon.sfm.screen import ScreenOptions, Suspect, drop_contradicting_pairs, reseeded, screen_rotations
 from ffrecon.timing import StageTimer, Timings
 from ffrecon.types import PinholeCamera, Prediction, RunMode, Skipped
 from ffrecon.validate import validate_prediction
@@ -389,7 +389,16 @@ def _guide(
         )
     stats = guided_matches(db_path, prediction, pairs, options.guidance)
     verify_pairs(db_path, write_pairs(pairs_path, pairs), options.sift)
-    return stats
+    dropped = drop_contradicting_pairs(db_path, prediction, options.guidance.max_pair_gap_deg, options.screen)
+    if dropped:
+        logger.warning(
+            "look-alike surfaces: %d verified pair(s) turned more than %.0f deg from the model's cameras dropped "
+            "(a pattern's period off?): %s",
+            len(dropped),
+            options.guidance.max_pair_gap_deg,
+            ", ".join(f"{prediction.names[g.index1]}-{prediction.names[g.index2]} {g.gap_deg:.1f} deg" for g in dropped),
+        )
+    return dataclasses.replace(stats, dropped_pairs=len(dropped))
 
 
 def _screen(db_path: Path, prediction: Prediction, verified: list, options: RefineOptions) -> tuple[Suspect, ...]:
