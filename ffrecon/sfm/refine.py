@@ -396,7 +396,7 @@ def _guide(
             "(a pattern's period off?): %s",
             len(dropped),
             options.guidance.max_pair_gap_deg,
-            ", ".join(f"{prediction.names[g.index1]}-{prediction.names[g.index2]} {g.gap_deg:.1f} deg" for g in dropped),
+            ", ".join(f"{prediction.names[g.index1]}-{prediction.names[g.index2]} ({g.gap_deg:.1f})" for g in dropped),
         )
     return dataclasses.replace(stats, dropped_pairs=len(dropped))
 
