@@ -43,6 +43,7 @@ from ffrecon.geometry.rotations import rotation_angle_deg
 from ffrecon.sfm.compare import DisagreementOptions, compare_poses
 from ffrecon.sfm.crosscheck import ColmapResult
 from ffrecon.sfm.gates import GatesResult, GateStatus, GateVerdict
+from ffrecon.sfm.guided import MatchGuidance
 from ffrecon.sfm.refine import RefineResult
 from ffrecon.sfm.support import PairSupport, is_planar, planar_single_pair, single_pair
 from ffrecon.sfm.verified_pairs import relative_rotations
@@ -211,7 +212,7 @@ def _per_image(
             else:
                 n_obs = refine.observations[k] if refine.observations is not None else 0
                 why = f"bundle-adjusted on {n_obs} observations; " + (
-                    "no COLMAP cross-check ran"
+                    "no COLMAP model to compare with"
                     if colmap is None
                     else "COLMAP did not register it"
                     if not colmap.registered[k]
@@ -348,12 +349,35 @@ def _pairs_contradict(over: list, under: list, options: EvidenceOptions) -> bool
     return len(over) >= 2 or any(p[1] >= options.decisive_pair_inliers for p in over)
 
 
+def _healthy(colmap: ColmapResult | None, witness: GatesResult) -> bool:
+    """Whether COLMAP's model passed its own gates (depth coverage is the model's, not COLMAP's)."""
+    return colmap is not None and not any(v.failed for v in witness.verdicts if v.name != "depth_coverage")
+
+
+def _distrusted(refine: RefineResult, colmap: ColmapResult | None, witness: GatesResult) -> str:
+    """Why COLMAP's model is no witness ("" when it is): it failed its own gates on look-alike surfaces.
+
+    The refinement calls surfaces look-alike when the model's geometry rejects most of COLMAP's verified
+    matches and guides the matching instead (:mod:`ffrecon.sfm.guided`). COLMAP built its model on those
+    matches: on the repeated-texture room (seed 101) it registered 4 of 8 frames 7-16 deg off the truth, and
+    its disagreement left out four frames the refinement had placed within 0.2 deg. A healthy COLMAP model
+    (every gate passed) stays a witness whatever the surfaces.
+    """
+    lookalike = refine.guidance is not None and refine.guidance.mode is MatchGuidance.GUIDED
+    if colmap is None or not lookalike or _healthy(colmap, witness):
+        return ""
+    failed = ", ".join(v.name for v in witness.verdicts if v.failed and v.name != "depth_coverage")
+    return (
+        f"COLMAP's model failed its gates ({failed}) on look-alike surfaces, where its matches are the suspect "
+        "ones: it is not a witness"
+    )
+
+
 def _unsuited(
     names: Sequence[str], ff_cam_from_world: np.ndarray, colmap: ColmapResult | None, witness: GatesResult, options
 ) -> str:
     """Why the model is unsuited ("" if it is not): a healthy COLMAP model disagrees with it on most images."""
-    healthy = colmap is not None and not any(v.failed for v in witness.verdicts if v.name != "depth_coverage")
-    if not healthy or colmap.num_registered < options.min_common_images:
+    if not _healthy(colmap, witness) or colmap.num_registered < options.min_common_images:
         return ""
     comp = compare_poses(
         ff_cam_from_world,
@@ -395,6 +419,8 @@ def judge_final_cameras(
         colmap_skipped: why the cross-check did not run (with ``colmap`` None): the agreement verdict
             is SKIPPED, saying so.
     """
+    if distrust := _distrusted(refine, colmap, witness):
+        colmap, colmap_skipped = None, distrust
     unsuited = _unsuited(names, ff_cam_from_world, colmap, witness, options)
     per_image, comparison = _per_image(names, ff_cam_from_world, refine, colmap, options)
     verdicts = _verdicts(len(names), refine, colmap, per_image, comparison is not None, options)

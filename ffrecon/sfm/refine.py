@@ -401,6 +401,17 @@ def _guide(
     return dataclasses.replace(stats, dropped_pairs=len(dropped))
 
 
+def _on_lookalikes(options: RefineOptions, guidance: GuidanceStats | None) -> RefineOptions:
+    """The options for the adjustment once the matching is known: on look-alike surfaces (the matching was
+    guided) no frame is relocalised. Its renderings are matched by SIFT alone, and a pattern's period off
+    is a pose the dense evidence then agrees with: on the repeated-texture room (seed 101, ``--quick``) a frame
+    the model had within 3 deg was placed 84 deg off and called corrected."""
+    if guidance is None or guidance.mode is not MatchGuidance.GUIDED or not options.relocalize.enabled:
+        return options
+    logger.info("look-alike surfaces: no frame is relocalised from renderings (a pattern's period would place it)")
+    return dataclasses.replace(options, relocalize=dataclasses.replace(options.relocalize, enabled=False))
+
+
 def _screen(db_path: Path, prediction: Prediction, verified: list, options: RefineOptions) -> tuple[Suspect, ...]:
     """The frames whose COLMAP-verified pairs (before any filtering by the model) contradict their model
     rotation; nothing to screen when the matching is guided from the start."""
@@ -484,6 +495,7 @@ def run_refine(
         start = reseeded(prediction, screened)
     with timer.stage("matching"):
         guidance = _guide(db_path, start, pairs, verified, options, work / "pairs.txt")
+    options = _on_lookalikes(options, guidance)
     stats = feature_stats(db_path, names)
     flagged, rec, summary, dense, relocalized, stats = _adjust_with_dense(
         image_dir, start, graph, image_ids, (cameras, colmap_cameras), db_path, stats, options, timer, fixed
