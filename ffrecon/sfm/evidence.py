@@ -256,6 +256,9 @@ def _photometric(per_image, ff_cam_from_world, refine: RefineResult, photos, dep
             unmatched = e.why.removesuffix("the model's camera is kept").rstrip(":; ")
             why = f"{unmatched}; but {check.describe(e.name)}: left out"
             out[k] = CameraEvidence(e.name, CameraStatus.PHOTO_MISFIT, why)
+        elif np.isfinite(score := check.scores[e.name].score):
+            why = f"{e.why}; the photos do not contradict it ({score:.2f} against {check.reference:.2f})"
+            out[k] = CameraEvidence(e.name, e.status, why, e.correction_deg)
     return tuple(out)
 
 
