@@ -129,9 +129,18 @@ REFINE = Stage(
 )
 EVIDENCE = Stage(
     "evidence",
-    ("feedforward", "colmap", "gates", "refine"),
+    ("capture", "feedforward", "colmap", "gates", "refine"),
     lambda s, o, c: require_checked(
-        judge_refined_cameras(s.capture.names, s.prediction, s.colmap, s.gates, s.refine, o.evidence, force=o.force),
+        judge_refined_cameras(
+            s.capture.names,
+            s.prediction,
+            s.colmap,
+            s.gates,
+            s.refine,
+            o.evidence,
+            force=o.force,
+            photos=lambda k: s.capture.read_images([k])[0],
+        ),
         s.colmap,
         s.refine,
     ),

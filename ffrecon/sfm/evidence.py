@@ -32,7 +32,7 @@ unsuited: the run goes on from COLMAP's cameras instead of failing.
 from __future__ import annotations
 
 import enum
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -43,6 +43,8 @@ from ffrecon.geometry.rotations import rotation_angle_deg
 from ffrecon.sfm.compare import DisagreementOptions, compare_poses
 from ffrecon.sfm.crosscheck import ColmapResult
 from ffrecon.sfm.gates import GatesResult, GateStatus, GateVerdict
+from ffrecon.sfm.guided import MatchGuidance
+from ffrecon.sfm.photometric import PhotometricCheck, PhotometricOptions, photometric_check
 from ffrecon.sfm.refine import RefineResult
 from ffrecon.sfm.support import PairSupport, is_planar, planar_single_pair, single_pair
 from ffrecon.sfm.verified_pairs import relative_rotations
@@ -64,6 +66,7 @@ class CameraStatus(enum.Enum):
     CONTRADICTED = "contradicted by its matches"  # its verified pairs' rotations disagree with its pose: left out
     UNCHECKED = "unchecked"  # no evidence either way: keeps the model's camera
     PLANAR_PAIR = "refined on one planar pair"  # placed by one pair whose matches lie on a plane: ambiguous
+    PHOTO_MISFIT = "contradicted by the photos"  # the confirmed frames, seen from its camera, do not look like it
 
     @property
     def verdict(self) -> FrameVerdict:
@@ -75,7 +78,7 @@ class CameraStatus(enum.Enum):
     @property
     def kept(self) -> bool:
         """Whether the frame is among the final cameras (the splat's, ``sparse/0``, ``transforms.json``)."""
-        return self not in (CameraStatus.DISAGREES, CameraStatus.CONTRADICTED)
+        return self not in (CameraStatus.DISAGREES, CameraStatus.CONTRADICTED, CameraStatus.PHOTO_MISFIT)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -100,6 +103,7 @@ class EvidenceOptions:
     min_independent_observations: int = 40
     max_contradicted_share: float = 0.5  # more frames contradicted: the model fails on this capture (blocks)
     disagreement: DisagreementOptions = DisagreementOptions()
+    photometric: PhotometricOptions = PhotometricOptions()  # frames no match checks, against the photos
 
     def __post_init__(self) -> None:
         for name in ("min_refined_ratio", "min_colmap_agreement", "unsuited_share", "max_contradicted_share"):
@@ -211,7 +215,7 @@ def _per_image(
             else:
                 n_obs = refine.observations[k] if refine.observations is not None else 0
                 why = f"bundle-adjusted on {n_obs} observations; " + (
-                    "no COLMAP cross-check ran"
+                    "no COLMAP model to compare with"
                     if colmap is None
                     else "COLMAP did not register it"
                     if not colmap.registered[k]
@@ -233,6 +237,29 @@ def _per_image(
         if out[k] is None:
             out[k] = _pair_verdict(name, flagged.get(name, "not refined"), pairs.get(name, []), options)
     return tuple(out), comparison
+
+
+def _photometric(per_image, ff_cam_from_world, refine: RefineResult, photos, depth: Prediction, options):
+    """``per_image`` with the unchecked frames that the photos contradict (:mod:`ffrecon.sfm.photometric`) left out.
+
+    Judged against the frames the refinement confirmed, at their refined poses (the model's world)."""
+    reference = [k for k, e in enumerate(per_image) if e.verdict is FrameVerdict.CONFIRMED and refine.registered[k]]
+    unchecked = [k for k, e in enumerate(per_image) if e.status is CameraStatus.UNCHECKED]
+    poses = np.where(refine.registered[:, None, None], refine.cam_from_world, ff_cam_from_world)
+    check: PhotometricCheck | None = photometric_check(photos, depth, poses, reference, unchecked, options)
+    if check is None:
+        return per_image
+    out = list(per_image)
+    for k in unchecked:
+        e = out[k]
+        if check.contradicts(e.name):
+            unmatched = e.why.removesuffix("the model's camera is kept").rstrip(":; ")
+            why = f"{unmatched}; but {check.describe(e.name)}: left out"
+            out[k] = CameraEvidence(e.name, CameraStatus.PHOTO_MISFIT, why)
+        elif np.isfinite(score := check.scores[e.name].score):
+            why = f"{e.why}; the photos do not contradict it ({score:.2f} against {check.reference:.2f})"
+            out[k] = CameraEvidence(e.name, e.status, why, e.correction_deg)
+    return tuple(out)
 
 
 def _relocalized_not_kept(names, refine: RefineResult, flagged: dict, out: list, limit: float) -> None:
@@ -257,6 +284,15 @@ def _correction(refine: RefineResult, name: str, change: float, options: Evidenc
     on the room family with a repeated pattern (tuning seed 101, frame 6 off), frame 7, 2.5 deg off in the
     model, was adjusted 86.6 deg away on its one pair with frame 6's look-alike wall, and called corrected."""
     limit = options.max_correction_deg
+    if _lookalike(refine):
+        # On look-alike surfaces one period of the pattern is a pose as well supported as the true one: on the
+        # repeated-texture street (tuning seed 106, frame 6 25 deg off) the frame was adjusted 36.6 deg from the
+        # truth on 5 pairs. Neither that pose nor the model's is kept.
+        why = (
+            f"refined on its matches {change:.1f} deg from the model (> {limit:g}), on look-alike surfaces, where a "
+            "pattern's period is as good a fit: left out"
+        )
+        return CameraEvidence(name, CameraStatus.CONTRADICTED, why, change)
     if (single := _single_pair(refine, name, options)) is not None:
         held = single.describe() if is_planar(single) else _one_pair_text(single)
         why = f"refined on its matches {change:.1f} deg from the model (> {limit:g}), but " + held
@@ -348,12 +384,39 @@ def _pairs_contradict(over: list, under: list, options: EvidenceOptions) -> bool
     return len(over) >= 2 or any(p[1] >= options.decisive_pair_inliers for p in over)
 
 
+def _healthy(colmap: ColmapResult | None, witness: GatesResult) -> bool:
+    """Whether COLMAP's model passed its own gates (depth coverage is the model's, not COLMAP's)."""
+    return colmap is not None and not any(v.failed for v in witness.verdicts if v.name != "depth_coverage")
+
+
+def _lookalike(refine: RefineResult) -> bool:
+    """Whether the refinement matched on look-alike surfaces (its matching was guided by the model)."""
+    return refine.guidance is not None and refine.guidance.mode is MatchGuidance.GUIDED
+
+
+def _distrusted(refine: RefineResult, colmap: ColmapResult | None, witness: GatesResult) -> str:
+    """Why COLMAP's model is no witness ("" when it is): it failed its own gates on look-alike surfaces.
+
+    The refinement calls surfaces look-alike when the model's geometry rejects most of COLMAP's verified
+    matches and guides the matching instead (:mod:`ffrecon.sfm.guided`). COLMAP built its model on those
+    matches: on the repeated-texture room (seed 101) it registered 4 of 8 frames 7-16 deg off the truth, and
+    its disagreement left out four frames the refinement had placed within 0.2 deg. A healthy COLMAP model
+    (every gate passed) stays a witness whatever the surfaces.
+    """
+    if colmap is None or not _lookalike(refine) or _healthy(colmap, witness):
+        return ""
+    failed = ", ".join(v.name for v in witness.verdicts if v.failed and v.name != "depth_coverage")
+    return (
+        f"COLMAP's model failed its gates ({failed}) on look-alike surfaces, where its matches are the suspect "
+        "ones: it is not a witness"
+    )
+
+
 def _unsuited(
     names: Sequence[str], ff_cam_from_world: np.ndarray, colmap: ColmapResult | None, witness: GatesResult, options
 ) -> str:
     """Why the model is unsuited ("" if it is not): a healthy COLMAP model disagrees with it on most images."""
-    healthy = colmap is not None and not any(v.failed for v in witness.verdicts if v.name != "depth_coverage")
-    if not healthy or colmap.num_registered < options.min_common_images:
+    if not _healthy(colmap, witness) or colmap.num_registered < options.min_common_images:
         return ""
     comp = compare_poses(
         ff_cam_from_world,
@@ -384,6 +447,8 @@ def judge_final_cameras(
     *,
     force: bool = False,
     colmap_skipped: str = "",
+    photos: Callable[[int], np.ndarray] | None = None,
+    depth: Prediction | None = None,
 ) -> EvidenceResult:
     """Judge the refined cameras on their own evidence and against COLMAP (see the module docstring).
 
@@ -394,9 +459,15 @@ def judge_final_cameras(
         witness: the gates on COLMAP's model (a healthy COLMAP model is one that passed them).
         colmap_skipped: why the cross-check did not run (with ``colmap`` None): the agreement verdict
             is SKIPPED, saying so.
+        photos, depth: frame index -> RGB photo, and the model's depth (a Prediction): the frames left
+            unchecked are checked against the photos (:mod:`ffrecon.sfm.photometric`); None: not.
     """
+    if distrust := _distrusted(refine, colmap, witness):
+        colmap, colmap_skipped = None, distrust
     unsuited = _unsuited(names, ff_cam_from_world, colmap, witness, options)
     per_image, comparison = _per_image(names, ff_cam_from_world, refine, colmap, options)
+    if photos is not None and depth is not None:
+        per_image = _photometric(per_image, ff_cam_from_world, refine, photos, depth, options.photometric)
     verdicts = _verdicts(len(names), refine, colmap, per_image, comparison is not None, options)
     if colmap is None:
         why = f"COLMAP cross-check not run: {colmap_skipped}" if colmap_skipped else "COLMAP cross-check not run"
@@ -507,12 +578,22 @@ def judge_refined_cameras(
     options: EvidenceOptions,
     *,
     force: bool,
+    photos: Callable[[int], np.ndarray] | None = None,
 ) -> EvidenceResult:
     """:func:`judge_final_cameras` on a run's results: COLMAP's model when it ran, and the gates that ran
-    (none: an empty witness)."""
+    (none: an empty witness); ``photos`` (frame index -> RGB) for the photometric check."""
     witness = gates if isinstance(gates, GatesResult) else GatesResult((), force)
     skipped = colmap.reason if isinstance(colmap, Skipped) else ""
     colmap_result = colmap if isinstance(colmap, ColmapResult) else None
     return judge_final_cameras(
-        names, prediction.cam_from_world, refine, colmap_result, witness, options, force=force, colmap_skipped=skipped
+        names,
+        prediction.cam_from_world,
+        refine,
+        colmap_result,
+        witness,
+        options,
+        force=force,
+        colmap_skipped=skipped,
+        photos=photos,
+        depth=prediction,
     )

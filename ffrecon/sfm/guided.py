@@ -51,6 +51,10 @@ class GuidanceOptions:
     min_fit_matches: int = 8  # fewer candidates than this: keep those inside the first cut only
     seed: int = 0  # RANSAC of the filter
     fit_keypoints: int = 500  # guided: keypoints used in the wide search that measures the pair's error
+    # Guided: a verified pair whose own relative rotation is further than this from the model's is dropped
+    # (:func:`ffrecon.sfm.screen.drop_contradicting_pairs`): on look-alike surfaces such pairs are one period of
+    # the pattern off. Feed-forward errors are a few degrees (2.5 per frame: pairs within ~3.5, ~7 at worst).
+    max_pair_gap_deg: float = 8.0
 
     def __post_init__(self) -> None:
         check_number("GuidanceOptions.auto_max_rejected", self.auto_max_rejected, low=0, high=1)
@@ -62,6 +66,7 @@ class GuidanceOptions:
         check_number("GuidanceOptions.min_depth_conf", self.min_depth_conf, low=0)
         check_number("GuidanceOptions.min_fit_matches", self.min_fit_matches, low=0, integer=True)
         check_number("GuidanceOptions.fit_keypoints", self.fit_keypoints, low=1, integer=True)
+        check_number("GuidanceOptions.max_pair_gap_deg", self.max_pair_gap_deg, low=0, low_open=True, high=180)
 
 
 @dataclass(frozen=True)
@@ -72,6 +77,7 @@ class GuidanceStats:
     matches_after: int  # matches handed to geometric verification
     num_unchecked: int  # FILTER: matches with no confident depth at either end, kept
     median_residual_px: float = float("nan")  # FILTER: kept matches' distance to their mapped predictions
+    dropped_pairs: int = 0  # GUIDED: verified pairs dropped as far from the model (look-alike periods)
 
     @property
     def rejected_share(self) -> float:
@@ -85,6 +91,7 @@ class GuidanceStats:
             "matches_after": self.matches_after,
             "num_unchecked": self.num_unchecked,
             "median_residual_px": self.median_residual_px if np.isfinite(self.median_residual_px) else None,
+            "dropped_pairs": self.dropped_pairs,
         }
 
 

@@ -57,7 +57,7 @@ from ffrecon.sfm.features import (
 from ffrecon.sfm.guided import GuidanceOptions, GuidanceStats, MatchGuidance, filter_matches, guided_matches
 from ffrecon.sfm.links import LinkOptions, detached_frames
 from ffrecon.sfm.relocalize import Relocalized, RelocalizeOptions, reach_matrix, relocalize, with_poses
-from ffrecon.sfm.screen import ScreenOptions, Suspect, reseeded, screen_rotations
+from ffrecon.sfm.screen import ScreenOptions, Suspect, drop_contradicting_pairs, reseeded, screen_rotations
 from ffrecon.timing import StageTimer, Timings
 from ffrecon.types import PinholeCamera, Prediction, RunMode, Skipped
 from ffrecon.validate import validate_prediction
@@ -389,7 +389,27 @@ def _guide(
         )
     stats = guided_matches(db_path, prediction, pairs, options.guidance)
     verify_pairs(db_path, write_pairs(pairs_path, pairs), options.sift)
-    return stats
+    dropped = drop_contradicting_pairs(db_path, prediction, options.guidance.max_pair_gap_deg, options.screen)
+    if dropped:
+        logger.warning(
+            "look-alike surfaces: %d verified pair(s) turned more than %.0f deg from the model's cameras dropped "
+            "(a pattern's period off?): %s",
+            len(dropped),
+            options.guidance.max_pair_gap_deg,
+            ", ".join(f"{prediction.names[g.index1]}-{prediction.names[g.index2]} ({g.gap_deg:.1f})" for g in dropped),
+        )
+    return dataclasses.replace(stats, dropped_pairs=len(dropped))
+
+
+def _on_lookalikes(options: RefineOptions, guidance: GuidanceStats | None) -> RefineOptions:
+    """The options for the adjustment once the matching is known: on look-alike surfaces (the matching was
+    guided) no frame is relocalised. Its renderings are matched by SIFT alone, and a pattern's period off
+    is a pose the dense evidence then agrees with: on the repeated-texture room (seed 101, ``--quick``) a frame
+    the model had within 3 deg was placed 84 deg off and called corrected."""
+    if guidance is None or guidance.mode is not MatchGuidance.GUIDED or not options.relocalize.enabled:
+        return options
+    logger.info("look-alike surfaces: no frame is relocalised from renderings (a pattern's period would place it)")
+    return dataclasses.replace(options, relocalize=dataclasses.replace(options.relocalize, enabled=False))
 
 
 def _screen(db_path: Path, prediction: Prediction, verified: list, options: RefineOptions) -> tuple[Suspect, ...]:
@@ -475,6 +495,7 @@ def run_refine(
         start = reseeded(prediction, screened)
     with timer.stage("matching"):
         guidance = _guide(db_path, start, pairs, verified, options, work / "pairs.txt")
+    options = _on_lookalikes(options, guidance)
     stats = feature_stats(db_path, names)
     flagged, rec, summary, dense, relocalized, stats = _adjust_with_dense(
         image_dir, start, graph, image_ids, (cameras, colmap_cameras), db_path, stats, options, timer, fixed

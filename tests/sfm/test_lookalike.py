@@ -1,0 +1,109 @@
+"""Look-alike surfaces on a scene family the refinement was not designed on (issue 39), and the photometric
+check of frames no match checks.
+
+The street of :mod:`ffrecon.synthetic.layouts` with one tile repeated on every surface, 8 views 30-50 deg
+apart, a simulated model 2.5 deg / 3 % off per frame (seed 201, one of issue 39's held-out seeds). Its
+verified pairs between the even and the odd frames mostly sit one period of the tile off, and agree with
+each other: adjusted on them, one group of frames turned 16 deg against the other (median 8.5 deg from
+the truth at 0.70 px) before :func:`ffrecon.sfm.screen.drop_contradicting_pairs`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ffrecon.geometry.metrics import aligned_rotation_errors_deg
+from ffrecon.geometry.rotations import axis_angle_to_matrix
+from ffrecon.sfm.guided import MatchGuidance
+from ffrecon.sfm.photometric import PhotometricOptions, photometric_check
+from ffrecon.sfm.refine import RefineOptions, run_refine
+from ffrecon.synthetic import CameraPath, SceneOptions, Texture, make_scene, write_scene
+from ffrecon.synthetic.layouts import Layout
+from ffrecon.synthetic.simulated_model import SimulationOptions, prediction_from_truth, simulate
+
+from .conftest import Capture
+
+LUND = Path(__file__).resolve().parents[3] / "shared" / "data" / "lund"  # photos the textures are cut from
+
+
+def _street(tmp_path_factory, texture: Texture, seed: int) -> Capture:
+    options = SceneOptions(
+        num_frames=8,
+        width=320,
+        height=240,
+        seed=seed,
+        path=CameraPath.WIDE,
+        layout=Layout.STREET,
+        texture=texture,
+        step_deg=(30.0, 50.0),
+        fov_x_deg=85.0,
+        photo_dir=str(LUND) if texture is not Texture.REPEATED else "",
+    )
+    scene = make_scene(options)
+    image_dir = write_scene(scene, tmp_path_factory.mktemp("street"))
+    sim = SimulationOptions(seed=seed)
+    truth, _ = simulate(scene, sim)
+    return Capture(scene, image_dir, prediction_from_truth(scene, truth, sim))
+
+
+@pytest.fixture(scope="module")
+def street201(tmp_path_factory) -> Capture:
+    return _street(tmp_path_factory, Texture.REPEATED, 201)
+
+
+def _median_error(cam_from_world: np.ndarray, capture: Capture, registered: np.ndarray) -> float:
+    truth = capture.scene.cam_from_world[registered, :, :3]
+    return float(np.median(aligned_rotation_errors_deg(cam_from_world[registered, :, :3], truth)))
+
+
+def test_pairs_a_period_off_are_dropped_and_the_refinement_beats_the_model(street201, tmp_path):
+    capture = street201
+    everyone = np.ones(len(capture.scene), bool)
+    model = _median_error(capture.prediction.cam_from_world, capture, everyone)
+    result = run_refine(capture.image_dir, capture.prediction, RefineOptions(), tmp_path / "drop")
+    assert result.guidance is not None and result.guidance.mode is MatchGuidance.GUIDED
+    assert result.guidance.dropped_pairs >= 1
+    assert result.registered.all()
+    # issue 39's bar: at most half the model's error (measured 0.79 deg against 2.35 through the ONNX path)
+    assert _median_error(result.cam_from_world, capture, result.registered) <= 0.5 * model
+
+    # The same refinement keeping every verified pair ends worse than the model (measured 8.5 deg): the
+    # test above fails without the rule.
+    keep_all = RefineOptions(guidance=dataclasses.replace(RefineOptions().guidance, max_pair_gap_deg=180.0))
+    kept = run_refine(capture.image_dir, capture.prediction, keep_all, tmp_path / "keep")
+    assert kept.guidance.dropped_pairs == 0
+    assert _median_error(kept.cam_from_world, capture, kept.registered) > model
+
+
+def _turned(cam_from_world: np.ndarray, frame: int, degrees: float) -> np.ndarray:
+    """The cameras with ``frame`` turned by ``degrees`` about its own vertical axis (its centre kept)."""
+    out = cam_from_world.copy()
+    turn = axis_angle_to_matrix(np.radians(degrees) * np.array([0.0, 1.0, 0.0]))
+    rotation, centre = out[frame, :, :3], -out[frame, :, :3].T @ out[frame, :, 3]
+    out[frame, :, :3] = turn @ rotation
+    out[frame, :, 3] = -(turn @ rotation) @ centre
+    return out
+
+
+@pytest.mark.parametrize("texture", [Texture.PHOTOS, Texture.REPEATED])
+def test_the_photometric_check_tells_a_25_deg_camera_from_a_few_degrees(tmp_path_factory, texture):
+    if texture is Texture.PHOTOS and not LUND.is_dir():
+        pytest.skip(f"{LUND} (../shared/data/lund) is not there")
+    """Truth cameras for the confirmed frames, the model's depth (3 % off): frame 3 turned 2.5 deg is not
+    contradicted, turned 25 deg it is, on photo and repeated-tile textures alike."""
+    capture = _street(tmp_path_factory, texture, 202)
+    photos = [np.asarray(im) for im in capture.scene.images]
+    confirmed = [0, 1, 2, 4, 5, 6, 7]
+    options = PhotometricOptions()
+    scores = {}
+    for degrees in (0.0, 2.5, 25.0):
+        poses = _turned(capture.scene.cam_from_world, 3, degrees)
+        check = photometric_check(photos.__getitem__, capture.prediction, poses, confirmed, [3], options)
+        assert check is not None
+        scores[degrees] = check.scores["frame_003.png"].score
+        assert check.contradicts("frame_003.png") is (degrees > 10), (degrees, scores, check.reference)
+    assert scores[0.0] > scores[25.0]
