@@ -57,6 +57,7 @@ class PhotometricOptions:
     gain: float = 3.0
     min_best: float = 0.5
     min_reference: int = 2  # confirmed frames needed to judge anything
+    max_neighbours: int = 4  # a frame is compared with this many confirmed frames, those with the nearest centres
 
     def __post_init__(self) -> None:
         check_number("PhotometricOptions.side_px", self.side_px, low=16, integer=True)
@@ -71,6 +72,7 @@ class PhotometricOptions:
             check_number(f"PhotometricOptions.{name}", getattr(self, name), low=0, high=180)
         check_number("PhotometricOptions.min_best", self.min_best, low=-1, high=1)
         check_number("PhotometricOptions.min_reference", self.min_reference, low=1, integer=True)
+        check_number("PhotometricOptions.max_neighbours", self.max_neighbours, low=1, integer=True)
 
 
 @dataclass(frozen=True)
@@ -235,10 +237,26 @@ def photometric_check(
     if not options.enabled or not checked or len(confirmed) < options.min_reference or prediction.depth is None:
         return None
     small = _Small(read, prediction, options)
-    reference = [_best(small, cam_from_world, c, confirmed).score for c in confirmed]
+    near = _nearest(cam_from_world, confirmed, options.max_neighbours)
+    sample = [confirmed[i] for i in np.linspace(0, len(confirmed) - 1, min(len(confirmed), 8)).astype(int)]
+    reference = [_best(small, cam_from_world, c, near(c)).score for c in dict.fromkeys(sample)]
     reference = [r for r in reference if np.isfinite(r)]
     if len(reference) < options.min_reference:
         return None
     turns = _turns(options)
-    scores = {prediction.names[k]: _best(small, cam_from_world, k, confirmed, turns) for k in checked}
+    scores = {prediction.names[k]: _best(small, cam_from_world, k, near(k), turns) for k in checked}
     return PhotometricCheck(float(np.median(reference)), scores, options)
+
+
+def _nearest(cam_from_world: np.ndarray, confirmed: Sequence[int], count: int) -> Callable[[int], list[int]]:
+    """Frame k -> the ``count`` confirmed frames (not k) whose centres are nearest k's: a camera's centre is far
+    less in doubt than its rotation. Bounds the check's cost: a frame is compared with ``count`` frames, not all."""
+    centres = np.einsum("nij,ni->nj", cam_from_world[:, :, :3], -cam_from_world[:, :, 3])
+    pool = np.asarray(confirmed, int)
+
+    def near(k: int) -> list[int]:
+        others = pool[pool != k]
+        order = np.argsort(np.linalg.norm(centres[others] - centres[k], axis=1), kind="stable")
+        return others[order[:count]].tolist()
+
+    return near
