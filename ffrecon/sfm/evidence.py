@@ -239,7 +239,7 @@ def _per_image(
     return tuple(out), comparison
 
 
-def _photometric(per_image, ff_cam_from_world, refine: RefineResult, photos, depth: Prediction, options):
+def _photometric(per_image, ff_cam_from_world, refine: RefineResult, photos, depth: Prediction, options, limit):
     """``per_image`` with the unchecked frames that the photos contradict (:mod:`ffrecon.sfm.photometric`) left out.
 
     Judged against the frames the refinement confirmed, at their refined poses (the model's world)."""
@@ -252,9 +252,13 @@ def _photometric(per_image, ff_cam_from_world, refine: RefineResult, photos, dep
     out = list(per_image)
     for k in unchecked:
         e = out[k]
-        if check.contradicts(e.name):
+        # its verified pairs disagree with its camera, too weakly to contradict it alone (_pair_verdict): the
+        # median gap, recorded as its correction, is over the limit
+        disputed = np.isfinite(e.correction_deg) and e.correction_deg > limit
+        if check.contradicts(e.name) or (disputed and check.poor(e.name)):
             unmatched = e.why.removesuffix("the model's camera is kept").rstrip(":; ")
-            why = f"{unmatched}; but {check.describe(e.name)}: left out"
+            said = check.describe(e.name) if check.contradicts(e.name) else check.describe_poor(e.name)
+            why = f"{unmatched}; but {said}: left out"
             out[k] = CameraEvidence(e.name, CameraStatus.PHOTO_MISFIT, why)
         elif np.isfinite(score := check.scores[e.name].score):
             why = f"{e.why}; the photos do not contradict it ({score:.2f} against {check.reference:.2f})"
@@ -467,7 +471,8 @@ def judge_final_cameras(
     unsuited = _unsuited(names, ff_cam_from_world, colmap, witness, options)
     per_image, comparison = _per_image(names, ff_cam_from_world, refine, colmap, options)
     if photos is not None and depth is not None:
-        per_image = _photometric(per_image, ff_cam_from_world, refine, photos, depth, options.photometric)
+        limit = options.max_correction_deg
+        per_image = _photometric(per_image, ff_cam_from_world, refine, photos, depth, options.photometric, limit)
     verdicts = _verdicts(len(names), refine, colmap, per_image, comparison is not None, options)
     if colmap is None:
         why = f"COLMAP cross-check not run: {colmap_skipped}" if colmap_skipped else "COLMAP cross-check not run"
