@@ -204,6 +204,7 @@ class RefineResult:
             "sim3_ff_from_refined_scale": self.ff_from_refined.scale,
             "model_path": None if self.model_path is None else str(self.model_path),
             "timings_s": self.timings.to_report(),
+            "cpu_s": self.timings.cpu_report(),
             "features": self.features.to_report(),
         }
 
