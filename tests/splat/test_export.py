@@ -10,7 +10,7 @@ import trimesh
 from plyfile import PlyData, PlyElement
 
 from ffrecon.errors import InputError
-from ffrecon.formats.mesh import write_mesh
+from ffrecon.formats.mesh import poisson_mesh, write_mesh_files
 from ffrecon.formats.splat_ply import read_splat_ply, splat_property_names, splat_to_array, write_splat_ply
 from ffrecon.gaussians import Gaussians, rgb_to_sh_dc
 from ffrecon.geometry.poses import camera_centers, look_at_cam_from_world
@@ -120,7 +120,7 @@ def test_poisson_mesh_of_a_sphere(tmp_path):
     xyz /= np.linalg.norm(xyz, axis=1, keepdims=True)
     rgb = np.tile([[0.8, 0.2, 0.1]], (len(xyz), 1))
     centers = np.array([[4.0, 0, 0], [-4.0, 0, 0], [0, 4.0, 0], [0, -4.0, 0], [0, 0, 4.0], [0, 0, -4.0]])
-    ply, glb = write_mesh(tmp_path / "mesh.ply", tmp_path / "mesh.glb", xyz, rgb, centers)
+    ply, glb = write_mesh_files(poisson_mesh(xyz, rgb, centers), tmp_path / "mesh.ply", tmp_path / "mesh.glb")
     mesh = trimesh.load(glb, force="mesh")
     radius = np.linalg.norm(mesh.vertices, axis=1)
     assert len(mesh.faces) > 1000 and np.abs(radius - 1).max() < 0.05
