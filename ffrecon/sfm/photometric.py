@@ -73,7 +73,7 @@ class PhotometricOptions:
         check_number("PhotometricOptions.step_deg", self.step_deg, low=1)
         for name in ("near_deg", "min_turn_deg"):
             check_number(f"PhotometricOptions.{name}", getattr(self, name), low=0, high=180)
-        check_number("PhotometricOptions.min_best", self.min_best, low=-1, high=1)
+        check_number("PhotometricOptions.min_best", self.min_best, low=0, high=1)
         check_number("PhotometricOptions.min_reference", self.min_reference, low=1, integer=True)
         check_number("PhotometricOptions.max_neighbours", self.max_neighbours, low=1, integer=True)
 
