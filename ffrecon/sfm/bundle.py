@@ -280,14 +280,14 @@ def _thinned(rec: pycolmap.Reconstruction, max_images: int) -> tuple[pycolmap.Re
     return thin, removed
 
 
-def _diverged(rec: pycolmap.Reconstruction, max_error_px: float) -> bool:
-    """Whether the refined model came back broken: a non-finite mean reprojection error, or one over
-    ``max_error_px``. Seen on the repeated-tile street (held-out seed 201, ``--quick``, frame 6 25 deg off):
+def _diverged(rec: pycolmap.Reconstruction, max_error_px: float) -> float | None:
+    """The mean reprojection error of a refined model that came back broken (non-finite, or over
+    ``max_error_px``), else None. Seen on the repeated-tile street (held-out seed 201, ``--quick``, frame 6 25 deg off):
     Ceres reported a linear solver failure ("Eigen failure ... dense Cholesky") and the model ended at 5e152 px,
     its cameras scattered, and was reported as refined."""
     rec.update_point_3d_errors()
     error = rec.compute_mean_reprojection_error()
-    return not np.isfinite(error) or error > max_error_px
+    return error if not np.isfinite(error) or error > max_error_px else None
 
 
 def _copy_solution(source: pycolmap.Reconstruction, target: pycolmap.Reconstruction) -> None:
@@ -437,11 +437,8 @@ def refine_tracks(
     radial = any(camera.model.name == "SIMPLE_RADIAL" for camera in rec.cameras.values())
     trial = pycolmap.Reconstruction(rec) if options.refine_distortion and radial else None
     weak = _fine_pass(cache, rec, adjust, options, retry, min_observations, names)
-    if _diverged(rec, 10 * options.max_reproj_error_px):
-        logger.warning(
-            "the bundle adjustment diverged (mean reprojection error %.3g px): no frame is refined",
-            rec.compute_mean_reprojection_error(),
-        )
+    if (error := _diverged(rec, 10 * options.max_reproj_error_px)) is not None:
+        logger.warning("the bundle adjustment diverged (mean reprojection error %.3g px): no frame is refined", error)
         return rec, None, weak
     if trial is None:
         return rec, _summary(adjust), weak

@@ -43,7 +43,6 @@ from ffrecon.geometry.rotations import rotation_angle_deg
 from ffrecon.sfm.compare import DisagreementOptions, compare_poses
 from ffrecon.sfm.crosscheck import ColmapResult
 from ffrecon.sfm.gates import GatesResult, GateStatus, GateVerdict
-from ffrecon.sfm.guided import MatchGuidance
 from ffrecon.sfm.photometric import PhotometricCheck, PhotometricOptions, photometric_check
 from ffrecon.sfm.refine import RefineResult
 from ffrecon.sfm.support import PairSupport, is_planar, planar_single_pair, single_pair
@@ -395,7 +394,7 @@ def _healthy(colmap: ColmapResult | None, witness: GatesResult) -> bool:
 
 def _lookalike(refine: RefineResult) -> bool:
     """Whether the refinement matched on look-alike surfaces (its matching was guided by the model)."""
-    return refine.guidance is not None and refine.guidance.mode is MatchGuidance.GUIDED
+    return refine.guidance is not None and refine.guidance.lookalike
 
 
 def _distrusted(refine: RefineResult, colmap: ColmapResult | None, witness: GatesResult) -> str:

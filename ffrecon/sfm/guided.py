@@ -80,6 +80,11 @@ class GuidanceStats:
     dropped_pairs: int = 0  # GUIDED: verified pairs dropped as far from the model (look-alike periods)
 
     @property
+    def lookalike(self) -> bool:
+        """Whether the matching was guided by the model: what the refinement does on look-alike surfaces."""
+        return self.mode is MatchGuidance.GUIDED
+
+    @property
     def rejected_share(self) -> float:
         return 1.0 - self.matches_after / self.matches_before if self.matches_before else 0.0
 

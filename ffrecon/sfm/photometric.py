@@ -83,8 +83,6 @@ class PhotometricScore:
     """One frame's best correlation with a confirmed neighbour seen from its camera (nan: none covers it)."""
 
     score: float  # at its camera
-    neighbour: str | None
-    overlap: float
     near: float = float("nan")  # best within PhotometricOptions.near_deg of its camera
     best: float = float("nan")  # best over the search
     best_turn_deg: float = 0.0  # how far from its camera that best is
@@ -141,6 +139,7 @@ class _Small:
     def __init__(self, read: Callable[[int], np.ndarray], prediction: Prediction, options: PhotometricOptions):
         self.read, self.prediction, self.options = read, prediction, options
         self.grey: dict[int, np.ndarray] = {}
+        self.points: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
     def photo(self, k: int) -> np.ndarray:
         if k not in self.grey:
@@ -158,23 +157,25 @@ class _Small:
         cam = self.prediction.cameras[k]
         return cam.scaled(w / cam.width, h / cam.height)
 
-
-def _lifted(small: _Small, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """Frame k's pixels lifted with the model's depth, in its camera's coordinates: ``([P, 3], ok [H, W])``."""
-    h, w = small.photo(k).shape
-    cam = small.camera(k)
-    depth = cv2.resize(small.prediction.depth[k], (w, h), interpolation=cv2.INTER_NEAREST).astype(np.float64)
-    conf = cv2.resize(small.prediction.depth_conf[k], (w, h), interpolation=cv2.INTER_NEAREST)
-    ok = (depth > 0) & (conf >= small.options.min_depth_conf)
-    uv = pixel_centers(h, w)[ok]
-    rays = np.stack([(uv[:, 0] - cam.cx) / cam.fx, (uv[:, 1] - cam.cy) / cam.fy, np.ones(len(uv))], -1)
-    return rays * depth[ok][:, None], ok
+    def lifted(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """Frame k's pixels lifted with the model's depth, in its camera's coordinates: ``([P, 3], ok [H, W])``
+        (once per frame, whatever the neighbours it is compared with)."""
+        if k not in self.points:
+            h, w = self.photo(k).shape
+            cam = self.camera(k)
+            depth = cv2.resize(self.prediction.depth[k], (w, h), interpolation=cv2.INTER_NEAREST).astype(np.float64)
+            conf = cv2.resize(self.prediction.depth_conf[k], (w, h), interpolation=cv2.INTER_NEAREST)
+            ok = (depth > 0) & (conf >= self.options.min_depth_conf)
+            uv = pixel_centers(h, w)[ok]
+            rays = np.stack([(uv[:, 0] - cam.cx) / cam.fx, (uv[:, 1] - cam.cy) / cam.fy, np.ones(len(uv))], -1)
+            self.points[k] = (rays * depth[ok][:, None], ok)
+        return self.points[k]
 
 
 def _scores(small: _Small, poses: np.ndarray, k: int, j: int, turns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(ncc [T], overlap [T])`` of frame k's photo and frame j's photo warped into k's camera turned by each of
     ``turns`` ``[T, 3, 3]`` (about its centre; nan where fewer than 16 pixels overlap)."""
-    points, ok = _lifted(small, k)
+    points, ok = small.lifted(k)
     grey_k, cam_j = small.photo(k)[ok], small.camera(j)
     hj, wj = small.photo(j).shape
     rotation, centre = poses[k][:, :3], -poses[k][:, :3].T @ poses[k][:, 3]
@@ -211,24 +212,19 @@ def _turns(options: PhotometricOptions) -> tuple[np.ndarray, np.ndarray]:
 def _best(small: _Small, poses: np.ndarray, k: int, others: Sequence[int], turns=None) -> PhotometricScore:
     """Frame k's best correlation over the neighbours that cover enough of it: at its camera, and (with
     ``turns``) where it fits best turned within the search and within ``near_deg`` of its camera."""
-    names = small.prediction.names
     if turns is None:
         turns, angles = np.eye(3)[None], np.zeros(1)
     else:
         turns, angles = turns
     best = np.full(len(turns), -np.inf)
-    who: list[str | None] = [None] * len(turns)
-    cover = np.zeros(len(turns))
     for j in others:
         if j == k:
             continue
         ncc, overlap = _scores(small, poses, k, j, turns)
         better = (overlap >= small.options.min_overlap) & np.isfinite(ncc) & (ncc > best)
-        best[better], cover[better] = ncc[better], overlap[better]
-        for t in np.flatnonzero(better):
-            who[t] = names[j]
+        best[better] = ncc[better]
     here = int(np.argmin(angles))
-    score = PhotometricScore(float(best[here]) if np.isfinite(best[here]) else float("nan"), who[here], cover[here])
+    score = PhotometricScore(float(best[here]) if np.isfinite(best[here]) else float("nan"))
     if len(turns) == 1:
         return score
     near = angles <= small.options.near_deg

@@ -407,7 +407,7 @@ def _on_lookalikes(options: RefineOptions, guidance: GuidanceStats | None) -> Re
     guided) no frame is relocalised. Its renderings are matched by SIFT alone, and a pattern's period off
     is a pose the dense evidence then agrees with: on the repeated-texture room (seed 101, ``--quick``) a frame
     the model had within 3 deg was placed 84 deg off and called corrected."""
-    if guidance is None or guidance.mode is not MatchGuidance.GUIDED or not options.relocalize.enabled:
+    if guidance is None or not guidance.lookalike or not options.relocalize.enabled:
         return options
     logger.info("look-alike surfaces: no frame is relocalised from renderings (a pattern's period would place it)")
     return dataclasses.replace(options, relocalize=dataclasses.replace(options.relocalize, enabled=False))
