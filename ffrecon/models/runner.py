@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import os
 from collections.abc import Callable
 from contextlib import AbstractContextManager
 from dataclasses import dataclass
@@ -13,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import onnxruntime as ort
 
+from ffrecon.concurrency import available_cores
 from ffrecon.errors import InputError, ModelError
 from ffrecon.types import ModelFamily, ModelInfo
 
@@ -74,10 +74,11 @@ def _cuda_offered() -> bool:
 
 def cpu_threads(threads: int = 0, *, use_cuda: bool = True) -> int:
     """CPU threads an :class:`OnnxModel` made with these arguments keeps busy: its intra-op threads on the
-    CPU (``threads``, 0: all cores), one (the Python side of the stage) when the model runs on CUDA."""
+    CPU (``threads``, 0: the cores this process may run on, :func:`~ffrecon.concurrency.available_cores`), one
+    (the Python side of the stage) when the model runs on CUDA."""
     if use_cuda and "CUDAExecutionProvider" in ort.get_available_providers():
         return 1
-    return threads or (os.cpu_count() or 1)
+    return threads or available_cores()
 
 
 class OnnxModel:
@@ -103,7 +104,7 @@ class OnnxModel:
                 f"model file not found: {self.path}", "pass the path of an .onnx file (see docs/models.md to make one)"
             )
         options = ort.SessionOptions()
-        options.intra_op_num_threads = threads or (os.cpu_count() or 1)
+        options.intra_op_num_threads = threads or available_cores()  # taskset/cpuset: not the machine's count
         options.log_severity_level = 3
         providers: list = ["CPUExecutionProvider"]
         cuda = use_cuda and _cuda_offered()
