@@ -106,6 +106,7 @@ def compare_poses(
     estimate: str = "estimate",
     reference: str = "reference",
     options: DisagreementOptions = DisagreementOptions(),
+    centers: bool = True,
 ) -> PoseComparison:
     """Sim(3)-align ``est`` to ``ref`` and compute section-5 metrics plus the disagreeing images.
 
@@ -115,6 +116,8 @@ def compare_poses(
             failed in every pair and are listed as disagreeing.
         ref_registered: ``[N]`` bool, reference has a pose (None: all). Images missing from the
             reference are left out of the metrics (nothing to compare with) and reported as such.
+        centers: whether a centre error alone makes an image disagree (False: rotations only, for a reference
+            whose centres are not to be trusted; the centre errors are measured and reported all the same).
     """
     names = tuple(names)
     n = len(names)
@@ -142,7 +145,7 @@ def compare_poses(
         reasons = []
         if rot[k] > options.max_rotation_deg:
             reasons.append(f"rotation off by {rot[k]:.1f} deg (> {options.max_rotation_deg:g})")
-        if center[k] > max_center:
+        if centers and center[k] > max_center:
             reasons.append(
                 f"centre off by {center[k] / extent:.1%} of the camera extent (> {options.max_center_error:.0%})"
             )

@@ -9,6 +9,7 @@ depth with 2.5 deg / 3 % errors, and in some tests one frame 25 deg off.
 import json
 import shutil
 from pathlib import Path
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -20,7 +21,7 @@ from ffrecon.geometry.metrics import pose_errors
 from ffrecon.geometry.projection import project_points, unproject_pixels
 from ffrecon.sfm.dense import DenseOptions, frame_corners, predicted_map, track_pair
 from ffrecon.sfm.evidence import CameraStatus, FrameVerdict, judge_final_cameras
-from ffrecon.sfm.gates import GatesResult, GateStatus
+from ffrecon.sfm.gates import GatesResult, GateStatus, GateVerdict
 from ffrecon.sfm.refine import RefineOptions, RefineStatus, run_refine
 from ffrecon.synthetic import CameraPath, SceneOptions, Texture, make_scene, write_scene
 from ffrecon.synthetic.simulated_model import SimulationOptions, build_simulated_vggt, prediction_from_truth, simulate
@@ -172,3 +173,40 @@ def test_a_contradicted_frame_is_left_out_and_the_others_make_the_splat(wide, wi
     assert (out / "splat.ply").is_file() and report["splat"]["depth_prior"]
     assert [c["name"] for c in report["splat"]["pose_refinement"]] == corrected
     assert "Photometric pose refinement" in (out / "report.html").read_text()
+
+
+def _colmap_with_collapsed_centres(scene, frames=(1, 2, 3, 4)):
+    """A stand-in for COLMAP's model of room seed 205 (tools/sweep_families.py): a few frames registered at
+    the true rotations, each pair of neighbours' centres collapsed to one point (0.4-0.8 apart in truth,
+    0.02 in COLMAP's model). Only what the evidence reads of a ColmapResult."""
+    from ffrecon.geometry.poses import camera_centers
+
+    cam_from_world = np.tile(np.eye(4)[:3], (len(scene), 1, 1))
+    registered = np.zeros(len(scene), bool)
+    centres = camera_centers(scene.cam_from_world)
+    for a, b in zip(frames[::2], frames[1::2]):
+        mid = (centres[a] + centres[b]) / 2
+        for k in (a, b):
+            rotation = scene.cam_from_world[k, :, :3]
+            cam_from_world[k] = np.hstack([rotation, (-rotation @ mid)[:, None]])
+            registered[k] = True
+    return SimpleNamespace(cam_from_world=cam_from_world, registered=registered, num_registered=int(registered.sum()))
+
+
+def test_colmap_that_failed_its_gates_is_a_witness_of_rotations_only(wide, wide_dir, tmp_path):
+    """A COLMAP model that failed its own gates (here registration) confirms or contradicts the refined
+    frames by their rotations only; a healthy one by centres too. Its collapsed centres would otherwise
+    leave out frames the refinement placed within a degree (issue 39, room seed 205)."""
+    pred = _prediction(wide)
+    result = run_refine(wide_dir, pred, RefineOptions.quick(), tmp_path)
+    colmap = _colmap_with_collapsed_centres(wide)
+    failed = GatesResult((GateVerdict("registration", GateStatus.FAIL, 0.5, 0.85, "4 of 8"),), False)
+    weak = judge_final_cameras(wide.names, pred.cam_from_world, result, colmap, failed)
+    healthy = judge_final_cameras(wide.names, pred.cam_from_world, result, colmap, GatesResult((), False))
+    shared = [k for k in range(1, 5) if result.registered[k]]
+    assert len(shared) >= 3 and _rotation_errors(result.cam_from_world, wide)[shared].max() < 2.0
+    assert all(weak.per_image[k].verdict is FrameVerdict.CONFIRMED for k in shared)
+    assert "centres not compared" in weak.per_image[shared[0]].why
+    assert not any(v.name == "colmap_agreement" and v.failed for v in weak.gates.verdicts)
+    # the same model counted healthy: its centres disagree, and the frames are contradicted
+    assert sum(healthy.per_image[k].status is CameraStatus.DISAGREES for k in shared) >= 2
