@@ -27,7 +27,14 @@ from ffrecon.export.mesh import DepthMaps, MeshResult, write_mesh
 from ffrecon.final_cameras import CameraSource, FinalCameras
 from ffrecon.formats.mesh import MeshMethod, MeshOptions
 from ffrecon.formats.nerfstudio import write_transforms
-from ffrecon.formats.pointcloud import FuseOptions, fuse_prediction, write_point_cloud
+from ffrecon.formats.pointcloud import (
+    FrameClouds,
+    FuseOptions,
+    fuse_prediction,
+    fuse_prediction_frames,
+    merge_frames,
+    write_point_cloud,
+)
 from ffrecon.geometry.poses import camera_centers
 from ffrecon.models.stage import FeedForwardResult
 from ffrecon.sfm.crosscheck import ColmapResult
@@ -104,11 +111,43 @@ def fuse_with_final_cameras(
     final: FinalCameras,
     read_images: Callable[[list[int]], Sequence[np.ndarray]],
     fuse: FuseOptions,
+    clouds: FrameClouds | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The depth maps of the final cameras' frames fused again with those cameras (:func:`with_final_cameras`),
-    so points.ply agrees with sparse/0. ``read_images(indices)`` gives the capture's photos (read one at a
-    time as the fusion goes: :meth:`~ffrecon.capture.Capture.frames_on_demand`)."""
-    return fuse_prediction(with_final_cameras(prediction, final), read_images(list(final.indices)), fuse)
+    """The depth maps of the final cameras' frames fused with those cameras (:func:`with_final_cameras`), so
+    points.ply agrees with sparse/0: the model's own fusion of ``prediction``'s frames, each reduced alone
+    (``clouds``: :attr:`~ffrecon.models.stage.FeedForwardResult.frame_clouds`), moved to the final cameras
+    (:func:`moved_frame_clouds`) and reduced together. Without ``clouds`` (a resumed run) that fusion is made
+    again first, from ``read_images(indices)`` (the capture's photos, read one at a time as the fusion goes:
+    :meth:`~ffrecon.capture.Capture.frames_on_demand`), so that a resumed run writes the same cloud."""
+    if clouds is None:
+        _, _, clouds = fuse_prediction_frames(prediction, read_images(list(range(len(prediction)))), fuse)
+    kept = set(clouds.frames) if clouds is not None else set()
+    if not kept & set(final.indices):  # no voxel grid (a flat cloud), or no final frame with a point
+        return fuse_prediction(with_final_cameras(prediction, final), read_images(list(final.indices)), fuse)
+    after = with_final_cameras(prediction, final)
+    moved = [moved_frame_clouds(clouds, prediction, k, after, j) for j, k in enumerate(final.indices) if k in kept]
+    return merge_frames([m[0] for m in moved], [m[1] for m in moved], clouds.voxel, fuse)
+
+
+def moved_frame_clouds(
+    clouds: FrameClouds, before: Prediction, k: int, after: Prediction, j: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """The reduced points of frame ``k`` of ``clouds`` (made with ``before``'s camera ``k``) moved to camera ``j``
+    of ``after`` (the same frame with other cameras, :func:`with_final_cameras`): ``(xyz [M, 3] world, rgb)``.
+
+    A depth pixel's point in its camera is ``z K^-1 [u, v, 1]``, so with the final intrinsics ``K'`` it becomes
+    ``K'^-1 K`` times the first one, and the whole move is affine: ``x' = R'^T (K'^-1 K (R x + t) - t')``. A
+    mean moves with its points under an affine map, so each of the frame's voxel means is the mean of its
+    pixels' points placed with the final camera, as a second fusion would make them; only the grouping into
+    voxels is the model's world's (the voxel's size is the same, the world and its scale too)."""
+    xyz, rgb = clouds.xyz[clouds.frames.index(k)], clouds.rgb[clouds.frames.index(k)]
+    before_k, after_k = before.depth_camera(k).K, after.depth_camera(j).K
+    rot, trans = before.cam_from_world[k][:3, :3], before.cam_from_world[k][:3, 3]
+    rot2, trans2 = after.cam_from_world[j][:3, :3], after.cam_from_world[j][:3, 3]
+    lens = np.linalg.solve(after_k, before_k)  # K'^-1 K
+    a = rot2.T @ lens @ rot
+    b = rot2.T @ (lens @ trans - trans2)
+    return xyz @ a.T + b, rgb
 
 
 def run_exports(
@@ -190,7 +229,7 @@ def export_final_cameras(
         points = seed_from_reconstruction(rec) if rec.num_points3D() else (np.zeros((0, 3)), np.zeros((0, 3)))
         what = "COLMAP's sparse points"
     elif isinstance(ff, FeedForwardResult) and final.source is CameraSource.REFINED:
-        points = fuse_with_final_cameras(ff.prediction, final, capture.frames_on_demand, fuse)
+        points = fuse_with_final_cameras(ff.prediction, final, capture.frames_on_demand, fuse, ff.frame_clouds)
         what = "depth maps fused with the refined cameras"
     elif isinstance(ff, FeedForwardResult):
         points, what = (ff.points_xyz, ff.points_rgb), "depth maps fused with the model's cameras"

@@ -18,7 +18,7 @@ from ffrecon.checks import check_number
 from ffrecon.colmap_io import reconstruction_from_cameras, write_reconstruction
 from ffrecon.concurrency import CoreShare
 from ffrecon.errors import InputError
-from ffrecon.formats.pointcloud import FuseOptions, fuse_prediction, write_depth_maps
+from ffrecon.formats.pointcloud import FrameClouds, FuseOptions, fuse_prediction_frames, write_depth_maps
 from ffrecon.geometry.alignment import umeyama
 from ffrecon.geometry.poses import camera_centers
 from ffrecon.models.adapters import adapter_for
@@ -41,6 +41,9 @@ from ffrecon.types import ModelFamily, ModelInfo, PinholeCamera, Prediction
 from ffrecon.validate import validate_prediction
 
 log = logging.getLogger("ffrecon.models")
+# The fusion's frames (FeedForwardResult.frame_clouds) are kept for the exports up to this size (about 40 MB at 96
+# frames of 640x480); larger, the exports fuse the depth maps again.
+KEEP_FRAME_CLOUDS_BYTES = 512 * 2**20
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -68,6 +71,10 @@ class FeedForwardResult:
     # The model's own poses where the user gave poses (--poses): the prediction holds the given ones.
     model_poses: np.ndarray | None = None  # [N, 3, 4] cam_from_world
     chunks: ChunkLayout | None = None  # multi-view families: how the frames were split into model calls
+    # The fusion's frames, each reduced alone (see FrameClouds), so that the exports fuse them again with refined
+    # cameras without a second pass over the depth maps and photos. Not part of the stage's record (init=False):
+    # None in a resumed run, or when larger than KEEP_FRAME_CLOUDS_BYTES.
+    frame_clouds: FrameClouds | None = field(default=None, init=False, compare=False, repr=False)
 
     def to_report(self) -> dict:
         m = self.prediction.model
@@ -273,12 +280,12 @@ def run_feedforward(
     masks = capture.read_masks()
     if masks is not None:  # masked pixels carry no confidence: no fused point, seed or dense evidence from them
         prediction = masked_prediction(prediction, masks)
-    xyz, rgb = fuse_prediction(prediction, images, options.fuse)
+    xyz, rgb, clouds = fuse_prediction_frames(prediction, images, options.fuse)
     ff_dir = Path(out_dir) / "feedforward"
     rec = reconstruction_from_cameras(prediction.names, prediction.cam_from_world, prediction.cameras, xyz, rgb)
     sparse_dir = write_reconstruction(rec, ff_dir / "sparse")
     write_depth_maps(ff_dir / "depth", prediction)
-    return FeedForwardResult(
+    result = FeedForwardResult(
         prediction,
         xyz,
         rgb,
@@ -289,6 +296,9 @@ def run_feedforward(
         model_poses,
         model_pass.chunks,
     )
+    if clouds is not None and clouds.nbytes <= KEEP_FRAME_CLOUDS_BYTES:
+        object.__setattr__(result, "frame_clouds", clouds)  # frozen: set once, here
+    return result
 
 
 def given_poses_in(model_poses: np.ndarray, given: tuple[np.ndarray | None, ...]) -> np.ndarray:
