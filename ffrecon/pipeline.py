@@ -20,7 +20,7 @@ from ffrecon.results import RunResults, Verdict
 from ffrecon.resume import StageRunner, rebase_paths
 from ffrecon.sfm.comparisons import check_references
 from ffrecon.stages import STAGES
-from ffrecon.state import RunState, StagePlan
+from ffrecon.state import Beside, RunState, Stage, StagePlan
 from ffrecon.types import RunMode
 from ffrecon.workspace import staged_output
 
@@ -28,11 +28,16 @@ __all__ = ["RunOptions", "check_run_options", "run"]  # RunOptions lives in ffre
 
 log = logging.getLogger("ffrecon")
 
+StageList = tuple[Stage | Beside, ...]
 
-def run(source: Path, out_dir: Path, model: Path | None, options: RunOptions | None = None) -> RunResults:
+
+def run(
+    source: Path, out_dir: Path, model: Path | None, options: RunOptions | None = None, *, stages: StageList = STAGES
+) -> RunResults:
     """Reconstruct ``source`` (folder of photos or a video) with ``model`` into ``out_dir``.
 
-    Without a model (None) the cameras come from COLMAP and the splat is seeded from its points.
+    Without a model (None) the cameras come from COLMAP and the splat is seeded from its points. ``stages``:
+    the stage list to run (:data:`ffrecon.stages.STAGES`; a test may run a copy with a stage added).
 
     Raises :class:`~ffrecon.errors.Interrupted` on Ctrl-C (KeyboardInterrupt), naming the stages
     kept for ``--resume``; other :class:`~ffrecon.errors.FFReconError` for unusable input.
@@ -44,12 +49,12 @@ def run(source: Path, out_dir: Path, model: Path | None, options: RunOptions | N
     # numpy's matrix products in a run are tall and thin: faster on one BLAS thread (ffrecon.concurrency.blas_threads)
     with blas_threads(1), staged_output(Path(out_dir), Path(source), **flags) as staging:
         work = staging.path
-        stages = StageRunner(work, reuse=not options.fresh)
+        runner = StageRunner(work, reuse=not options.fresh)
         try:
-            results = _run_stages(Path(source), model and Path(model), options, stages, created)
+            results = _run_stages(Path(source), model and Path(model), options, runner, created, stages)
         except KeyboardInterrupt:
             resume = options.command or "the same command"
-            raise Interrupted(stages.current, stages.finished, str(work), _resume_command(resume)) from None
+            raise Interrupted(runner.current, runner.finished, str(work), _resume_command(resume)) from None
         # A rejected run does not replace earlier good results: it stays where it was built (said in a warning).
         kept_aside = staging.keeps_earlier(results.verdict is Verdict.GATE_FAILED)
         results = rebase_paths(results, work, work if kept_aside else staging.out_dir)  # where the files end up
@@ -78,30 +83,23 @@ def _resume_command(command: str) -> str:
     return command if "--resume" in command.split() else f"{command} --resume"
 
 
-def _run_stages(source: Path, model: Path | None, options: RunOptions, runner: StageRunner, created: str) -> RunResults:
-    """The whole run: the stages in order (:data:`ffrecon.stages.STAGES`), each reading the state so far."""
+def _run_stages(
+    source: Path, model: Path | None, options: RunOptions, runner: StageRunner, created: str, stages: StageList
+) -> RunResults:
+    """The whole run: the stages in order, each reading the state so far; the final state is the results."""
     plan = StagePlan(runner, options)
     plan.inputs_key("source", source)
     plan.inputs_key("model", model)
     state = RunState(source, model, runner.run_dir)
-    for stage in STAGES:
-        state = plan.run(state, stage)
-    return RunResults(
-        out_dir=runner.run_dir,
+    for step in stages:
+        state = plan.run(state, step)
+    return RunResults.of(
+        state,
         created=created,
         command=options.command,
-        capture=state.capture,
-        feedforward=state.feedforward,
-        colmap=state.colmap,
-        gates=state.gates,
-        comparisons=state.comparisons,
-        refine=state.refine,
-        evidence=state.evidence,
-        splat=state.splat,
-        seed_comparison=state.seed_comparison,
-        exports=state.exports,
         timings=tuple(runner.timings),
         forced=options.force,
         mode=options.mode,
         overlaps=tuple(runner.overlaps),
+        stages=tuple(stages),
     )

@@ -1,27 +1,23 @@
-"""What a run returns: one frozen, typed result per stage, together a :class:`RunResults`.
+"""What a run returns: the final :class:`~ffrecon.state.RunState` with the run's record, a :class:`RunResults`.
 
-A stage that did not run holds a :class:`Skipped` naming why, never a missing key. The report
-(``report.json``, ``report.html``) and the command-line summary are built from these results alone
-(:mod:`ffrecon.report.build`).
+Each stage's result is keyed by the stage's name (typed accessors such as ``results.splat`` for the stages of
+:data:`ffrecon.stages.STAGES`); a stage that did not run holds a :class:`Skipped` naming why, never a missing
+key. The report (``report.json``, ``report.html``) and the command-line summary are built from these results
+alone (:mod:`ffrecon.report.build`), each stage giving its own sections.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 from dataclasses import dataclass
 from pathlib import Path
 
-from ffrecon.capture import Capture
 from ffrecon.errors import GateFailed
-from ffrecon.export.stage import ExportsResult
-from ffrecon.models.stage import FeedForwardResult
 from ffrecon.resume import OverlapTiming, StageTiming
-from ffrecon.sfm.comparisons import ComparisonsResult
-from ffrecon.sfm.crosscheck import ColmapResult
 from ffrecon.sfm.evidence import EvidenceResult
 from ffrecon.sfm.gates import GatesResult
-from ffrecon.sfm.refine import RefineResult
-from ffrecon.splat.stage import SplatResult
+from ffrecon.state import Beside, RunState, Stage, each_stage
 from ffrecon.types import QUICK_NO_CROSSCHECK, QUICK_STATEMENT, RunMode, Skipped  # noqa: F401 (re-exported)
 
 
@@ -30,33 +26,33 @@ class Verdict(enum.Enum):
     GATE_FAILED = "gate_failed"
 
 
-@dataclass(frozen=True)
-class RunResults:
-    """Everything one run produced, stage by stage."""
+@dataclass(frozen=True, kw_only=True)
+class RunResults(RunState):
+    """Everything one run produced: the state its stages left (``results``, stage by stage) and the run's record."""
 
-    out_dir: Path
     created: str  # ISO time the run started
     command: str
-    capture: Capture
-    feedforward: FeedForwardResult | Skipped  # Skipped when no model was given
-    colmap: ColmapResult | Skipped
-    gates: GatesResult | Skipped
-    comparisons: ComparisonsResult | Skipped
-    refine: RefineResult | Skipped
-    evidence: EvidenceResult | Skipped  # the final cameras judged (with a model)
-    splat: SplatResult | Skipped
-    seed_comparison: SplatResult | Skipped | None  # --compare-seeds: the splat from COLMAP's points; None: not asked
-    exports: ExportsResult | Skipped
     timings: tuple[StageTiming, ...]
     forced: bool
     mode: RunMode = RunMode.FULL
     overlaps: tuple[OverlapTiming, ...] = ()  # stages that ran at the same time (their timings overlap)
+    stages: tuple[Stage | Beside, ...] = ()  # the stage list that ran: its order, report sections and skips
+
+    @classmethod
+    def of(cls, state: RunState, **record) -> RunResults:
+        """The final ``state`` with the run's ``record`` (the fields of this class beyond :class:`RunState`'s)."""
+        return cls(**{f.name: getattr(state, f.name) for f in dataclasses.fields(RunState)}, **record)
+
+    @property
+    def out_dir(self) -> Path:
+        """The run folder the results' paths are under."""
+        return self.work
 
     @property
     def skipped(self) -> tuple[Skipped, ...]:
-        stages = (self.feedforward, self.colmap, self.gates, self.refine, self.evidence, self.comparisons, self.splat)
-        stages += (self.exports,)
-        return tuple(s for s in stages if isinstance(s, Skipped))
+        """The stages that did not run, in run order (those whose skip is routine left out)."""
+        results = (self.result(stage.name) for stage in each_stage(self.stages) if stage.listed_skipped)
+        return tuple(r for r in results if isinstance(r, Skipped))
 
     @property
     def gate_results(self) -> tuple[GatesResult, ...]:

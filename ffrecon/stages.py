@@ -1,6 +1,8 @@
-"""The stages of :func:`ffrecon.pipeline.run`, declared: what each reads of the :class:`RunState`, when it does not
-run (a typed :class:`~ffrecon.types.Skipped`, saying why), and the call into its own package, where its decisions
-live (docs/architecture.md)."""
+"""The stages of :func:`ffrecon.pipeline.run`, declared: what each reads of the :class:`RunState` (it sees only
+that, through a :class:`~ffrecon.state.StateView`), when it does not run (a typed :class:`~ffrecon.types.Skipped`,
+saying why), the call into its own package, where its decisions live, and its sections of report.json and
+report.html. :data:`STAGES` is the one list the run, its resume keys, the results and the report follow
+(docs/architecture.md, "How to add a stage")."""
 
 from __future__ import annotations
 
@@ -12,6 +14,8 @@ from ffrecon.capture import Capture, run_capture
 from ffrecon.export.stage import OUTPUTS, export_final_cameras
 from ffrecon.final_cameras import CameraSource, FinalCameras, final_cameras, require_checked
 from ffrecon.models.stage import feedforward_skip_reason, run_feedforward_sharing
+from ffrecon.report import sections, stage_html
+from ffrecon.report.splat_html import seeds_section, splat_section
 from ffrecon.sfm import refine
 from ffrecon.sfm.comparisons import comparison_skip_reason, load_references, pose_estimates, run_comparisons
 from ffrecon.sfm.crosscheck import pairs_from_model, run_colmap_on
@@ -20,7 +24,7 @@ from ffrecon.sfm.gates import MIN_MASK_USE, gate_poses
 from ffrecon.splat import stage as splat
 from ffrecon.splat.final import seed_comparison_skip_reason, splat_final_cameras, splat_from_colmap_points, with_curves
 from ffrecon.splat.seed import no_seed_reason
-from ffrecon.state import Beside, RunState, Stage
+from ffrecon.state import Beside, Stage, StateView
 from ffrecon.types import QUICK_NO_CROSSCHECK, Prediction, RunMode
 
 NO_CAMERAS = "COLMAP registered fewer than two images"
@@ -44,7 +48,7 @@ def no_depth_reason(prediction: Prediction | None, masks: bool) -> str | None:
     return "no depth left to refine with: the masks (--masks) ignore every pixel of every frame"
 
 
-def splat_seed_reason(state: RunState) -> str | None:
+def splat_seed_reason(state: StateView) -> str | None:
     """Why the splat has no seed point (the model's depth maps of the final frames hold no confident pixel)."""
     final = state.final
     if not isinstance(final, FinalCameras) or final.source is CameraSource.COLMAP or state.prediction is None:
@@ -52,7 +56,7 @@ def splat_seed_reason(state: RunState) -> str | None:
     return no_seed_reason(state.prediction, final.indices)
 
 
-def blocked(state: RunState) -> str | None:
+def blocked(state: StateView) -> str | None:
     """The failed gate that stops the run (not forced), or None: after it nothing is exported."""
     return state.why_not(*state.verdicts) if state.views >= 2 else None
 
@@ -65,6 +69,8 @@ CAPTURE = Stage(
     files=lambda s, o: (o.capture.intrinsics, o.capture.masks, o.capture.poses),
     outputs=("images", "masks"),
     check=lambda capture, o: splat.check_splat_fits([f.size_wh for f in capture.frames], o.splat),
+    report=sections.capture_entries,
+    page=(("Capture", stage_html.capture_section),),
 )
 FEEDFORWARD = Stage(
     "feedforward",
@@ -74,11 +80,19 @@ FEEDFORWARD = Stage(
     label="feed-forward",
     skip=lambda s, o: feedforward_skip_reason(s.model, len(s.capture.frames), colmap=o.colmap.enabled),
     outputs=("feedforward",),
+    report=sections.feedforward_entries,
+    page=(("Feed-forward cameras and depth", stage_html.feedforward_section),),
 )
 COLMAP = Stage(
     "colmap",
     ("capture",),
-    lambda s, o, c: run_colmap_on(s.capture, o.colmap, s.work / "crosscheck", step=c.step, prediction=s.prediction),
+    lambda s, o, c: run_colmap_on(
+        s.capture,
+        o.colmap,
+        s.work / "crosscheck",
+        step=c.step,
+        prediction=s.prediction if s.declares("feedforward") else None,  # the model's pairs (see ``after``)
+    ),
     lambda o: o.colmap,
     label="colmap cross-check",
     skip=lambda s, o: (
@@ -97,6 +111,8 @@ SIFT = Stage(  # quick mode: the refinement's SIFT, extracted beside the inferen
     label="SIFT extraction",
     skip=lambda s, o: refine.sift_beside_skip_reason(o.mode, o.concurrent, s.model, o.refine, s.views),
     outputs=("sift",),
+    report=sections.nothing,  # the refinement reports its features
+    listed_skipped=False,
 )
 GATES = Stage(
     "gates",
@@ -113,6 +129,8 @@ GATES = Stage(
     lambda o: (o.gates, o.force) if o.refine.enabled else (o.gates, o.force, "--no-refine"),
     label="gates",
     skip=lambda s, o: s.why_not(),
+    report=sections.gates_entries,
+    page=(("Verification gates", stage_html.gates_section),),
 )
 REFINE = Stage(
     "refine",
@@ -125,7 +143,9 @@ REFINE = Stage(
         or refine.refine_skip_reason(s.prediction)
         or no_depth_reason(s.prediction, masks=s.capture.mask_dir is not None)
     ),
+    skip_reads=("gates",),
     outputs=("sparse", "refine"),
+    page=(("Refinement", stage_html.refine_section),),
 )
 EVIDENCE = Stage(
     "evidence",
@@ -147,6 +167,8 @@ EVIDENCE = Stage(
     lambda o: (o.evidence, o.force),
     label="evidence on the final cameras",
     skip=lambda s, o: evidence_skip_reason(s.refine),
+    report=sections.evidence_entries,
+    page=(("Final cameras: the evidence", stage_html.evidence_section),),
 )
 COMPARISONS = Stage(
     "comparisons",
@@ -160,6 +182,8 @@ COMPARISONS = Stage(
     label="pose comparison",
     skip=lambda s, o: s.why_not() or comparison_skip_reason(s.model_poses, s.colmap, s.refine, s.references(o)),
     files=lambda s, o: (o.ground_truth, o.reference),
+    report=sections.comparisons_entries,
+    page=(("Pose error", stage_html.poses_section),),
 )
 FINAL = Stage(  # the final cameras and sparse/0: cheap, so made every time from the results they come from
     "final",
@@ -167,6 +191,7 @@ FINAL = Stage(  # the final cameras and sparse/0: cheap, so made every time from
     lambda s, o, c: final_cameras(s.capture.names, s.feedforward, s.colmap, s.refine, s.evidence, s.work),
     lambda o: (),
     recorded=False,
+    report=sections.nothing,  # the exports name the cameras they wrote
 )
 SPLAT = Stage(
     "splat",
@@ -180,6 +205,7 @@ SPLAT = Stage(
         or splat_seed_reason(s)
     ),
     outputs=splat.OUTPUTS,
+    page=(("Gaussian splat", splat_section),),
 )
 SEED_COMPARISON = Stage(
     "seed_comparison",
@@ -190,6 +216,8 @@ SEED_COMPARISON = Stage(
     skip=lambda s, o: seed_comparison_skip_reason(s.splat, s.final, s.colmap),
     outputs=("seed_comparison",),
     asked=lambda o: o.splat.compare_seeds,
+    page=(("Seeds compared: feed-forward depth vs SfM points", seeds_section),),
+    listed_skipped=False,  # its skip is its report entry
 )
 EXPORTS = Stage(
     "exports",
@@ -200,7 +228,9 @@ EXPORTS = Stage(
     lambda o: (o.exports, o.feedforward.fuse),
     label="exports",
     skip=lambda s, o: blocked(s) or (None if s.final else f"no cameras to export: {NO_CAMERAS} and no model was given"),
+    skip_reads=("gates", "evidence"),
     outputs=OUTPUTS,
+    report=sections.exports_entries,
 )
 POSES = Beside((FEEDFORWARD, COLMAP, SIFT))  # each reads only the capture
 STAGES = (CAPTURE, POSES, GATES, REFINE, EVIDENCE, COMPARISONS, FINAL, SPLAT, SEED_COMPARISON, EXPORTS)

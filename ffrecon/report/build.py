@@ -1,7 +1,8 @@
 """report.json (machines) and report.html (people), both built from a run's typed results.
 
 ``build_report(results)`` is a pure function of :class:`~ffrecon.results.RunResults` and returns
-data only (numbers, names, paths relative to the run folder). ``render_html(report, run_dir)``
+data only (numbers, names, paths relative to the run folder); each stage of the run's stage list gives its
+own entries (:mod:`ffrecon.report.sections`). ``render_html(report, run_dir)``
 turns that data into one self-contained page: it computes the table rows and draws the figures,
 reading the pictures it shows (frames, depth maps, renders) from the run folder, so a report can be
 rebuilt from ``report.json`` and the folder alone. The command-line summary uses
@@ -18,11 +19,10 @@ import numpy as np
 
 from ffrecon import __version__
 from ffrecon.colmap_io import is_model_dir
-from ffrecon.models.stage import FeedForwardResult
 from ffrecon.report.html import render_html
 from ffrecon.results import QUICK_STATEMENT, RunMode, RunResults, Skipped
-from ffrecon.sfm.evidence import CameraStatus, EvidenceResult, FrameVerdict
 from ffrecon.sfm.refine import RefineResult, RefineStatus
+from ffrecon.state import each_stage
 
 
 def _jsonable(obj):
@@ -41,11 +41,6 @@ def _jsonable(obj):
     return obj
 
 
-def _section(result, to_report=lambda r: r.to_report()):
-    """A stage's data, or ``{"skipped": reason}``."""
-    return {"skipped": result.reason} if isinstance(result, Skipped) else to_report(result)
-
-
 def _verdict(results: RunResults) -> dict:
     gates = results.gate_results
     failed = [v for g in gates for v in g.failed]
@@ -54,42 +49,6 @@ def _verdict(results: RunResults) -> dict:
         return {"status": results.verdict.value, "message": message}
     message = f"{len(results.capture.frames)} frame(s) reconstructed"
     return {"status": results.verdict.value, "message": message + (" (failed gates forced past)" if failed else "")}
-
-
-def _evidence(evidence: EvidenceResult) -> dict:
-    return {
-        "gates": [v.to_report() for v in evidence.gates.verdicts],
-        "per_image": [e.to_report() for e in evidence.per_image],
-        "model_unsuited": evidence.model_unsuited,
-        "unsuited_reason": evidence.unsuited_reason,
-        "counts": {s.value: evidence.count(s) for s in CameraStatus},
-        "verdicts": {v.value: list(evidence.of(v)) for v in FrameVerdict},
-    }
-
-
-def _pose_section(results: RunResults) -> tuple[dict, dict | None]:
-    """``(pose_errors by key, data for the pose plots)``; the plot data follows the primary reference."""
-    comps = results.comparisons
-    if isinstance(comps, Skipped):
-        return {}, None
-    errors = {
-        f"{c.estimate}_vs_{c.reference}".replace(" ", "_").replace("-", "").lower(): c.to_report()
-        for c in comps.comparisons
-    }
-    if not comps.primary:
-        return errors, None
-    ref = comps.primary[0]
-    plot = {
-        "reference": ref.reference,
-        "up": comps.up,
-        "names": list(ref.names),
-        "reference_centers": ref.reference_centers,
-        "aligned_centers": {c.estimate: c.aligned_centers for c in comps.primary},
-        "rotation_deg": {c.estimate: c.per_image_rotation_deg for c in comps.primary},
-        "center_error": {c.estimate: c.per_image_center_error for c in comps.primary},
-        "disagreeing": sorted({d for c in comps.primary for d in c.disagreeing}, key=list(ref.names).index),
-    }
-    return errors, plot
 
 
 def _cross_check_note(results: RunResults) -> str | None:
@@ -160,53 +119,10 @@ def _outputs(results: RunResults) -> dict[str, str]:
     return {k: str(Path(v).relative_to(out)) for k, v in candidates.items() if v is not None}
 
 
-def _intrinsics(results: RunResults) -> dict | None:
-    """The given intrinsics (--intrinsics) beside the model's own estimate and the final cameras' (median focal
-    lengths, px, and relative differences); None when none were given."""
-    capture = results.capture
-    if not capture.known_cameras:
-        return None
-    given = float(np.median([c.fx for c in capture.known_cameras]))
-    ff = results.feedforward
-    model = [c.fx for c in ff.model_cameras] if isinstance(ff, FeedForwardResult) and ff.model_cameras else []
-    final = []
-    if isinstance(results.refine, RefineResult):
-        final = [c.fx for c, r in zip(results.refine.cameras, results.refine.registered) if r]
-    elif isinstance(ff, FeedForwardResult):
-        final = [c.fx for c in ff.prediction.cameras]
-
-    def vs_given(values: list[float]) -> dict:
-        median = float(np.median(values)) if values else None
-        return {"focal_px": median, "vs_given": None if median is None else median / given - 1.0}
-
-    return {
-        "file": str(capture.known_file) if capture.known_file else None,
-        "fixed": capture.intrinsics_fixed,
-        "given_focal_px": given,
-        "model": vs_given(model),
-        "final": vs_given(final),
-    }
-
-
 def build_report(results: RunResults) -> dict:
-    """The run's machine-readable record (JSON-serialisable; numbers, names, relative paths)."""
-    pose_errors, pose_plot = _pose_section(results)
-    out = results.out_dir
-
-    def rel(p: Path | None) -> str | None:
-        return None if p is None else str(Path(p).relative_to(out))
-
-    def exports(ex) -> dict:
-        return {
-            "points_ply": rel(ex.points_ply),
-            "num_points": ex.num_points,
-            "points": ex.points_from,
-            "transforms_json": rel(ex.transforms_json),
-            "mesh": {"ply": rel(ex.mesh_ply), "glb": rel(ex.mesh_glb), "about": ex.mesh_about} if ex.mesh_ply else None,
-            "cameras": ex.cameras_from,
-            "not_written": dict(ex.not_written),  # file -> why (an empty cloud: no points.ply, no mesh)
-        }
-
+    """The run's machine-readable record (JSON-serialisable; numbers, names, relative paths): the run's header,
+    then each stage's entries in run order (:meth:`ffrecon.state.Stage.entries`), then the skips, timings and
+    files."""
     report = {
         "ffrecon_version": __version__,
         "created": results.created,
@@ -215,18 +131,10 @@ def build_report(results: RunResults) -> dict:
         "mode": results.mode.value,
         "cross_check_note": _cross_check_note(results),
         "verdict": _verdict(results),
-        "inputs": results.capture.to_report(),
-        "feedforward": _section(results.feedforward),
-        "intrinsics": _intrinsics(results),
-        "colmap": _section(results.colmap),
-        "gates": _section(results.gates, lambda g: [v.to_report() for v in g.verdicts]),
-        "refine": _section(results.refine),
-        "evidence": _section(results.evidence, _evidence),
-        "pose_errors": pose_errors,
-        "pose_plot": pose_plot,
-        "splat": _section(results.splat),
-        "seed_comparison": None if results.seed_comparison is None else _section(results.seed_comparison),
-        "exports": _section(results.exports, exports),
+    }
+    for stage in each_stage(results.stages):
+        report |= stage.entries(results)
+    report |= {
         "skipped_stages": [{"stage": s.stage, "reason": s.reason} for s in results.skipped],
         "timings": _timings(results),
         "concurrent_stages": _concurrent(results),
@@ -241,5 +149,5 @@ def write_report(results: RunResults, run_dir: Path) -> tuple[Path, Path]:
     json_path = Path(run_dir) / "report.json"
     json_path.write_text(json.dumps(report, indent=2))
     html_path = Path(run_dir) / "report.html"
-    html_path.write_text(render_html(report, run_dir))
+    html_path.write_text(render_html(report, run_dir, results.stages))
     return json_path, html_path
