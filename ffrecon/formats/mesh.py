@@ -14,7 +14,6 @@ from pathlib import Path
 
 import numpy as np
 import open3d as o3d
-import trimesh
 
 from ffrecon.checks import check_number, check_shape
 from ffrecon.errors import InputError
@@ -130,6 +129,8 @@ def write_mesh_files(
         rgb = np.round(np.clip(np.asarray(mesh.vertex_colors), 0, 1) * 255).astype(np.uint8)
     else:
         rgb = np.full((len(vertices), 3), 200, np.uint8)
+    import trimesh  # here, not at the top: 0.3 s of every run's start for the runs that write a mesh
+
     tm = trimesh.Trimesh(
         vertices=vertices,
         faces=np.asarray(mesh.triangles),
