@@ -55,6 +55,9 @@ class GuidanceOptions:
     # (:func:`ffrecon.sfm.screen.drop_contradicting_pairs`): on look-alike surfaces such pairs are one period of
     # the pattern off. Feed-forward errors are a few degrees (2.5 per frame: pairs within ~3.5, ~7 at worst).
     max_pair_gap_deg: float = 8.0
+    # Guided: the adjustment triangulates two-view tracks too, with a robust fine pass (sfm/refine.py,
+    # _on_lookalikes); False: COLMAP's default, tracks over three frames or more only.
+    two_view_tracks: bool = True
 
     def __post_init__(self) -> None:
         check_number("GuidanceOptions.auto_max_rejected", self.auto_max_rejected, low=0, high=1)

@@ -403,14 +403,28 @@ def _guide(
 
 
 def _on_lookalikes(options: RefineOptions, guidance: GuidanceStats | None) -> RefineOptions:
-    """The options for the adjustment once the matching is known: on look-alike surfaces (the matching was
-    guided) no frame is relocalised. Its renderings are matched by SIFT alone, and a pattern's period off
-    is a pose the dense evidence then agrees with: on the repeated-texture room (seed 101, ``--quick``) a frame
-    the model had within 3 deg was placed 84 deg off and called corrected."""
-    if guidance is None or not guidance.lookalike or not options.relocalize.enabled:
+    """The options for the adjustment once the matching is known. On look-alike surfaces (the matching was
+    guided):
+
+    - no frame is relocalised. Its renderings are matched by SIFT alone, and a pattern's period off is a pose the
+      dense evidence then agrees with: on the repeated-texture room (seed 101, ``--quick``) a frame the model had
+      within 3 deg was placed 84 deg off and called corrected;
+    - two-view tracks are triangulated and the fine pass is robust (Cauchy), as with dense evidence. Ignoring them
+      (COLMAP's default) leaves the few tracks over three frames, where a pair a period off joins the others'
+      points wrongly: on the repeated-tile room of seed 204 (``tools/sweep_families.py``, ``--quick``) 459 points
+      were left, and frames 0 and 1 ended 4-5 deg off with every one of their own matches right; with the
+      two-view tracks, 0.04-0.22 deg.
+    """
+    if guidance is None or not guidance.lookalike:
         return options
+    bundle = options.bundle
+    if options.guidance.two_view_tracks:
+        bundle = dataclasses.replace(bundle, ignore_two_view_tracks=False, robust_fine=True)
+    if not options.relocalize.enabled:
+        return dataclasses.replace(options, bundle=bundle)
     logger.info("look-alike surfaces: no frame is relocalised from renderings (a pattern's period would place it)")
-    return dataclasses.replace(options, relocalize=dataclasses.replace(options.relocalize, enabled=False))
+    relocalize = dataclasses.replace(options.relocalize, enabled=False)
+    return dataclasses.replace(options, bundle=bundle, relocalize=relocalize)
 
 
 def _screen(db_path: Path, prediction: Prediction, verified: list, options: RefineOptions) -> tuple[Suspect, ...]:
