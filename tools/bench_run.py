@@ -545,9 +545,27 @@ def run_ffrecon(
     if stats.is_file():
         ran = {name for name, t in report.get("timings", {}).items() if not t.get("reused")}
         row["by_step"] = stage_cpu(json.loads(stats.read_text()), ran)
+        row["other_parts"] = other_parts(json.loads(stats.read_text()), row["other_s"], wall)
     if (out / "sparse" / "0").is_dir():
         row["loop_drift_pct"] = loop_drift_pct(out / "sparse" / "0", inputs.scene_dir)
     return row
+
+
+def other_parts(stats: dict, other_s: float, wall: float) -> dict:
+    """Where a run's "other" seconds (wall no stage of ``report.json`` holds) went, from :func:`ffrecon_child`'s
+    stats: the imports and parsing before the first stage, the report after the last, the interpreter's start
+    and exit (the child's wall outside its own clock: module teardown, torch's 0.4 s of it), and the rest (inside
+    the plan's steps but outside the stages' seconds: records, resume keys, the gaps between stages).
+
+    >>> other_parts({"first": (3.0, 2.9), "last": (60.0, 70.0), "end": (62.0, 72.0)}, 7.0, 63.5)
+    {'imports+parse': 3.0, 'report+summary': 2.0, 'start+exit': 1.5, 'between stages': 0.5}
+    """
+    first, last, end = stats.get("first"), stats.get("last"), stats.get("end")
+    if not (first and last and end):
+        return {}
+    parts = {"imports+parse": first[0], "report+summary": end[0] - last[0], "start+exit": wall - end[0]}
+    parts["between stages"] = other_s - sum(parts.values())
+    return {k: round(v, 4) for k, v in parts.items()}
 
 
 def cpus_label(cpus: str | None) -> str:
@@ -675,6 +693,9 @@ def print_details(r: dict) -> None:
             cells = [f"imports+parse {step['before'][0]:.2f} (cpu {step['before'][1]:.2f})", *cells]
             cells.append(f"report+summary {step['after'][0]:.2f} (cpu {step['after'][1]:.2f})")
         print(f"  {r['method']} wall (CPU) by step: " + ", ".join(cells))
+    if r.get("other_parts"):
+        parts = ", ".join(f"{k} {v:.2f}" for k, v in r["other_parts"].items())
+        print(f"  {r['method']} other {r['other_s']:.2f} s ({r['other_s'] / r['wall_s']:.1%} of the wall): {parts}")
     if r.get("splat_backend"):
         at = ", ".join(f"{t} s {_num(p, '.2f', 0)} dB" for t, p in (r.get("psnr_at_s") or {}).items())
         gpu = "" if r.get("gpu_peak_gb") is None else f"; peak GPU {r['gpu_peak_gb']:.1f} GB"
