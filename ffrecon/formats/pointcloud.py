@@ -167,15 +167,32 @@ def _cleaned(points: np.ndarray, colours: np.ndarray, options: FuseOptions) -> t
 
 def _voxel_means(xyz: np.ndarray, rgb: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
     """Per occupied voxel of the grid ``floor(p / voxel)``: the mean point (float64) and colour (float32), in
-    the order of the voxel indices (open3d returns them in its hash map's order, which varies from call to
-    call: a resumed run must write the same points.ply)."""
-    cloud = o3d.t.geometry.PointCloud(o3d.core.Tensor(np.ascontiguousarray(xyz, np.float64)))
-    cloud.point.colors = o3d.core.Tensor(np.ascontiguousarray(rgb, np.float32))
-    down = cloud.voxel_down_sample(voxel)
-    points, colours = down.point.positions.numpy(), down.point.colors.numpy()
-    index = np.floor(points / voxel).astype(np.int64)
-    order = np.lexsort((index[:, 2], index[:, 1], index[:, 0]))
-    return points[order], colours[order]
+    the order of the voxel indices (x, then y, then z), so that a resumed run writes the same points.ply.
+
+    numpy (sort the voxel keys, then sum per voxel): 14 ms for 200,000 points where open3d's tensor
+    ``voxel_down_sample`` took 134 ms on the 2-core machine (the same voxels, means within 4e-7).
+
+    >>> pts, rgb = _voxel_means(np.array([[0.1, 0, 0], [0.3, 0, 0], [1.5, 0, 0]]), np.ones((3, 3), np.float32), 1.0)
+    >>> pts[:, 0].round(6).tolist(), rgb.dtype.name
+    ([0.2, 1.5], 'float32')
+    """
+    if not len(xyz):
+        return np.zeros((0, 3)), np.zeros((0, 3), np.float32)
+    index = np.floor(np.asarray(xyz, np.float64) / voxel).astype(np.int64)
+    index -= index.min(0)
+    span = index.max(0) + 1
+    if float(span[0]) * float(span[1]) * float(span[2]) < 2.0**62:  # one int64 key per voxel, ordered as (x, y, z)
+        keys = (index[:, 0] * span[1] + index[:, 1]) * span[2] + index[:, 2]
+        _, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
+    else:  # a grid too wide for one key (far outliers): the rows themselves
+        _, inverse, counts = np.unique(index, axis=0, return_inverse=True, return_counts=True)
+    inverse = inverse.reshape(-1)
+
+    def means(values: np.ndarray) -> np.ndarray:
+        sums = [np.bincount(inverse, values[:, d].astype(np.float64), len(counts)) for d in range(values.shape[1])]
+        return np.stack(sums, 1) / counts[:, None]
+
+    return means(xyz), means(rgb).astype(np.float32)
 
 
 def write_point_cloud(path: Path, xyz: np.ndarray, rgb: np.ndarray) -> Path:
