@@ -40,7 +40,7 @@ import numpy as np
 
 from ffrecon.checks import check_number
 from ffrecon.geometry.rotations import rotation_angle_deg
-from ffrecon.sfm.compare import DisagreementOptions, compare_poses
+from ffrecon.sfm.compare import DisagreementOptions, PoseComparison, compare_poses
 from ffrecon.sfm.crosscheck import ColmapResult
 from ffrecon.sfm.gates import GatesResult, GateStatus, GateVerdict
 from ffrecon.sfm.photometric import PhotometricCheck, PhotometricOptions, photometric_check
@@ -215,34 +215,13 @@ def _per_image(
         model_vs_colmap = compare_poses(
             ff_cam_from_world, colmap.cam_from_world, names, None, ref_registered=colmap.registered
         )
-    off = {d.name: d.reason for d in comparison.disagreements} if comparison is not None else {}
     limit = options.max_correction_deg
     out = []
     for k, name in enumerate(names):
         if refine.registered[k]:
             change = _rotation_change_deg(refine.cam_from_world[k], ff_cam_from_world[k])
-            if name in off and colmap.registered[k]:
-                out.append(CameraEvidence(name, CameraStatus.DISAGREES, off[name], change))
-            elif _dense_on_lookalikes(refine, name) and change > options.max_lookalike_dense_change_deg:
-                out.append(_dense_moved(name, change, options))
-            elif change > limit:
-                out.append(_correction(refine, name, change, options))
-            elif comparison is not None and colmap.registered[k]:
-                agrees = "COLMAP's pose agrees" if healthy else "COLMAP's rotation agrees (its centres not compared)"
-                out.append(CameraEvidence(name, CameraStatus.CONFIRMED, agrees, change))
-            elif (single := _planar_pair(refine, name, options)) is not None:
-                why = single.describe() + "; its refined pose is kept, unconfirmed"
-                out.append(CameraEvidence(name, CameraStatus.PLANAR_PAIR, why, change))
-            else:
-                n_obs = refine.observations[k] if refine.observations is not None else 0
-                why = f"bundle-adjusted on {n_obs} observations; " + (
-                    "no COLMAP model to compare with"
-                    if colmap is None
-                    else "COLMAP did not register it"
-                    if not colmap.registered[k]
-                    else "too few images shared with COLMAP to compare"
-                )
-                out.append(CameraEvidence(name, CameraStatus.REFINED, why, change))
+            says = _colmap_word(name, comparison, healthy) if comparison is not None and colmap.registered[k] else None
+            out.append(_refined_frame(k, name, change, refine, colmap, says, options))
         elif model_vs_colmap is not None and colmap.registered[k]:
             change = float(model_vs_colmap.per_image_rotation_deg[k])
             status = CameraStatus.CORRECTED if change > limit else CameraStatus.COLMAP_ONLY
@@ -258,6 +237,50 @@ def _per_image(
         if out[k] is None:
             out[k] = _pair_verdict(name, flagged.get(name, "not refined"), pairs.get(name, []), options)
     return tuple(out), comparison
+
+
+@dataclass(frozen=True)
+class _ColmapWord:
+    """What COLMAP's pose of a refined frame says of it: agrees or not, and why."""
+
+    agrees: bool
+    why: str
+
+
+def _colmap_word(name: str, comparison: PoseComparison, healthy: bool) -> _ColmapWord:
+    off = {d.name: d.reason for d in comparison.disagreements}
+    if name in off:
+        return _ColmapWord(False, off[name])
+    return _ColmapWord(
+        True, "COLMAP's pose agrees" if healthy else "COLMAP's rotation agrees (its centres not compared)"
+    )
+
+
+def _refined_frame(
+    k: int, name: str, change: float, refine: RefineResult, colmap, says: _ColmapWord | None, options
+) -> CameraEvidence:
+    """The evidence on a frame the refinement holds; ``says``: COLMAP's word on it, None when its pose is not
+    compared."""
+    if says is not None and not says.agrees:
+        return CameraEvidence(name, CameraStatus.DISAGREES, says.why, change)
+    if _dense_on_lookalikes(refine, name) and change > options.max_lookalike_dense_change_deg:
+        return _dense_moved(name, change, options)
+    if change > options.max_correction_deg:
+        return _correction(refine, name, change, options)
+    if says is not None:
+        return CameraEvidence(name, CameraStatus.CONFIRMED, says.why, change)
+    if (single := _planar_pair(refine, name, options)) is not None:
+        why = single.describe() + "; its refined pose is kept, unconfirmed"
+        return CameraEvidence(name, CameraStatus.PLANAR_PAIR, why, change)
+    n_obs = refine.observations[k] if refine.observations is not None else 0
+    why = f"bundle-adjusted on {n_obs} observations; " + (
+        "no COLMAP model to compare with"
+        if colmap is None
+        else "COLMAP did not register it"
+        if not colmap.registered[k]
+        else "too few images shared with COLMAP to compare"
+    )
+    return CameraEvidence(name, CameraStatus.REFINED, why, change)
 
 
 def _photometric(per_image, ff_cam_from_world, refine: RefineResult, photos, depth: Prediction, options, limit):
