@@ -1,4 +1,4 @@
-"""The capture's overlap check matches each pair of nearby frames once, on every core, with the verdicts of
+"""The capture's overlap check matches each pair of nearby frames once, with the verdicts of
 matching every frame with each of its neighbours both ways (issue 40)."""
 
 from __future__ import annotations
