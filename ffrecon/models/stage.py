@@ -37,6 +37,7 @@ from ffrecon.models.multiview import (
 )
 from ffrecon.models.pairwise import PairwiseOptions
 from ffrecon.models.runner import OnnxModel, cpu_threads
+from ffrecon.timing import StageTimer, Timings
 from ffrecon.types import ModelFamily, ModelInfo, PinholeCamera, Prediction
 from ffrecon.validate import validate_prediction
 
@@ -71,6 +72,7 @@ class FeedForwardResult:
     # The model's own poses where the user gave poses (--poses): the prediction holds the given ones.
     model_poses: np.ndarray | None = None  # [N, 3, 4] cam_from_world
     chunks: ChunkLayout | None = None  # multi-view families: how the frames were split into model calls
+    timings: Timings = field(default_factory=Timings)  # the stage's steps (wall and CPU seconds); empty: not timed
     # The fusion's frames, each reduced alone (see FrameClouds), so that the exports fuse them again with refined
     # cameras without a second pass over the depth maps and photos. Not part of the stage's record (init=False):
     # None in a resumed run, or when larger than KEEP_FRAME_CLOUDS_BYTES.
@@ -97,6 +99,11 @@ class FeedForwardResult:
             ],
             **({"model_cameras": _model_cameras(self.prediction, self.model_cameras)} if self.model_cameras else {}),
             **({"chunks": self.chunks.to_report()} if self.chunks is not None else {}),
+            **(
+                {"timings_s": self.timings.to_report(), "cpu_s": self.timings.cpu_report()}
+                if self.timings.stages
+                else {}
+            ),
         }
 
 
@@ -257,7 +264,9 @@ def run_feedforward(
     The frames are read from the capture's ``images/`` here and released when the stage ends.
     ``while_inferring`` is entered around each run of the network (see :class:`OnnxModel`).
     """
-    model = OnnxModel(model_path, threads=options.threads or 0, while_running=while_inferring)
+    timer = StageTimer()  # the stage's steps, in report.json's feedforward.timings_s and cpu_s
+    with timer.stage("load_model"):
+        model = OnnxModel(model_path, threads=options.threads or 0, while_running=while_inferring)
     log.info(
         "feed-forward model %s (%s%s) on %d frames",
         Path(model_path).name,
@@ -266,8 +275,31 @@ def run_feedforward(
         len(capture.frames),
     )
     images = capture.frames_on_demand()  # each read when a model call or the fusion asks for it
-    model_pass = predict(model, capture, images, options)
-    prediction = model_pass.prediction
+    with timer.stage("predict"):  # reading and resizing the photos, the network's calls, merging its chunks
+        model_pass = predict(model, capture, images, options)
+    with timer.stage("given_and_masks"):
+        prediction, model_cameras, model_poses = _given_and_masked(model_pass.prediction, capture)
+    with timer.stage("fuse"):
+        xyz, rgb, clouds = fuse_prediction_frames(prediction, images, options.fuse)
+    ff_dir = Path(out_dir) / "feedforward"
+    with timer.stage("write_sparse"):
+        rec = reconstruction_from_cameras(prediction.names, prediction.cam_from_world, prediction.cameras, xyz, rgb)
+        sparse_dir = write_reconstruction(rec, ff_dir / "sparse")
+    with timer.stage("write_depth"):
+        write_depth_maps(ff_dir / "depth", prediction)
+    timer.close()
+    info = (model.providers, _assumptions(model.info(), capture), model_cameras, model_poses, model_pass.chunks)
+    result = FeedForwardResult(prediction, xyz, rgb, sparse_dir, *info, timings=timer.freeze())
+    if clouds is not None and clouds.nbytes <= KEEP_FRAME_CLOUDS_BYTES:
+        object.__setattr__(result, "frame_clouds", clouds)  # frozen: set once, here
+    return result
+
+
+def _given_and_masked(
+    prediction: Prediction, capture: Capture
+) -> tuple[Prediction, tuple[PinholeCamera, ...], np.ndarray | None]:
+    """``(prediction, model_cameras, model_poses)``: the user's intrinsics and poses in place of the model's
+    (the model's kept for the report: empty and None when none were given), masked pixels without confidence."""
     model_cameras = ()
     if capture.known_cameras:  # the user's intrinsics replace the model's estimate (kept for the report)
         model_cameras = prediction.cameras
@@ -280,25 +312,7 @@ def run_feedforward(
     masks = capture.read_masks()
     if masks is not None:  # masked pixels carry no confidence: no fused point, seed or dense evidence from them
         prediction = masked_prediction(prediction, masks)
-    xyz, rgb, clouds = fuse_prediction_frames(prediction, images, options.fuse)
-    ff_dir = Path(out_dir) / "feedforward"
-    rec = reconstruction_from_cameras(prediction.names, prediction.cam_from_world, prediction.cameras, xyz, rgb)
-    sparse_dir = write_reconstruction(rec, ff_dir / "sparse")
-    write_depth_maps(ff_dir / "depth", prediction)
-    result = FeedForwardResult(
-        prediction,
-        xyz,
-        rgb,
-        sparse_dir,
-        model.providers,
-        _assumptions(model.info(), capture),
-        model_cameras,
-        model_poses,
-        model_pass.chunks,
-    )
-    if clouds is not None and clouds.nbytes <= KEEP_FRAME_CLOUDS_BYTES:
-        object.__setattr__(result, "frame_clouds", clouds)  # frozen: set once, here
-    return result
+    return prediction, model_cameras, model_poses
 
 
 def given_poses_in(model_poses: np.ndarray, given: tuple[np.ndarray | None, ...]) -> np.ndarray:
