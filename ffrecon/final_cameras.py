@@ -29,10 +29,10 @@ from ffrecon.geometry.alignment import umeyama
 from ffrecon.geometry.poses import camera_centers
 from ffrecon.geometry.undistort import NO_DISTORTION, opencv_coefficients
 from ffrecon.models.stage import FeedForwardResult
-from ffrecon.sfm.crosscheck import ColmapResult
-from ffrecon.sfm.evidence import CameraStatus, EvidenceResult, FrameVerdict
-from ffrecon.sfm.gates import unchecked_verdict
-from ffrecon.sfm.refine import RefineResult
+from ffrecon.sfm.crosscheck.gate_types import unchecked_verdict
+from ffrecon.sfm.crosscheck.run import ColmapResult
+from ffrecon.sfm.refine.options import RefineResult
+from ffrecon.sfm.verify.verdicts import CameraStatus, EvidenceResult, FrameVerdict
 from ffrecon.types import PinholeCamera, Skipped
 
 log = logging.getLogger("ffrecon")

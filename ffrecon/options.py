@@ -11,10 +11,10 @@ from pathlib import Path
 from ffrecon.capture import CaptureOptions
 from ffrecon.export.stage import ExportOptions
 from ffrecon.models.stage import FeedForwardOptions
-from ffrecon.sfm.crosscheck import ColmapOptions
-from ffrecon.sfm.evidence import EvidenceOptions
-from ffrecon.sfm.gates import GateOptions
-from ffrecon.sfm.refine import RefineOptions
+from ffrecon.sfm.crosscheck.gate_types import GateOptions
+from ffrecon.sfm.crosscheck.options import ColmapOptions
+from ffrecon.sfm.refine.options import RefineOptions
+from ffrecon.sfm.verify.verdicts import EvidenceOptions
 from ffrecon.splat.stage import SplatOptions
 from ffrecon.types import RunMode
 

@@ -18,7 +18,7 @@ from ffrecon.options import RunOptions
 from ffrecon.report.build import write_report
 from ffrecon.results import RunResults, Verdict
 from ffrecon.resume import StageRunner, rebase_paths
-from ffrecon.sfm.comparisons import check_references
+from ffrecon.sfm.compare.comparisons import check_references
 from ffrecon.stages import STAGES
 from ffrecon.state import Beside, RunState, Stage, StagePlan
 from ffrecon.types import RunMode

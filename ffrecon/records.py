@@ -5,7 +5,7 @@ object is one tagged value, named by its one ``$`` key:
 
 - ``{"$dataclass": "ffrecon.types:PinholeCamera", "fx": ..., ...}``: a dataclass of ffrecon, by module and
   qualified name, with the fields its ``__init__`` takes;
-- ``{"$enum": "ffrecon.sfm.gates:GateStatus", "name": "PASSED"}``: a member of an enum of ffrecon;
+- ``{"$enum": "ffrecon.sfm.crosscheck.gate_types:GateStatus", "name": "PASSED"}``: a member of an enum of ffrecon;
 - ``{"$tuple": [...]}`` (a JSON list is a list); ``{"$dict": [[key, value], ...]}`` (keys of any
   stored kind: ``PoseErrors.auc`` is keyed by int thresholds);
 - ``{"$path": "<run>/images"}``; ``{"$float": "nan"}`` (also ``"inf"``, ``"-inf"``);

@@ -15,8 +15,8 @@ from pathlib import Path
 
 from ffrecon.errors import GateFailed
 from ffrecon.resume import OverlapTiming, StageTiming
-from ffrecon.sfm.evidence import EvidenceResult
-from ffrecon.sfm.gates import GatesResult
+from ffrecon.sfm.crosscheck.gate_types import GatesResult
+from ffrecon.sfm.verify.verdicts import EvidenceResult
 from ffrecon.state import Beside, RunState, Stage, each_stage
 from ffrecon.types import QUICK_NO_CROSSCHECK, QUICK_STATEMENT, RunMode, Skipped  # noqa: F401 (re-exported)
 

@@ -16,11 +16,11 @@ from ffrecon.final_cameras import CameraSource, FinalCameras, final_cameras, req
 from ffrecon.models.stage import feedforward_skip_reason, run_feedforward_sharing
 from ffrecon.report import sections, stage_html
 from ffrecon.report.splat_html import seeds_section, splat_section
-from ffrecon.sfm import refine
-from ffrecon.sfm.comparisons import comparison_skip_reason, load_references, pose_estimates, run_comparisons
-from ffrecon.sfm.crosscheck import pairs_from_model, run_colmap_on
-from ffrecon.sfm.evidence import evidence_skip_reason, judge_refined_cameras
-from ffrecon.sfm.gates import MIN_MASK_USE, gate_poses
+from ffrecon.sfm.compare.comparisons import comparison_skip_reason, load_references, pose_estimates, run_comparisons
+from ffrecon.sfm.crosscheck.gates import MIN_MASK_USE, gate_poses
+from ffrecon.sfm.crosscheck.run import pairs_from_model, run_colmap_on
+from ffrecon.sfm.refine import run as refine
+from ffrecon.sfm.verify.evidence import evidence_skip_reason, judge_refined_cameras
 from ffrecon.splat import stage as splat
 from ffrecon.splat.final import seed_comparison_skip_reason, splat_final_cameras, splat_from_colmap_points, with_curves
 from ffrecon.splat.seed import no_seed_reason

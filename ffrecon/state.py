@@ -25,11 +25,11 @@ from ffrecon.final_cameras import FinalCameras
 from ffrecon.models.stage import FeedForwardResult
 from ffrecon.options import RunOptions
 from ffrecon.resume import StageRunner, file_key, stage_key
-from ffrecon.sfm.comparisons import ComparisonsResult
-from ffrecon.sfm.crosscheck import ColmapResult
-from ffrecon.sfm.evidence import EvidenceResult
-from ffrecon.sfm.gates import GatesResult
-from ffrecon.sfm.refine import RefineResult
+from ffrecon.sfm.compare.comparisons import ComparisonsResult
+from ffrecon.sfm.crosscheck.gate_types import GatesResult
+from ffrecon.sfm.crosscheck.run import ColmapResult
+from ffrecon.sfm.refine.options import RefineResult
+from ffrecon.sfm.verify.verdicts import EvidenceResult
 from ffrecon.splat.stage import SplatResult
 from ffrecon.types import ONE_VIEW, Prediction, Skipped
 

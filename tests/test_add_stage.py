@@ -9,8 +9,8 @@ import dataclasses
 import json
 
 from ffrecon.pipeline import RunOptions, run
-from ffrecon.sfm.crosscheck import ColmapOptions
-from ffrecon.sfm.refine import RefineOptions
+from ffrecon.sfm.crosscheck.options import ColmapOptions
+from ffrecon.sfm.refine.options import RefineOptions
 from ffrecon.splat.stage import SplatOptions
 from ffrecon.stages import STAGES
 from ffrecon.state import Share, Stage, StateView

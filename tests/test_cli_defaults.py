@@ -20,7 +20,7 @@ from ffrecon.models.memory import MEMORY_FRACTION
 from ffrecon.models.multiview import MultiviewOptions
 from ffrecon.pipeline import RunOptions
 from ffrecon.report import html
-from ffrecon.sfm.gates import GateOptions
+from ffrecon.sfm.crosscheck.gate_types import GateOptions
 from ffrecon.splat import stage as splat_stage
 from ffrecon.splat.optimize import OptimizeOptions
 from ffrecon.splat.stage import SplatOptions

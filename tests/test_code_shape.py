@@ -46,7 +46,7 @@ def test_no_docstring_points_outside_the_repository():
 # Issue 41: no module over 500 lines and no function over 60 (no "Long because" either) in the packages it
 # restructured. The exceptions below are issue-41 work in progress: each is listed by name, so any NEW violation
 # fails, and an exception that no longer applies fails too (take it off the list).
-RESTRUCTURED = ("cli", "splat", "report", "view", "options.py", "__main__.py")
+RESTRUCTURED = ("cli", "splat", "report", "view", "sfm", "options.py", "__main__.py")
 MAX_MODULE_LINES = 500
 MODULE_EXCEPTIONS = {"ffrecon/splat/optimize.py"}  # issue 41 work in progress: options, plan, loop, Adam surgery
 FUNCTION_EXCEPTIONS = {  # issue 41 work in progress: hand-written backward passes of the CPU renderer

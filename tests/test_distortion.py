@@ -13,8 +13,8 @@ from ffrecon.formats.nerfstudio import write_transforms
 from ffrecon.geometry.metrics import pose_errors
 from ffrecon.geometry.undistort import opencv_coefficients, undistort_image
 from ffrecon.pipeline import RunOptions, run
-from ffrecon.sfm.bundle import BundleOptions
-from ffrecon.sfm.refine import RefineOptions
+from ffrecon.sfm.refine.bundle import BundleOptions
+from ffrecon.sfm.refine.options import RefineOptions
 from ffrecon.splat.optimize import OptimizeOptions
 from ffrecon.splat.stage import SplatOptions
 from ffrecon.synthetic import SceneOptions, make_scene

@@ -26,8 +26,9 @@ from ffrecon.export.stage import ExportOptions, run_exports
 from ffrecon.final_cameras import CameraSource, FinalCameras, require_checked
 from ffrecon.geometry.rotations import quat_xyzw_to_matrix
 from ffrecon.report.scene3d import scene_html
-from ffrecon.sfm.evidence import CameraEvidence, CameraStatus, EvidenceResult
-from ffrecon.sfm.gates import FailureCause, GateOptions, GatesResult, GateStatus, GateVerdict, diagnose_registration
+from ffrecon.sfm.crosscheck.gate_types import FailureCause, GateOptions, GatesResult, GateStatus, GateVerdict
+from ffrecon.sfm.crosscheck.registration import diagnose_registration
+from ffrecon.sfm.verify.verdicts import CameraEvidence, CameraStatus, EvidenceResult
 from ffrecon.types import PinholeCamera
 from ffrecon.workspace import staging_path
 

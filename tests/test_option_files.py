@@ -16,7 +16,7 @@ from ffrecon.cli import main
 from ffrecon.errors import InputError
 from ffrecon.formats.nerfstudio import write_transforms
 from ffrecon.formats.poses import read_poses
-from ffrecon.sfm.retrieval import check_vocab_tree
+from ffrecon.sfm.crosscheck.retrieval import check_vocab_tree
 from ffrecon.types import PinholeCamera
 
 FAST = ["--no-colmap", "--no-refine", "--no-splat", "-q"]
@@ -104,7 +104,7 @@ def test_a_fifo_never_hangs(small_demo, tmp_path):
 
 def test_model_files_inside_a_folder_option_are_checked(tmp_path):
     """--poses and --reference folders: a FIFO or device in place of images.bin is refused before COLMAP opens it."""
-    from ffrecon.sfm.comparisons import check_references
+    from ffrecon.sfm.compare.comparisons import check_references
 
     folder = tmp_path / "model"
     folder.mkdir()

@@ -17,7 +17,7 @@ from ffrecon.models.global_alignment import AlignmentOptions
 from ffrecon.models.multiview import MultiviewOptions
 from ffrecon.models.stage import FeedForwardOptions
 from ffrecon.pipeline import RunOptions, check_run_options
-from ffrecon.sfm.gates import GateOptions
+from ffrecon.sfm.crosscheck.gate_types import GateOptions
 from ffrecon.splat.clean import CleanOptions
 from ffrecon.splat.densify import DensifyOptions
 from ffrecon.splat.optimize import OptimizeOptions

@@ -22,8 +22,8 @@ from ffrecon.models.runner import MULTIVIEW_INPUT, OnnxModel
 from ffrecon.models.stage import FeedForwardOptions
 from ffrecon.pipeline import RunOptions, run
 from ffrecon.results import Skipped
-from ffrecon.sfm.crosscheck import ColmapOptions
-from ffrecon.sfm.refine import RefineOptions
+from ffrecon.sfm.crosscheck.options import ColmapOptions
+from ffrecon.sfm.refine.options import RefineOptions
 from ffrecon.splat.stage import SplatOptions
 from ffrecon.synthetic import SceneOptions, make_scene
 from ffrecon.synthetic.simulated_model import SimulationOptions, build_simulated_vggt

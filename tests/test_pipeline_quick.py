@@ -8,7 +8,7 @@ from ffrecon.cli import main
 from ffrecon.errors import InputError
 from ffrecon.pipeline import RunOptions, run
 from ffrecon.results import QUICK_NO_CROSSCHECK, QUICK_STATEMENT, RunMode
-from ffrecon.sfm.refine import RefineOptions
+from ffrecon.sfm.refine.options import RefineOptions
 from ffrecon.workspace import staging_path
 
 

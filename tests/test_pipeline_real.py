@@ -14,7 +14,7 @@ from PIL import Image
 from ffrecon.geometry.rotations import rotation_angle_deg
 from ffrecon.pipeline import RunOptions, run
 from ffrecon.results import Skipped, Verdict
-from ffrecon.sfm.crosscheck import MapperKind
+from ffrecon.sfm.crosscheck.options import MapperKind
 from ffrecon.splat.optimize import OptimizeOptions
 from ffrecon.splat.stage import SplatOptions
 

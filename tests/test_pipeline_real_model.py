@@ -20,7 +20,7 @@ import onnx
 import pytest
 
 from ffrecon.pipeline import RunOptions, run
-from ffrecon.sfm.evidence import CameraStatus, FrameVerdict
+from ffrecon.sfm.verify.verdicts import CameraStatus, FrameVerdict
 from ffrecon.splat.stage import SplatOptions
 from ffrecon.synthetic.real_scene import real_scene_from_colmap
 from ffrecon.synthetic.simulated_model import SimulationOptions, build_simulated_vggt

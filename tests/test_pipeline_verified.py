@@ -11,9 +11,9 @@ from ffrecon.demo import DemoOptions, prepare_demo
 from ffrecon.geometry.metrics import auc
 from ffrecon.pipeline import RunOptions, run
 from ffrecon.results import Verdict
-from ffrecon.sfm.dense import DenseOptions
-from ffrecon.sfm.evidence import CameraStatus, FrameVerdict
-from ffrecon.sfm.refine import RefineOptions
+from ffrecon.sfm.refine.dense import DenseOptions
+from ffrecon.sfm.refine.options import RefineOptions
+from ffrecon.sfm.verify.verdicts import CameraStatus, FrameVerdict
 from ffrecon.splat.stage import SplatOptions
 from ffrecon.synthetic import load_scene
 

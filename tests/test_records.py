@@ -21,7 +21,7 @@ from ffrecon.pipeline import RunOptions, run
 from ffrecon.records import RecordError, decode, encode
 from ffrecon.results import Skipped
 from ffrecon.resume import StageRunner, rebase_paths, stage_key
-from ffrecon.sfm.gates import GateStatus
+from ffrecon.sfm.crosscheck.gate_types import GateStatus
 from ffrecon.splat.optimize import OptimizeOptions
 from ffrecon.splat.stage import SplatOptions
 

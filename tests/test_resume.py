@@ -14,7 +14,7 @@ import pycolmap
 import pytest
 from plyfile import PlyData
 
-import ffrecon.sfm.crosscheck as crosscheck
+import ffrecon.sfm.crosscheck.run as crosscheck
 import ffrecon.splat.final as splat_final
 from ffrecon.cli import main
 from ffrecon.errors import Interrupted
@@ -22,7 +22,7 @@ from ffrecon.models.multiview import MultiviewOptions
 from ffrecon.models.stage import FeedForwardOptions
 from ffrecon.pipeline import RunOptions, run
 from ffrecon.results import Skipped
-from ffrecon.sfm.gates import GateOptions
+from ffrecon.sfm.crosscheck.gate_types import GateOptions
 from ffrecon.splat.optimize import OptimizeOptions
 from ffrecon.splat.stage import SplatOptions
 from ffrecon.workspace import staging_path

@@ -13,8 +13,8 @@ from pathlib import Path
 import pytest
 
 from ffrecon.pipeline import RunOptions, run
-from ffrecon.sfm.crosscheck import ColmapOptions
-from ffrecon.sfm.refine import RefineOptions
+from ffrecon.sfm.crosscheck.options import ColmapOptions
+from ffrecon.sfm.refine.options import RefineOptions
 from ffrecon.splat.optimize import OptimizeOptions
 from ffrecon.splat.stage import SplatOptions
 from ffrecon.stages import GATES, STAGES

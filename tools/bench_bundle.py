@@ -2,7 +2,7 @@
 
 Reads a refined COLMAP model (``OUT/refine/model`` of an ``ffrecon run``, e.g. the 500-frame bench scene's),
 moves every camera centre by a random offset (``--offset``, model units; seed 0), and adjusts it with the
-refinement's own adjuster (``ffrecon.sfm.bundle._Adjuster``, one thread, no priors, trivial loss, run to
+refinement's own adjuster (``ffrecon.sfm.refine.bundle._Adjuster``, one thread, no priors, trivial loss, run to
 convergence) three times, each on a fresh copy:
 
 - ``whole``: ``BundleOptions(thin_from_images=0)``, Ceres' sparse Schur solver on every observation;
@@ -30,7 +30,7 @@ import numpy as np
 import pycolmap
 
 from ffrecon.geometry.rotations import rotation_angle_deg
-from ffrecon.sfm.bundle import BundleOptions, _Adjuster
+from ffrecon.sfm.refine.bundle import BundleOptions, _Adjuster
 
 
 def moved(rec: pycolmap.Reconstruction, offset: float) -> pycolmap.Reconstruction:

@@ -7,7 +7,7 @@ own code, on the same images:
 - ``exhaustive``: every pair (COLMAP alone, the reference);
 - ``model``: the pairs the model's cameras and depth say overlap (``--pairing model``; ``geometry/overlap.py``);
 - ``sequential``: COLMAP's sequential pairing alone (the next 10 frames and those 2^k ahead);
-- ``sequential+retrieval``: the same plus ffrecon's loop candidates (VLAD over SIFT, ``sfm/retrieval.py``).
+- ``sequential+retrieval``: the same plus ffrecon's loop candidates (VLAD over SIFT, ``sfm/crosscheck/retrieval.py``).
 
 Then the incremental and the global mapper each map the ``model`` row's database (mapping time only).
 Printed per row: seconds per step, pairs matched and verified, registered frames, AUC@5 and median
@@ -41,11 +41,11 @@ from ffrecon.geometry.overlap import overlap_graph
 from ffrecon.geometry.poses import camera_centers
 from ffrecon.models.multiview import MultiviewOptions, predict_multiview
 from ffrecon.models.runner import MULTIVIEW_INPUT, OnnxModel
-from ffrecon.sfm.colmap_options import ColmapOptions, MapperKind, PairingMode
-from ffrecon.sfm.crosscheck import run_colmap
+from ffrecon.sfm.crosscheck.mapping import map_images
+from ffrecon.sfm.crosscheck.options import ColmapOptions, MapperKind, PairingMode
+from ffrecon.sfm.crosscheck.retrieval import RetrievalOptions
+from ffrecon.sfm.crosscheck.run import run_colmap
 from ffrecon.sfm.features import colmap_log_level
-from ffrecon.sfm.mapping import map_images
-from ffrecon.sfm.retrieval import RetrievalOptions
 from ffrecon.synthetic import SceneOptions, make_scene
 from ffrecon.synthetic.scene import write_scene
 from ffrecon.synthetic.simulated_model import SimulationOptions, build_simulated_vggt

@@ -4,9 +4,9 @@ For each frame count, one synthetic scene is rendered and the simulated model's 
 (2.5 deg rotation, 3% centre and focal error). Then, each in a fresh subprocess (so that peak memory
 is per method):
 
-- refine:  ffrecon.sfm.refine.run_refine with its own SIFT extraction (model inference excluded);
+- refine:  ffrecon.sfm.refine.run.run_refine with its own SIFT extraction (model inference excluded);
 - refine*: the same reusing the cross-check's SIFT features, as the pipeline does;
-- colmap:  SIFT extraction, exhaustive matching, incremental mapping (ffrecon.sfm.crosscheck.run_colmap,
+- colmap:  SIFT extraction, exhaustive matching, incremental mapping (ffrecon.sfm.crosscheck.run.run_colmap,
            given the same feed-forward focal prior).
 
 Accuracy is against ground truth. Usage::
@@ -29,8 +29,10 @@ from pathlib import Path
 import numpy as np
 
 from ffrecon.geometry.metrics import pose_errors
-from ffrecon.sfm.crosscheck import ColmapOptions, run_colmap
-from ffrecon.sfm.refine import RefineOptions, run_refine
+from ffrecon.sfm.crosscheck.options import ColmapOptions
+from ffrecon.sfm.crosscheck.run import run_colmap
+from ffrecon.sfm.refine.options import RefineOptions
+from ffrecon.sfm.refine.run import run_refine
 from ffrecon.synthetic import SceneOptions, Texture, load_scene, make_scene, write_scene
 from ffrecon.synthetic.simulated_model import SimulationOptions, prediction_from_truth, simulate
 from ffrecon.types import ModelFamily, ModelInfo, PinholeCamera, Prediction

@@ -239,8 +239,8 @@ def colmap_child(images: Path, out: Path, scene_dir: Path | None, pairing: str, 
     Imports stay inside so that this process holds only what COLMAP needs (its peak memory is measured).
     """
     from ffrecon.capture.images import focal_prior_px, list_images, read_exif
-    from ffrecon.sfm.colmap_options import PairingMode
-    from ffrecon.sfm.crosscheck import ColmapOptions, run_colmap
+    from ffrecon.sfm.crosscheck.options import ColmapOptions, PairingMode
+    from ffrecon.sfm.crosscheck.run import run_colmap
     from ffrecon.sfm.features import image_sizes_wh
 
     paths, _ = list_images(images)

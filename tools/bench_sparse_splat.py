@@ -30,7 +30,8 @@ from pathlib import Path
 import numpy as np
 
 from ffrecon.geometry.metrics import pose_errors
-from ffrecon.sfm.refine import RefineOptions, run_refine
+from ffrecon.sfm.refine.options import RefineOptions
+from ffrecon.sfm.refine.run import run_refine
 from ffrecon.splat.optimize import OptimizeOptions
 from ffrecon.splat.stage import SplatOptions, run_splat_from_prediction, split_views
 from ffrecon.synthetic import CameraPath, SceneOptions, Texture, make_scene, write_scene

@@ -30,9 +30,11 @@ from pathlib import Path
 import numpy as np
 
 from ffrecon.geometry.metrics import aligned_rotation_errors_deg
-from ffrecon.sfm.evidence import FrameVerdict, judge_final_cameras
-from ffrecon.sfm.gates import GatesResult
-from ffrecon.sfm.refine import RefineOptions, run_refine
+from ffrecon.sfm.crosscheck.gate_types import GatesResult
+from ffrecon.sfm.refine.options import RefineOptions
+from ffrecon.sfm.refine.run import run_refine
+from ffrecon.sfm.verify.evidence import judge_final_cameras
+from ffrecon.sfm.verify.verdicts import FrameVerdict
 from ffrecon.synthetic import CameraPath, SceneOptions, Texture, make_scene, write_scene
 from ffrecon.synthetic.simulated_model import SimulationOptions, prediction_from_truth, simulate
 

@@ -186,7 +186,7 @@ def _add_known_input_options(p: argparse.ArgumentParser) -> None:
 
 def _add_pairing_options(p: argparse.ArgumentParser) -> None:
     """Which pairs COLMAP's cross-check matches (defaults: ColmapOptions')."""
-    from ffrecon.sfm.colmap_options import ColmapOptions, PairingMode
+    from ffrecon.sfm.crosscheck.options import ColmapOptions, PairingMode
 
     p.add_argument(
         "--pairing",
@@ -211,7 +211,7 @@ def add_run_options(p: argparse.ArgumentParser) -> None:
     """Options of ``run`` and ``demo``; their defaults live in the stage options classes alone, and so do
     their checks (each class's ``__post_init__``: a bad value is an InputError naming the flag)."""
     from ffrecon.capture import CaptureOptions
-    from ffrecon.sfm.gates import GateOptions
+    from ffrecon.sfm.crosscheck.gate_types import GateOptions
     from ffrecon.splat.optimize import OptimizeOptions
 
     _add_output_folder_options(p)

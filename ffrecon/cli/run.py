@@ -13,7 +13,7 @@ from ffrecon.cli.parser import DEMO_SCENE_FLAGS
 
 
 def _colmap_options(args: argparse.Namespace, preset):
-    from ffrecon.sfm.colmap_options import PairingMode
+    from ffrecon.sfm.crosscheck.options import PairingMode
 
     return dataclasses.replace(
         preset,

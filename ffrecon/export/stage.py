@@ -37,7 +37,7 @@ from ffrecon.formats.pointcloud import (
 )
 from ffrecon.geometry.poses import camera_centers
 from ffrecon.models.stage import FeedForwardResult
-from ffrecon.sfm.crosscheck import ColmapResult
+from ffrecon.sfm.crosscheck.run import ColmapResult
 from ffrecon.splat.seed import seed_from_reconstruction
 from ffrecon.types import Prediction, Skipped
 

@@ -21,7 +21,7 @@ from ffrecon import __version__
 from ffrecon.colmap_io import is_model_dir
 from ffrecon.report.html import render_html
 from ffrecon.results import QUICK_STATEMENT, RunMode, RunResults, Skipped
-from ffrecon.sfm.refine import RefineResult, RefineStatus
+from ffrecon.sfm.refine.options import RefineResult, RefineStatus
 from ffrecon.state import each_stage
 
 

@@ -12,8 +12,8 @@ import numpy as np
 from ffrecon.export.stage import ExportsResult
 from ffrecon.models.stage import FeedForwardResult
 from ffrecon.results import RunResults
-from ffrecon.sfm.evidence import CameraStatus, EvidenceResult, FrameVerdict
-from ffrecon.sfm.refine import RefineResult
+from ffrecon.sfm.refine.options import RefineResult
+from ffrecon.sfm.verify.verdicts import CameraStatus, EvidenceResult, FrameVerdict
 from ffrecon.state import report_section
 from ffrecon.types import Skipped
 

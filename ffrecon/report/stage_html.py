@@ -11,7 +11,7 @@ import numpy as np
 
 from ffrecon.report.markup import MAX_THUMBNAILS, depth_preview, every, figure, gallery, table, thumb
 from ffrecon.report.plots import PathSeries, camera_paths_png, error_bars_png, thumbnail_png
-from ffrecon.sfm import DisagreementOptions
+from ffrecon.sfm.compare.poses import DisagreementOptions
 
 _DISAGREEMENT = DisagreementOptions()  # the plot's threshold lines: the evidence's defaults
 

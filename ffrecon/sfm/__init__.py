@@ -2,24 +2,19 @@
 
 Stage functions (one per stage, typed in and out):
 
-- :func:`ffrecon.sfm.crosscheck.run_colmap`: plain COLMAP on the images -> ``OUT/crosscheck/sparse/0``.
-- :func:`ffrecon.sfm.gates.run_gates`: verdicts, and whether they stop the run (``GatesResult.blocking``).
-- :func:`ffrecon.sfm.compare.compare_poses`: section-5 metrics and the images that disagree.
-- :func:`ffrecon.sfm.refine.run_refine`: refinement seeded by the prediction -> ``OUT/sparse/0``.
+- :func:`ffrecon.sfm.crosscheck.run.run_colmap`: plain COLMAP on the images -> ``OUT/crosscheck/sparse/0``.
+- :func:`ffrecon.sfm.crosscheck.gates.run_gates`: verdicts, and whether they stop the run (``GatesResult.blocking``).
+- :func:`ffrecon.sfm.compare.poses.compare_poses`: section-5 metrics and the images that disagree.
+- :func:`ffrecon.sfm.refine.run.run_refine`: refinement seeded by the prediction -> ``OUT/sparse/0``.
 """
 
-from ffrecon.sfm.compare import DisagreementOptions, PoseComparison, compare_models, compare_poses
-from ffrecon.sfm.crosscheck import (
-    CameraSharing,
-    ColmapOptions,
-    ColmapResult,
-    ColmapStatus,
-    MapperKind,
-    PairingMode,
-    run_colmap,
-)
-from ffrecon.sfm.gates import FailureCause, GateOptions, GatesResult, GateStatus, GateVerdict, evaluate_gates, run_gates
-from ffrecon.sfm.refine import RefineOptions, RefineResult, RefineStatus, WeakFrame, WeakReason, run_refine
+from ffrecon.sfm.compare.poses import DisagreementOptions, PoseComparison, compare_models, compare_poses
+from ffrecon.sfm.crosscheck.gate_types import FailureCause, GateOptions, GatesResult, GateStatus, GateVerdict
+from ffrecon.sfm.crosscheck.gates import evaluate_gates, run_gates
+from ffrecon.sfm.crosscheck.options import CameraSharing, ColmapOptions, MapperKind, PairingMode
+from ffrecon.sfm.crosscheck.run import ColmapResult, ColmapStatus, run_colmap
+from ffrecon.sfm.refine.options import RefineOptions, RefineResult, RefineStatus, WeakFrame, WeakReason
+from ffrecon.sfm.refine.run import run_refine
 
 __all__ = [
     "CameraSharing",

@@ -69,7 +69,7 @@ class FeatureStats:
     num_inlier_matches: np.ndarray  # [N] int, verified matches summed over those pairs
     num_pairs_matched: int  # image pairs that went through matching
     num_pairs_verified: int
-    num_loop_candidates: int = 0  # of the matched pairs, those retrieval added (ffrecon.sfm.retrieval)
+    num_loop_candidates: int = 0  # of the matched pairs, those retrieval added (ffrecon.sfm.crosscheck.retrieval)
 
     def to_report(self) -> dict:
         return {

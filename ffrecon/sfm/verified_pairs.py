@@ -1,7 +1,7 @@
 """What COLMAP's verified pairs say about chosen images: shared matches and parallax.
 
 A failed registration is explained by the images COLMAP left out (see
-:func:`ffrecon.sfm.gates.diagnose_registration`): how many verified matches each shares with its
+:func:`ffrecon.sfm.crosscheck.registration.diagnose_registration`): how many verified matches each shares with its
 best neighbours, and how much parallax those pairs have. COLMAP's database keeps each verified
 pair's inlier matches and its geometry, but not its triangulation angle (pycolmap 4.x has
 ``TwoViewGeometry.tri_angle``, yet a geometry read back from the database says -1), so it is

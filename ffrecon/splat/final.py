@@ -16,8 +16,8 @@ from ffrecon.capture import Capture
 from ffrecon.final_cameras import CameraSource, FinalCameras
 from ffrecon.geometry.undistort import undistort_image
 from ffrecon.models.stage import FeedForwardResult
-from ffrecon.sfm.compare import compare_poses
-from ffrecon.sfm.crosscheck import ColmapResult
+from ffrecon.sfm.compare.poses import compare_poses
+from ffrecon.sfm.crosscheck.run import ColmapResult
 from ffrecon.splat.seed import seed_from_reconstruction
 from ffrecon.splat.stage import SplatOptions, SplatResult, run_splat, run_splat_from_prediction
 from ffrecon.timing import StageTimer

@@ -81,7 +81,8 @@ def test_iterative_steps_refuse_nan_inputs():
 
 
 def test_refinement_refuses_infinite_focal_before_any_work(tmp_path):
-    from ffrecon.sfm.refine import RefineOptions, run_refine
+    from ffrecon.sfm.refine.options import RefineOptions
+    from ffrecon.sfm.refine.run import run_refine
 
     pred = _prediction()
     for name in pred.names:

@@ -11,8 +11,10 @@ from pathlib import Path
 
 import pytest
 
-from ffrecon.sfm.crosscheck import ColmapOptions, ColmapResult, run_colmap
-from ffrecon.sfm.refine import RefineOptions, RefineResult, run_refine
+from ffrecon.sfm.crosscheck.options import ColmapOptions
+from ffrecon.sfm.crosscheck.run import ColmapResult, run_colmap
+from ffrecon.sfm.refine.options import RefineOptions, RefineResult
+from ffrecon.sfm.refine.run import run_refine
 from ffrecon.synthetic import SceneOptions, SyntheticScene, Texture, make_scene, write_scene
 from ffrecon.synthetic.simulated_model import SimulationOptions, prediction_from_truth, simulate
 from ffrecon.types import Prediction

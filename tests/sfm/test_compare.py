@@ -8,7 +8,7 @@ import pytest
 from ffrecon.geometry.alignment import Sim3
 from ffrecon.geometry.poses import look_at_cam_from_world
 from ffrecon.geometry.rotations import axis_angle_to_matrix
-from ffrecon.sfm.compare import DisagreementOptions, compare_poses
+from ffrecon.sfm.compare.poses import DisagreementOptions, compare_poses
 
 
 @pytest.fixture()

@@ -9,18 +9,10 @@ import pytest
 from ffrecon.colmap_io import cam_from_world_by_name, reconstruction_from_cameras, write_reconstruction
 from ffrecon.errors import InputError
 from ffrecon.geometry.metrics import pose_errors
-from ffrecon.sfm.compare import compare_models
-from ffrecon.sfm.crosscheck import (
-    CameraSharing,
-    ColmapOptions,
-    ColmapStatus,
-    MapperKind,
-    PairingMode,
-    resolve_camera_sharing,
-    resolve_pairing,
-    run_colmap,
-)
-from ffrecon.sfm.mapping import drop_weak_images
+from ffrecon.sfm.compare.poses import compare_models
+from ffrecon.sfm.crosscheck.mapping import drop_weak_images
+from ffrecon.sfm.crosscheck.options import CameraSharing, ColmapOptions, MapperKind, PairingMode
+from ffrecon.sfm.crosscheck.run import ColmapStatus, resolve_camera_sharing, resolve_pairing, run_colmap
 
 
 def test_colmap_registers_the_orbit_accurately(orbit24, colmap24):

@@ -6,8 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ffrecon.sfm.colmap_options import PairingMode
-from ffrecon.sfm.crosscheck import _no_model_result
+from ffrecon.sfm.crosscheck.options import PairingMode
+from ffrecon.sfm.crosscheck.run import _no_model_result
 from ffrecon.sfm.features import FeatureStats
 from ffrecon.timing import Timings
 

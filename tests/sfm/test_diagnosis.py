@@ -13,7 +13,8 @@ from ffrecon.capture.quality import assess_capture, measure_frame
 from ffrecon.errors import InputError
 from ffrecon.geometry.poses import camera_centers
 from ffrecon.pipeline import RunOptions, run
-from ffrecon.sfm.gates import FailureCause, GateOptions, diagnose_registration, registration_gate
+from ffrecon.sfm.crosscheck.gate_types import FailureCause, GateOptions
+from ffrecon.sfm.crosscheck.registration import diagnose_registration, registration_gate
 from ffrecon.sfm.verified_pairs import ImagePairs, read_image_pairs
 from ffrecon.splat.stage import SplatOptions
 from ffrecon.synthetic import CameraPath, SceneOptions, Texture, make_scene, write_scene

@@ -1,12 +1,12 @@
 """A refined model is broken when its cameras scattered, not when one point ended a round far off
-(:func:`ffrecon.sfm.bundle._diverged`, issue 39): on the repeated-tile street of seed 201 (``--quick``, frame 6
+(:func:`ffrecon.sfm.refine.bundle._diverged`, issue 39): on the repeated-tile street of seed 201 (``--quick``, frame 6
 25 deg off) one point of 2,569 at 1e154 px made the mean 5e152 px with every camera within 1.5 deg of the truth,
 and the whole refinement was thrown away."""
 
 import numpy as np
 import pycolmap
 
-from ffrecon.sfm.bundle import _diverged
+from ffrecon.sfm.refine.bundle import _diverged
 
 
 def _model() -> pycolmap.Reconstruction:

@@ -11,17 +11,11 @@ import pytest
 
 from ffrecon.capture import CaptureOptions, run_capture
 from ffrecon.capture.quality import assess_capture, measure_frame
-from ffrecon.sfm.crosscheck import ColmapOptions, run_colmap
-from ffrecon.sfm.gates import (
-    FailureCause,
-    GateOptions,
-    GatesResult,
-    GateStatus,
-    diagnose_registration,
-    evaluate_gates,
-    run_gates,
-    sparse_cloud_gate,
-)
+from ffrecon.sfm.crosscheck.gate_types import FailureCause, GateOptions, GatesResult, GateStatus
+from ffrecon.sfm.crosscheck.gates import evaluate_gates, run_gates, sparse_cloud_gate
+from ffrecon.sfm.crosscheck.options import ColmapOptions
+from ffrecon.sfm.crosscheck.registration import diagnose_registration
+from ffrecon.sfm.crosscheck.run import run_colmap
 from ffrecon.synthetic import SceneOptions, Texture, make_scene, write_scene
 
 

@@ -1,4 +1,4 @@
-"""Frames held to the rest only by weak links, or by links the model contradicts (sfm/links.py, issue 21).
+"""Frames held to the rest only by weak links, or by links the model contradicts (sfm/refine/links.py, issue 21).
 
 The case is a held-out seed of the wide-baseline scene (8 views 30-60 deg apart, plain walls) that the
 bad-frame sweep over seeds 1-12 found: seed 6 with frame 4 25 deg off ends, with the link check off, with a
@@ -11,7 +11,7 @@ not twice.
 
 Two earlier cases (seed 2, and seed 4 with frame 7 off: 5.7 and 10.4 deg without the check) no longer need
 it: their weak links came from pairs SIFT's verification had failed, whose dense correspondences never
-reached the adjustment (sfm/dense.py, ``_add_matches``); with those in, no link there is weak.
+reached the adjustment (sfm/refine/dense.py, ``_add_matches``); with those in, no link there is weak.
 """
 
 import dataclasses
@@ -20,10 +20,12 @@ import numpy as np
 import pytest
 
 from ffrecon.geometry.metrics import aligned_rotation_errors_deg
-from ffrecon.sfm.evidence import FrameVerdict, judge_final_cameras
-from ffrecon.sfm.gates import GatesResult
-from ffrecon.sfm.links import LinkOptions
-from ffrecon.sfm.refine import RefineOptions, run_refine
+from ffrecon.sfm.crosscheck.gate_types import GatesResult
+from ffrecon.sfm.refine.links import LinkOptions
+from ffrecon.sfm.refine.options import RefineOptions
+from ffrecon.sfm.refine.run import run_refine
+from ffrecon.sfm.verify.evidence import judge_final_cameras
+from ffrecon.sfm.verify.verdicts import FrameVerdict
 from ffrecon.synthetic import CameraPath, SceneOptions, Texture, make_scene, write_scene
 from ffrecon.synthetic.simulated_model import SimulationOptions, prediction_from_truth, simulate
 

@@ -5,7 +5,7 @@ The street of :mod:`ffrecon.synthetic.layouts` with one tile repeated on every s
 apart, a simulated model 2.5 deg / 3 % off per frame (seed 201, one of issue 39's held-out seeds). Its
 verified pairs between the even and the odd frames mostly sit one period of the tile off, and agree with
 each other: adjusted on them, one group of frames turned 16 deg against the other (median 8.5 deg from
-the truth at 0.70 px) before :func:`ffrecon.sfm.screen.drop_contradicting_pairs`.
+the truth at 0.70 px) before :func:`ffrecon.sfm.refine.screen.drop_contradicting_pairs`.
 """
 
 from __future__ import annotations
@@ -18,11 +18,13 @@ import pytest
 
 from ffrecon.geometry.metrics import aligned_rotation_errors_deg
 from ffrecon.geometry.rotations import axis_angle_to_matrix
-from ffrecon.sfm.evidence import FrameVerdict, judge_final_cameras
-from ffrecon.sfm.gates import GatesResult
-from ffrecon.sfm.guided import MatchGuidance
-from ffrecon.sfm.photometric import PhotometricOptions, photometric_check
-from ffrecon.sfm.refine import RefineOptions, run_refine
+from ffrecon.sfm.crosscheck.gate_types import GatesResult
+from ffrecon.sfm.refine.guided import MatchGuidance
+from ffrecon.sfm.refine.options import RefineOptions
+from ffrecon.sfm.refine.run import run_refine
+from ffrecon.sfm.verify.evidence import judge_final_cameras
+from ffrecon.sfm.verify.photometric import PhotometricOptions, photometric_check
+from ffrecon.sfm.verify.verdicts import FrameVerdict
 from ffrecon.synthetic import CameraPath, SceneOptions, Texture, make_scene, write_scene
 from ffrecon.synthetic.layouts import Layout
 from ffrecon.synthetic.simulated_model import SimulationOptions, prediction_from_truth, simulate

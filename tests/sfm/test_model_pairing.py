@@ -9,11 +9,12 @@ from ffrecon.cli import main
 from ffrecon.geometry.metrics import pose_errors
 from ffrecon.geometry.overlap import overlap_graph
 from ffrecon.pipeline import RunOptions, run
-from ffrecon.sfm import mapping, refine
-from ffrecon.sfm.colmap_options import ColmapOptions, PairingMode
-from ffrecon.sfm.crosscheck import resolve_pairing
-from ffrecon.sfm.mapping import MapperRun
-from ffrecon.sfm.refine import RefineOptions
+from ffrecon.sfm.crosscheck import mapping
+from ffrecon.sfm.crosscheck.mapping import MapperRun
+from ffrecon.sfm.crosscheck.options import ColmapOptions, PairingMode
+from ffrecon.sfm.crosscheck.run import resolve_pairing
+from ffrecon.sfm.refine import run as refine
+from ffrecon.sfm.refine.options import RefineOptions
 from ffrecon.splat.stage import SplatOptions
 from ffrecon.synthetic.scene import load_scene
 

@@ -1,6 +1,7 @@
 """A frame the refinement did not hold, judged on its verified pairs: weighed, never removed by one weak pair."""
 
-from ffrecon.sfm.evidence import EvidenceOptions, FrameVerdict, _pair_verdict
+from ffrecon.sfm.verify.frames import _pair_verdict
+from ffrecon.sfm.verify.verdicts import EvidenceOptions, FrameVerdict
 
 OPTIONS = EvidenceOptions()
 

@@ -21,7 +21,8 @@ from PIL import Image
 
 from ffrecon.capture.images import focal_prior_px, read_exif
 from ffrecon.geometry.alignment import umeyama
-from ffrecon.sfm.crosscheck import ColmapOptions, ColmapResult, ColmapStatus, MapperKind, PairingMode, run_colmap
+from ffrecon.sfm.crosscheck.options import ColmapOptions, MapperKind, PairingMode
+from ffrecon.sfm.crosscheck.run import ColmapResult, ColmapStatus, run_colmap
 
 LUND = Path(__file__).resolve().parents[3] / "shared" / "data" / "lund"
 LONG_SIDE_PX = 640  # the photos are 1024 x 768; at 640 px one cross-check takes about 25 s on 2 cores

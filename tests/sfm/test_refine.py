@@ -9,9 +9,11 @@ import pytest
 from ffrecon.colmap_io import cam_from_world_by_name
 from ffrecon.geometry.metrics import pose_errors
 from ffrecon.geometry.poses import camera_centers
-from ffrecon.sfm.bundle import BundleOptions, LensTrial
-from ffrecon.sfm.guided import GuidanceOptions, MatchGuidance
-from ffrecon.sfm.refine import RefineOptions, RefineStatus, WeakReason, run_refine
+from ffrecon.sfm.refine.bundle import BundleOptions
+from ffrecon.sfm.refine.guided import GuidanceOptions, MatchGuidance
+from ffrecon.sfm.refine.lens import LensTrial
+from ffrecon.sfm.refine.options import RefineOptions, RefineStatus, WeakReason
+from ffrecon.sfm.refine.run import run_refine
 
 
 def test_refined_cameras_reach_colmap_accuracy(orbit24, refined24):

@@ -1,4 +1,4 @@
-"""Relocalisation of frames the model placed far off (sfm/relocalize.py, issue 21): neighbours rendered
+"""Relocalisation of frames the model placed far off (sfm/refine/relocalize.py, issue 21): neighbours rendered
 into the frame's predicted view, SIFT-matched to its photo, absolute pose."""
 
 import dataclasses
@@ -8,10 +8,12 @@ import numpy as np
 import pytest
 
 from ffrecon.geometry.metrics import aligned_rotation_errors_deg
-from ffrecon.sfm.evidence import CameraStatus, FrameVerdict, judge_final_cameras
-from ffrecon.sfm.gates import GatesResult
-from ffrecon.sfm.refine import RefineOptions, run_refine
-from ffrecon.sfm.relocalize import RelocalizeOptions, fill_holes, relocalize, render_into
+from ffrecon.sfm.crosscheck.gate_types import GatesResult
+from ffrecon.sfm.refine.options import RefineOptions
+from ffrecon.sfm.refine.relocalize import RelocalizeOptions, fill_holes, relocalize, render_into
+from ffrecon.sfm.refine.run import run_refine
+from ffrecon.sfm.verify.evidence import judge_final_cameras
+from ffrecon.sfm.verify.verdicts import CameraStatus, FrameVerdict
 from ffrecon.synthetic import CameraPath, SceneOptions, Texture, make_scene, write_scene
 from ffrecon.synthetic.simulated_model import SimulationOptions, prediction_from_truth, simulate
 

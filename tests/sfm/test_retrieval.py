@@ -3,8 +3,8 @@
 import numpy as np
 
 from ffrecon.geometry.metrics import pose_errors
-from ffrecon.sfm.colmap_options import ColmapOptions, PairingMode
-from ffrecon.sfm.crosscheck import run_colmap
+from ffrecon.sfm.crosscheck.options import ColmapOptions, PairingMode
+from ffrecon.sfm.crosscheck.run import run_colmap
 from ffrecon.synthetic import SceneOptions, make_scene
 from ffrecon.synthetic.scene import write_scene
 

@@ -1,4 +1,4 @@
-"""Screening of the model's rotations against the verified pairs' own (sfm/screen.py, issue 21): a frame
+"""Screening of the model's rotations against the verified pairs' own (sfm/refine/screen.py, issue 21): a frame
 the model turned far off is found before the adjustment and starts it from its pairs' rotation."""
 
 import numpy as np
@@ -7,10 +7,12 @@ import pytest
 from ffrecon.geometry.metrics import aligned_rotation_errors_deg
 from ffrecon.geometry.poses import camera_centers
 from ffrecon.geometry.rotations import axis_angle_to_matrix, random_rotation, rotation_angle_deg
-from ffrecon.sfm.evidence import CameraStatus, FrameVerdict, judge_final_cameras
-from ffrecon.sfm.gates import GatesResult
-from ffrecon.sfm.refine import RefineOptions, run_refine
-from ffrecon.sfm.screen import PairGap, ScreenOptions, blame
+from ffrecon.sfm.crosscheck.gate_types import GatesResult
+from ffrecon.sfm.refine.options import RefineOptions
+from ffrecon.sfm.refine.run import run_refine
+from ffrecon.sfm.refine.screen import PairGap, ScreenOptions, blame
+from ffrecon.sfm.verify.evidence import judge_final_cameras
+from ffrecon.sfm.verify.verdicts import CameraStatus, FrameVerdict
 from ffrecon.synthetic import CameraPath, SceneOptions, Texture, make_scene, write_scene
 from ffrecon.synthetic.simulated_model import SimulationOptions, prediction_from_truth, simulate
 
@@ -84,7 +86,7 @@ def test_two_frames_sharing_only_each_other_cannot_be_told_apart(true):
 # Seed 7 of the wide-baseline scene, frame 1 turned 25 deg: before the screen, the adjustment kept frame 1
 # near its wrong pose and bent every other frame 5-11 deg (frame 1 confirmed at 10.6 deg, 7 others "corrected").
 # Frame 7 used to hang on one pair whose matches lie on a wall and end 5.4 deg off, unchecked; since the
-# dense correspondences of pairs SIFT could not verify reach the adjustment (sfm/dense.py) it is held by
+# dense correspondences of pairs SIFT could not verify reach the adjustment (sfm/refine/dense.py) it is held by
 # several pairs and confirmed.
 WIDE_7 = SceneOptions(num_frames=8, width=320, height=240, path=CameraPath.WIDE, texture=Texture.PLAIN_WALLS, seed=7)
 

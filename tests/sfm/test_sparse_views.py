@@ -19,10 +19,12 @@ import pytest
 from ffrecon.cli import main
 from ffrecon.geometry.metrics import pose_errors
 from ffrecon.geometry.projection import project_points, unproject_pixels
-from ffrecon.sfm.dense import DenseOptions, frame_corners, predicted_map, track_pair
-from ffrecon.sfm.evidence import CameraStatus, FrameVerdict, judge_final_cameras
-from ffrecon.sfm.gates import GatesResult, GateStatus, GateVerdict
-from ffrecon.sfm.refine import RefineOptions, RefineStatus, run_refine
+from ffrecon.sfm.crosscheck.gate_types import GatesResult, GateStatus, GateVerdict
+from ffrecon.sfm.refine.dense import DenseOptions, frame_corners, predicted_map, track_pair
+from ffrecon.sfm.refine.options import RefineOptions, RefineStatus
+from ffrecon.sfm.refine.run import run_refine
+from ffrecon.sfm.verify.evidence import judge_final_cameras
+from ffrecon.sfm.verify.verdicts import CameraStatus, FrameVerdict
 from ffrecon.synthetic import CameraPath, SceneOptions, Texture, make_scene, write_scene
 from ffrecon.synthetic.simulated_model import SimulationOptions, build_simulated_vggt, prediction_from_truth, simulate
 

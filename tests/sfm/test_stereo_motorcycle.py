@@ -18,10 +18,12 @@ import numpy as np
 import pytest
 
 from ffrecon.geometry.rotations import rotation_angle_deg
-from ffrecon.sfm.dense import DenseOptions, frame_corners, predicted_map, track_pair
-from ffrecon.sfm.evidence import FrameVerdict, judge_final_cameras
-from ffrecon.sfm.gates import GatesResult
-from ffrecon.sfm.refine import RefineOptions, run_refine
+from ffrecon.sfm.crosscheck.gate_types import GatesResult
+from ffrecon.sfm.refine.dense import DenseOptions, frame_corners, predicted_map, track_pair
+from ffrecon.sfm.refine.options import RefineOptions
+from ffrecon.sfm.refine.run import run_refine
+from ffrecon.sfm.verify.evidence import judge_final_cameras
+from ffrecon.sfm.verify.verdicts import FrameVerdict
 from ffrecon.types import ModelFamily, ModelInfo, PinholeCamera, Prediction
 
 skimage_data = pytest.importorskip("skimage.data", reason="scikit-image ships the Middlebury pair")

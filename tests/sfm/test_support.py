@@ -1,12 +1,14 @@
-"""A frame hanging on one planar pair is unchecked, not confirmed (sfm/support.py, issue 21). The opposite
+"""A frame hanging on one planar pair is unchecked, not confirmed (sfm/verify/support.py, issue 21). The opposite
 case, two real photos of a motorcycle (not planar) on one pair, stays confirmed:
 tests/sfm/test_stereo_motorcycle.py."""
 
 from ffrecon.geometry.metrics import aligned_rotation_errors_deg
-from ffrecon.sfm.evidence import CameraStatus, FrameVerdict, judge_final_cameras
-from ffrecon.sfm.gates import GatesResult
-from ffrecon.sfm.refine import RefineOptions, run_refine
-from ffrecon.sfm.support import planar_single_pair
+from ffrecon.sfm.crosscheck.gate_types import GatesResult
+from ffrecon.sfm.refine.options import RefineOptions
+from ffrecon.sfm.refine.run import run_refine
+from ffrecon.sfm.verify.evidence import judge_final_cameras
+from ffrecon.sfm.verify.support import planar_single_pair
+from ffrecon.sfm.verify.verdicts import CameraStatus, FrameVerdict
 from ffrecon.synthetic import CameraPath, SceneOptions, Texture, make_scene, write_scene
 from ffrecon.synthetic.simulated_model import SimulationOptions, prediction_from_truth, simulate
 

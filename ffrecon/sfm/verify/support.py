@@ -7,7 +7,7 @@ geometry does, and the adjustment settles where it starts. On the wide-baseline 
 7 hung on frame 0 by 43 of its 50 observations, 94 % of which a homography explains; it ended 5.4 deg
 from the truth with a 0.11 px reprojection error, and BA's own covariance said 0.07 deg: the fit
 is tight, the geometry is not determined. (Since dense evidence reaches the pairs SIFT could not verify,
-sfm/dense.py, that frame is held by several pairs; seed 5's frame 6 is such a case now.)
+sfm/refine/dense.py, that frame is held by several pairs; seed 5's frame 6 is such a case now.)
 
 COLMAP's rule decides planarity, as its two-view geometry does for every pair: the homography's
 inliers over the essential matrix's, above ``max_H_inlier_ratio`` (0.8, pycolmap's default). The RANSAC

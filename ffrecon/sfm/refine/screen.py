@@ -222,7 +222,7 @@ def drop_contradicting_pairs(
     """Delete the verified geometry of every pair whose measured relative rotation lies more than
     ``max_gap_deg`` from the model's; returns those pairs.
 
-    For look-alike surfaces only (matches guided by the model, :mod:`ffrecon.sfm.guided`): there a
+    For look-alike surfaces only (matches guided by the model, :mod:`ffrecon.sfm.refine.guided`): there a
     pair's matches can all sit one period of the pattern off, and such pairs agree with each other,
     since one period is one rotation. On the repeated-texture street (seed 201), five of the seven
     pairs between the even and the odd frames did, 9-20 deg from the truth, and the adjustment turned

@@ -1,7 +1,7 @@
 """Relocalisation of a frame the model placed far off: its neighbours, rendered where the model says
 it is, matched to its own photo (issue 21).
 
-Dense evidence (``sfm/dense.py``) warps a neighbour into a frame's view through the model's
+Dense evidence (``sfm/refine/dense.py``) warps a neighbour into a frame's view through the model's
 prediction and measures what is left: a few degrees. A frame the model got grossly wrong (tens of
 degrees) is predicted a hundred pixels or more from where it is, beyond any flow's reach, and SIFT
 across the wide baseline finds too little, so the frame would end with no evidence either way.
@@ -40,7 +40,7 @@ from ffrecon.checks import check_number
 from ffrecon.geometry.overlap import OverlapOptions, overlap_matrix
 from ffrecon.geometry.poses import camera_centers
 from ffrecon.geometry.rotations import rotation_angle_deg
-from ffrecon.sfm.dense import world_at_size
+from ffrecon.sfm.refine.dense import world_at_size
 from ffrecon.types import PinholeCamera, Prediction
 
 logger = logging.getLogger("ffrecon.sfm")

@@ -1,7 +1,7 @@
 """Mapping for the COLMAP cross-check: COLMAP's incremental and global mappers with every solver bounded,
 the weak-image rule, the choice of model, and ffrecon's two-view reconstruction as a mapper run.
 
-:func:`ffrecon.sfm.crosscheck.run_colmap` calls :func:`map_images` once features are matched.
+:func:`ffrecon.sfm.crosscheck.run.run_colmap` calls :func:`map_images` once features are matched.
 """
 
 from __future__ import annotations
@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from ffrecon.sfm.colmap_options import ColmapOptions, MapperKind
-from ffrecon.sfm.two_view import TwoViewOptions, two_view_reconstruction
+from ffrecon.sfm.crosscheck.options import ColmapOptions, MapperKind
+from ffrecon.sfm.crosscheck.two_view import TwoViewOptions, two_view_reconstruction
 
 logger = logging.getLogger("ffrecon.sfm")
 
@@ -184,7 +184,7 @@ def map_images(
 def two_view_run(
     db_path: Path, names: tuple[str, ...], options: TwoViewOptions
 ) -> tuple[pycolmap.Reconstruction | None, MapperRun]:
-    """:func:`~ffrecon.sfm.two_view.two_view_reconstruction` as a mapper run."""
+    """:func:`~ffrecon.sfm.crosscheck.two_view.two_view_reconstruction` as a mapper run."""
     start = time.perf_counter()
     rec = two_view_reconstruction(db_path, names, options)
     found = rec is not None

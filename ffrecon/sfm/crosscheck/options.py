@@ -1,5 +1,5 @@
-"""The options of the COLMAP cross-check (:func:`ffrecon.sfm.crosscheck.run_colmap`) and the choices they
-name, in a module of their own so that mapping (:mod:`ffrecon.sfm.mapping`) and the cross-check both read
+"""The options of the COLMAP cross-check (:func:`ffrecon.sfm.crosscheck.run.run_colmap`) and the choices they
+name, in a module of their own so that mapping (:mod:`ffrecon.sfm.crosscheck.mapping`) and the cross-check both read
 them without importing each other."""
 
 from __future__ import annotations
@@ -10,9 +10,9 @@ from pathlib import Path
 
 from ffrecon.checks import check_number
 from ffrecon.geometry.overlap import OverlapOptions
+from ffrecon.sfm.crosscheck.retrieval import RetrievalOptions
+from ffrecon.sfm.crosscheck.two_view import TwoViewOptions
 from ffrecon.sfm.features import CameraModel, SiftOptions
-from ffrecon.sfm.retrieval import RetrievalOptions
-from ffrecon.sfm.two_view import TwoViewOptions
 
 
 class MapperKind(enum.Enum):
@@ -21,7 +21,7 @@ class MapperKind(enum.Enum):
     AUTO = "auto"
     INCREMENTAL = "incremental"
     GLOBAL = "global"  # GLOMAP, merged into COLMAP 4
-    TWO_VIEW = "two_view"  # ffrecon's own, from COLMAP's verified geometry of two photos (sfm/two_view.py)
+    TWO_VIEW = "two_view"  # ffrecon's own, from COLMAP's verified geometry of two photos (sfm/crosscheck/two_view.py)
 
 
 class PairingMode(enum.Enum):
@@ -31,7 +31,7 @@ class PairingMode(enum.Enum):
     EXHAUSTIVE = "exhaustive"
     # video order: each frame against its ``sequential_overlap`` successors and successors 2^k apart
     # (quadratic overlap), and against similar-looking frames (loop candidates): by COLMAP's vocabulary tree
-    # with ``vocab_tree_path``, else by VLAD over the frames' own SIFT (``retrieval``, ffrecon.sfm.retrieval)
+    # with ``vocab_tree_path``, else by VLAD over the frames' own SIFT (``retrieval``, ffrecon.sfm.crosscheck.retrieval)
     SEQUENTIAL = "sequential"
     SPATIAL = "spatial"  # nearest GPS positions (needs position priors in the database, e.g. from EXIF)
     VOCAB_TREE = "vocab_tree"  # image retrieval; needs ``vocab_tree_path``

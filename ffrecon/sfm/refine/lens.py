@@ -1,4 +1,4 @@
-"""Whether a lens needs its radial term: the refinement's test (:func:`ffrecon.sfm.bundle.refine_tracks`).
+"""Whether a lens needs its radial term: the refinement's test (:func:`ffrecon.sfm.refine.passes.refine_tracks`).
 
 On a forward walk, focal length and k trade off almost freely, and an unsupported k only bends the poses; so
 the term is kept only where it clearly pays, and a clean lens is told apart cheaply first.

@@ -52,10 +52,10 @@ class GuidanceOptions:
     seed: int = 0  # RANSAC of the filter
     fit_keypoints: int = 500  # guided: keypoints used in the wide search that measures the pair's error
     # Guided: a verified pair whose own relative rotation is further than this from the model's is dropped
-    # (:func:`ffrecon.sfm.screen.drop_contradicting_pairs`): on look-alike surfaces such pairs are one period of
+    # (:func:`ffrecon.sfm.refine.screen.drop_contradicting_pairs`): on look-alike surfaces such pairs are one period of
     # the pattern off. Feed-forward errors are a few degrees (2.5 per frame: pairs within ~3.5, ~7 at worst).
     max_pair_gap_deg: float = 8.0
-    # Guided: the adjustment triangulates two-view tracks too, with a robust fine pass (sfm/refine.py,
+    # Guided: the adjustment triangulates two-view tracks too, with a robust fine pass (sfm/refine/run.py,
     # _on_lookalikes); False: COLMAP's default, tracks over three frames or more only.
     two_view_tracks: bool = True
 

@@ -2,7 +2,7 @@
 
 Estimates are the feed-forward cameras, COLMAP's and the refined ones; references are COLMAP (the
 cross-check), and ground truth or a ``--reference`` COLMAP model when given. The metrics are the
-field's (docs/contracts.md, "Pose error"); see :func:`ffrecon.sfm.compare.compare_poses`.
+field's (docs/contracts.md, "Pose error"); see :func:`ffrecon.sfm.compare.poses.compare_poses`.
 """
 
 from __future__ import annotations
@@ -19,9 +19,9 @@ from ffrecon.colmap_io import cam_from_world_by_name, is_model_dir
 from ffrecon.errors import InputError
 from ffrecon.formats.ground_truth import ground_truth_poses
 from ffrecon.geometry.poses import up_from_cameras
-from ffrecon.sfm.compare import PoseComparison, compare_poses
-from ffrecon.sfm.crosscheck import ColmapResult
-from ffrecon.sfm.refine import RefineResult
+from ffrecon.sfm.compare.poses import PoseComparison, compare_poses
+from ffrecon.sfm.crosscheck.run import ColmapResult
+from ffrecon.sfm.refine.options import RefineResult
 from ffrecon.types import Skipped
 
 # Reference poses by label: (cam_from_world [N, 3, 4], has a pose [N] bool), over the run's names.

@@ -111,7 +111,7 @@ class PhotometricCheck:
     def poor(self, name: str) -> bool:
         """Whether the frame fits at its camera clearly worse than the confirmed frames do at theirs: what is left
         to correlate at least ``options.poor_factor`` times theirs. Not enough alone (a frame the neighbours cover
-        in part scores low too), only beside another sign (:mod:`ffrecon.sfm.evidence`)."""
+        in part scores low too), only beside another sign (:mod:`ffrecon.sfm.verify.evidence`)."""
         s = self.scores.get(name)
         left, theirs = (1 - s.score, 1 - self.reference) if s is not None else (np.nan, np.nan)
         return bool(np.isfinite(left) and left >= self.options.poor_factor * theirs)

@@ -33,7 +33,9 @@ from ffrecon.capture import Capture
 from ffrecon.colmap_io import cam_from_world_by_name, cameras_by_name, write_reconstruction
 from ffrecon.errors import InputError
 from ffrecon.geometry.overlap import OverlapGraph, overlap_graph
-from ffrecon.sfm.colmap_options import CameraSharing, ColmapOptions, MapperKind, PairingMode
+from ffrecon.sfm.crosscheck.mapping import MapperRun, map_images, two_view_run
+from ffrecon.sfm.crosscheck.options import CameraSharing, ColmapOptions, MapperKind, PairingMode
+from ffrecon.sfm.crosscheck.retrieval import check_vocab_tree, retrieval_pairs
 from ffrecon.sfm.features import (
     FeatureStats,
     colmap_log_level,
@@ -46,8 +48,6 @@ from ffrecon.sfm.features import (
     matching_options,
     threads_at_most,
 )
-from ffrecon.sfm.mapping import MapperRun, map_images, two_view_run
-from ffrecon.sfm.retrieval import check_vocab_tree, retrieval_pairs
 from ffrecon.timing import StageTimer, Timings
 from ffrecon.types import PinholeCamera, Prediction
 

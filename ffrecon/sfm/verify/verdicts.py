@@ -1,0 +1,129 @@
+"""The evidence's words and options: a frame's verdict and status, what decided it, and the result of judging
+the final cameras (:func:`ffrecon.sfm.verify.evidence.judge_final_cameras`).
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+
+import numpy as np
+
+from ffrecon.checks import check_number
+from ffrecon.sfm.compare.poses import DisagreementOptions
+from ffrecon.sfm.crosscheck.gate_types import GatesResult
+from ffrecon.sfm.verify.photometric import PhotometricOptions
+
+
+class FrameVerdict(enum.Enum):
+    CONFIRMED = "confirmed"  # independent evidence agrees with the model's camera
+    CONTRADICTED = "contradicted"  # the evidence disagrees: its own pose replaces the model's, or the frame is left out
+    UNCHECKED = "unchecked"  # no evidence either way: the model's camera, marked as such
+
+
+class CameraStatus(enum.Enum):
+    CONFIRMED = "confirmed by COLMAP"  # refined, and COLMAP registered it at an agreeing pose
+    REFINED = "refined on image matches"  # bundle-adjusted on its matches; COLMAP did not register it
+    COLMAP_ONLY = "COLMAP only"  # not refined, but COLMAP registered it: its pose, moved into the refined frame
+    CORRECTED = "corrected by the evidence"  # refined or COLMAP's pose, far from the model's: it replaces it
+    DISAGREES = "disagrees with COLMAP"  # refined, but COLMAP placed it elsewhere: left out
+    CONTRADICTED = "contradicted by its matches"  # its verified pairs' rotations disagree with its pose: left out
+    UNCHECKED = "unchecked"  # no evidence either way: keeps the model's camera
+    PLANAR_PAIR = "refined on one planar pair"  # placed by one pair whose matches lie on a plane: ambiguous
+    PHOTO_MISFIT = "contradicted by the photos"  # the confirmed frames, seen from its camera, do not look like it
+
+    @property
+    def verdict(self) -> FrameVerdict:
+        if self in (CameraStatus.CONFIRMED, CameraStatus.REFINED, CameraStatus.COLMAP_ONLY):
+            return FrameVerdict.CONFIRMED
+        unchecked = self in (CameraStatus.UNCHECKED, CameraStatus.PLANAR_PAIR)
+        return FrameVerdict.UNCHECKED if unchecked else FrameVerdict.CONTRADICTED
+
+    @property
+    def kept(self) -> bool:
+        """Whether the frame is among the final cameras (the splat's, ``sparse/0``, ``transforms.json``)."""
+        return self not in (CameraStatus.DISAGREES, CameraStatus.CONTRADICTED, CameraStatus.PHOTO_MISFIT)
+
+
+@dataclass(frozen=True, kw_only=True)
+class EvidenceOptions:
+    min_refined_ratio: float = 0.85  # images refined with enough inlier observations
+    max_reprojection_px: float = 2.0  # mean reprojection error of the refined model
+    min_track_length: float = 2.2  # mean observations per refined 3D point
+    min_colmap_agreement: float = 0.8  # share of the images both registered on which they agree
+    min_common_images: int = 3  # fewer images registered by both: agreement is not judged
+    unsuited_share: float = 0.5  # a healthy COLMAP model disagreeing with the model on more: unsuited
+    # The evidence moving a frame's rotation further than this from the model's contradicts the model
+    # there (feed-forward errors are a few degrees; a frame off by more is a failure of the model).
+    max_correction_deg: float = 10.0
+    # On look-alike surfaces, a frame SIFT left short and the dense correspondences (tracked from the model's
+    # prediction) moved further than this from the model's rotation is left out: such tracks lock onto the
+    # pattern's period nearest the prediction. Good frames moved 1.0-4.0 deg on the repeated-tile street (seed
+    # 201, --quick), the frame 25 deg off 7.6 deg (to 15.9 deg from the truth).
+    max_lookalike_dense_change_deg: float = 5.0
+    min_pair_inliers: int = 10  # verified matches of a pair whose relative rotation counts as evidence
+    # A pair with this many verified matches is decisive alone (COLMAP's own bar for an initial pair); a weaker
+    # one counts in proportion. A frame the refinement did not hold is contradicted by its pairs only when
+    # those that disagree with its model pose outweigh those that agree, and one of them is decisive or
+    # there are two or more: one weak pair never removes a frame.
+    decisive_pair_inliers: int = 100
+    # A refined frame with fewer observations in tracks beyond its main partner hangs on that one pair;
+    # if the pair's matches are planar it is unchecked, not confirmed (sfm/verify/support.py)
+    min_independent_observations: int = 40
+    max_contradicted_share: float = 0.5  # more frames contradicted: the model fails on this capture (blocks)
+    disagreement: DisagreementOptions = DisagreementOptions()
+    photometric: PhotometricOptions = PhotometricOptions()  # frames no match checks, against the photos
+
+    def __post_init__(self) -> None:
+        for name in ("min_refined_ratio", "min_colmap_agreement", "unsuited_share", "max_contradicted_share"):
+            check_number(f"EvidenceOptions.{name}", getattr(self, name), low=0, high=1)
+        check_number("EvidenceOptions.max_reprojection_px", self.max_reprojection_px, low=0, low_open=True)
+        check_number("EvidenceOptions.min_track_length", self.min_track_length, low=0)
+        for name in ("min_common_images", "min_independent_observations"):
+            check_number(f"EvidenceOptions.{name}", getattr(self, name), low=0, integer=True)
+        check_number("EvidenceOptions.min_pair_inliers", self.min_pair_inliers, low=5, integer=True)
+        check_number("EvidenceOptions.decisive_pair_inliers", self.decisive_pair_inliers, low=1, integer=True)
+        for name in ("max_correction_deg", "max_lookalike_dense_change_deg"):
+            check_number(f"EvidenceOptions.{name}", getattr(self, name), low=0, low_open=True, high=180)
+
+
+@dataclass(frozen=True)
+class CameraEvidence:
+    name: str
+    status: CameraStatus
+    why: str
+    correction_deg: float = float("nan")  # how far the evidence's rotation is from the model's (nan: no pose)
+
+    @property
+    def verdict(self) -> FrameVerdict:
+        return self.status.verdict
+
+    def to_report(self) -> dict:
+        change = self.correction_deg
+        return {
+            "name": self.name,
+            "verdict": self.verdict.value,
+            "status": self.status.value,
+            "kept": self.status.kept,
+            "why": self.why,
+            "correction_deg": round(float(change), 4) if np.isfinite(change) else None,
+        }
+
+
+@dataclass(frozen=True)
+class EvidenceResult:
+    """Verdicts on the final cameras, per-image evidence, and whether the model was set aside."""
+
+    gates: GatesResult
+    per_image: tuple[CameraEvidence, ...]
+    model_unsuited: bool  # True: COLMAP's cameras are final, the model's were set aside
+    unsuited_reason: str = ""
+
+    def count(self, status: CameraStatus | FrameVerdict) -> int:
+        if isinstance(status, FrameVerdict):
+            return sum(e.verdict is status for e in self.per_image)
+        return sum(e.status is status for e in self.per_image)
+
+    def of(self, verdict: FrameVerdict) -> tuple[str, ...]:
+        """The names of the frames with that verdict."""
+        return tuple(e.name for e in self.per_image if e.verdict is verdict)

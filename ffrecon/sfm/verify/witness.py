@@ -1,0 +1,67 @@
+"""When COLMAP's model is a witness: healthy (it passed its own gates), distrusted on look-alike surfaces, and
+when it shows the model unsuited to the photos.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from ffrecon.sfm.compare.poses import compare_poses
+from ffrecon.sfm.crosscheck.gate_types import GatesResult
+from ffrecon.sfm.crosscheck.run import ColmapResult
+from ffrecon.sfm.refine.options import RefineResult
+
+
+def _healthy(colmap: ColmapResult | None, witness: GatesResult) -> bool:
+    """Whether COLMAP's model passed its own gates (depth coverage is the model's, not COLMAP's)."""
+    return colmap is not None and not any(v.failed for v in witness.verdicts if v.name != "depth_coverage")
+
+
+def _lookalike(refine: RefineResult) -> bool:
+    """Whether the refinement matched on look-alike surfaces (its matching was guided by the model)."""
+    return refine.guidance is not None and refine.guidance.lookalike
+
+
+def _distrusted(refine: RefineResult, colmap: ColmapResult | None, witness: GatesResult) -> str:
+    """Why COLMAP's model is no witness ("" when it is): it failed its own gates on look-alike surfaces.
+
+    The refinement calls surfaces look-alike when the model's geometry rejects most of COLMAP's verified
+    matches and guides the matching instead (:mod:`ffrecon.sfm.refine.guided`). COLMAP built its model on those
+    matches: on the repeated-texture room (seed 101) it registered 4 of 8 frames 7-16 deg off the truth, and
+    its disagreement left out four frames the refinement had placed within 0.2 deg. A healthy COLMAP model
+    (every gate passed) stays a witness whatever the surfaces.
+    """
+    if colmap is None or not _lookalike(refine) or _healthy(colmap, witness):
+        return ""
+    failed = ", ".join(v.name for v in witness.verdicts if v.failed and v.name != "depth_coverage")
+    return (
+        f"COLMAP's model failed its gates ({failed}) on look-alike surfaces, where its matches are the suspect "
+        "ones: it is not a witness"
+    )
+
+
+def _unsuited(
+    names: Sequence[str], ff_cam_from_world: np.ndarray, colmap: ColmapResult | None, witness: GatesResult, options
+) -> str:
+    """Why the model is unsuited ("" if it is not): a healthy COLMAP model disagrees with it on most images."""
+    if not _healthy(colmap, witness) or colmap.num_registered < options.min_common_images:
+        return ""
+    comp = compare_poses(
+        ff_cam_from_world,
+        colmap.cam_from_world,
+        names,
+        None,
+        ref_registered=colmap.registered,
+        estimate="feed-forward",
+        reference="COLMAP",
+        options=options.disagreement,
+    )
+    share = len(comp.disagreements) / max(int(colmap.registered.sum()), 1)
+    if share <= options.unsuited_share:
+        return ""
+    return (
+        f"the model's cameras disagree with a healthy COLMAP model on {share:.0%} of the images it registered "
+        f"(> {options.unsuited_share:.0%}): the model does not suit these photos, COLMAP's cameras are used"
+    )
