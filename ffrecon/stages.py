@@ -20,6 +20,7 @@ from ffrecon.sfm.compare.comparisons import comparison_skip_reason, load_referen
 from ffrecon.sfm.crosscheck.gates import MIN_MASK_USE, gate_poses
 from ffrecon.sfm.crosscheck.run import pairs_from_model, run_colmap_on
 from ffrecon.sfm.refine import run as refine
+from ffrecon.sfm.refine.options import key_options
 from ffrecon.sfm.verify.evidence import evidence_skip_reason, judge_refined_cameras
 from ffrecon.splat import stage as splat
 from ffrecon.splat.final import seed_comparison_skip_reason, splat_final_cameras, splat_from_colmap_points, with_curves
@@ -136,7 +137,7 @@ REFINE = Stage(
     "refine",
     ("capture", "feedforward", "colmap", "sift"),
     lambda s, o, c: refine.run_refine_reusing(s.capture, s.prediction, s.colmap, s.sift, o.refine, s.work),
-    lambda o: o.refine,
+    lambda o: key_options(o.refine),
     label="refinement",
     skip=lambda s, o: (
         s.why_not(s.gates, enabled=o.refine.enabled, flag="--no-refine")

@@ -31,7 +31,7 @@ import numpy as np
 from ffrecon.geometry.metrics import pose_errors
 from ffrecon.sfm.crosscheck.options import ColmapOptions
 from ffrecon.sfm.crosscheck.run import run_colmap
-from ffrecon.sfm.refine.options import RefineOptions
+from ffrecon.sfm.refine.options import RefineInputs, RefineOptions
 from ffrecon.sfm.refine.run import run_refine
 from ffrecon.synthetic import SceneOptions, Texture, load_scene, make_scene, write_scene
 from ffrecon.synthetic.simulated_model import SimulationOptions, prediction_from_truth, simulate
@@ -85,7 +85,7 @@ def child(method: str, scene_dir: Path, out_dir: Path) -> dict:
     else:
         reuse = out_dir / "colmap" / "database.db" if method == "refine_reuse" else None
         result = run_refine(
-            scene_dir / "images", prediction, RefineOptions(reuse_features_from=reuse), out_dir / method
+            RefineInputs(scene_dir / "images", reuse_features_from=reuse), prediction, RefineOptions(), out_dir / method
         )
         stages = result.timings.to_report()
     wall = time.perf_counter() - start

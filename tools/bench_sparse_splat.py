@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from ffrecon.geometry.metrics import pose_errors
-from ffrecon.sfm.refine.options import RefineOptions
+from ffrecon.sfm.refine.options import RefineInputs, RefineOptions
 from ffrecon.sfm.refine.run import run_refine
 from ffrecon.splat.optimize import OptimizeOptions
 from ffrecon.splat.stage import SplatOptions, run_splat_from_prediction, split_views
@@ -77,7 +77,7 @@ def main() -> None:
     pred = prediction_from_truth(scene, truth, sim)
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        refined = run_refine(write_scene(scene, tmp / "scene"), pred, RefineOptions(), tmp / "refine")
+        refined = run_refine(RefineInputs(write_scene(scene, tmp / "scene")), pred, RefineOptions(), tmp / "refine")
         sets = {"model": pred.cam_from_world, "refined": refined.cam_from_world}
         print(f"wide scene, 8 views {WIDE.width}x{WIDE.height}, {args.seconds:.0f} s per splat, 1 thread")
         print("cameras  pose-refine  depth-prior  held-out PSNR dB  SSIM   train rot. err. deg  seconds")

@@ -31,7 +31,7 @@ import numpy as np
 
 from ffrecon.geometry.metrics import aligned_rotation_errors_deg
 from ffrecon.sfm.crosscheck.gate_types import GatesResult
-from ffrecon.sfm.refine.options import RefineOptions
+from ffrecon.sfm.refine.options import RefineInputs, RefineOptions
 from ffrecon.sfm.refine.run import run_refine
 from ffrecon.sfm.verify.evidence import judge_final_cameras
 from ffrecon.sfm.verify.verdicts import FrameVerdict
@@ -47,7 +47,7 @@ def _run(scene, images: Path, seed: int, bad: int | None, work: Path, options: R
     truth, _ = simulate(scene, sim)
     pred = prediction_from_truth(scene, truth, sim)
     start = time.perf_counter()
-    result = run_refine(images, pred, options, work)
+    result = run_refine(RefineInputs(images), pred, options, work)
     seconds = time.perf_counter() - start
     ev = judge_final_cameras(scene.names, pred.cam_from_world, result, None, GatesResult((), False))
     errors = aligned_rotation_errors_deg(result.cam_from_world[:, :, :3], scene.cam_from_world[:, :, :3])

@@ -1,5 +1,9 @@
 """COLMAP cross-check, feed-forward-seeded bundle adjustment, verification gates, pose comparison.
 
+One subpackage per subsystem: ``crosscheck`` (COLMAP's run and the gates on its model), ``refine`` (the
+refinement seeded by the model), ``verify`` (the evidence on the final cameras), ``compare`` (pose metrics);
+``features`` and ``verified_pairs`` are the SIFT database and verified pairs they share.
+
 Stage functions (one per stage, typed in and out):
 
 - :func:`ffrecon.sfm.crosscheck.run.run_colmap`: plain COLMAP on the images -> ``OUT/crosscheck/sparse/0``.
@@ -13,7 +17,7 @@ from ffrecon.sfm.crosscheck.gate_types import FailureCause, GateOptions, GatesRe
 from ffrecon.sfm.crosscheck.gates import evaluate_gates, run_gates
 from ffrecon.sfm.crosscheck.options import CameraSharing, ColmapOptions, MapperKind, PairingMode
 from ffrecon.sfm.crosscheck.run import ColmapResult, ColmapStatus, run_colmap
-from ffrecon.sfm.refine.options import RefineOptions, RefineResult, RefineStatus, WeakFrame, WeakReason
+from ffrecon.sfm.refine.options import RefineInputs, RefineOptions, RefineResult, RefineStatus, WeakFrame, WeakReason
 from ffrecon.sfm.refine.run import run_refine
 
 __all__ = [
@@ -30,6 +34,7 @@ __all__ = [
     "MapperKind",
     "PairingMode",
     "PoseComparison",
+    "RefineInputs",
     "RefineOptions",
     "RefineResult",
     "RefineStatus",

@@ -81,7 +81,7 @@ def test_iterative_steps_refuse_nan_inputs():
 
 
 def test_refinement_refuses_infinite_focal_before_any_work(tmp_path):
-    from ffrecon.sfm.refine.options import RefineOptions
+    from ffrecon.sfm.refine.options import RefineInputs, RefineOptions
     from ffrecon.sfm.refine.run import run_refine
 
     pred = _prediction()
@@ -89,4 +89,4 @@ def test_refinement_refuses_infinite_focal_before_any_work(tmp_path):
         (tmp_path / name).write_bytes(b"")  # never read: the check comes first
     cams = tuple(dataclasses.replace(c, fx=np.inf) for c in pred.cameras)
     with pytest.raises(ModelError, match="focal length"):
-        run_refine(tmp_path, dataclasses.replace(pred, cameras=cams), RefineOptions(), tmp_path / "out")
+        run_refine(RefineInputs(tmp_path), dataclasses.replace(pred, cameras=cams), RefineOptions(), tmp_path / "out")

@@ -13,7 +13,7 @@ import pytest
 
 from ffrecon.sfm.crosscheck.options import ColmapOptions
 from ffrecon.sfm.crosscheck.run import ColmapResult, run_colmap
-from ffrecon.sfm.refine.options import RefineOptions, RefineResult
+from ffrecon.sfm.refine.options import RefineInputs, RefineOptions, RefineResult
 from ffrecon.sfm.refine.run import run_refine
 from ffrecon.synthetic import SceneOptions, SyntheticScene, Texture, make_scene, write_scene
 from ffrecon.synthetic.simulated_model import SimulationOptions, prediction_from_truth, simulate
@@ -73,5 +73,5 @@ def colmap24(orbit24, tmp_path_factory) -> tuple[ColmapResult, Path]:
 @pytest.fixture(scope="session")
 def refined24(orbit24, colmap24, tmp_path_factory) -> tuple[RefineResult, Path]:
     out = tmp_path_factory.mktemp("refine")
-    options = RefineOptions(reuse_features_from=colmap24[0].database_path)
-    return run_refine(orbit24.image_dir, orbit24.prediction, options, out), out
+    inputs = RefineInputs(orbit24.image_dir, reuse_features_from=colmap24[0].database_path)
+    return run_refine(inputs, orbit24.prediction, RefineOptions(), out), out

@@ -22,7 +22,7 @@ import pytest
 from ffrecon.geometry.metrics import aligned_rotation_errors_deg
 from ffrecon.sfm.crosscheck.gate_types import GatesResult
 from ffrecon.sfm.refine.links import LinkOptions
-from ffrecon.sfm.refine.options import RefineOptions
+from ffrecon.sfm.refine.options import RefineInputs, RefineOptions
 from ffrecon.sfm.refine.run import run_refine
 from ffrecon.sfm.verify.evidence import judge_final_cameras
 from ffrecon.sfm.verify.verdicts import FrameVerdict
@@ -39,7 +39,7 @@ def _run(tmp_path, seed: int, bad: tuple[int, ...], links: LinkOptions):
     truth, _ = simulate(scene, sim)
     pred = prediction_from_truth(scene, truth, sim)
     options = dataclasses.replace(RefineOptions.quick(), links=links)
-    result = run_refine(images, pred, options, tmp_path / f"refine_{links.enabled}")
+    result = run_refine(RefineInputs(images), pred, options, tmp_path / f"refine_{links.enabled}")
     ev = judge_final_cameras(scene.names, pred.cam_from_world, result, None, GatesResult((), False))
     errors = aligned_rotation_errors_deg(result.cam_from_world[:, :, :3], scene.cam_from_world[:, :, :3])
     confirmed = [k for k, e in enumerate(ev.per_image) if e.verdict is FrameVerdict.CONFIRMED]

@@ -20,7 +20,7 @@ from ffrecon.geometry.metrics import aligned_rotation_errors_deg
 from ffrecon.geometry.rotations import axis_angle_to_matrix
 from ffrecon.sfm.crosscheck.gate_types import GatesResult
 from ffrecon.sfm.refine.guided import MatchGuidance
-from ffrecon.sfm.refine.options import RefineOptions
+from ffrecon.sfm.refine.options import RefineInputs, RefineOptions
 from ffrecon.sfm.refine.run import run_refine
 from ffrecon.sfm.verify.evidence import judge_final_cameras
 from ffrecon.sfm.verify.photometric import PhotometricOptions, photometric_check
@@ -68,7 +68,7 @@ def test_pairs_a_period_off_are_dropped_and_the_refinement_beats_the_model(stree
     capture = street201
     everyone = np.ones(len(capture.scene), bool)
     model = _median_error(capture.prediction.cam_from_world, capture, everyone)
-    result = run_refine(capture.image_dir, capture.prediction, RefineOptions(), tmp_path / "drop")
+    result = run_refine(RefineInputs(capture.image_dir), capture.prediction, RefineOptions(), tmp_path / "drop")
     assert result.guidance is not None and result.guidance.mode is MatchGuidance.GUIDED
     assert result.guidance.dropped_pairs >= 1
     assert result.registered.all()
@@ -78,7 +78,7 @@ def test_pairs_a_period_off_are_dropped_and_the_refinement_beats_the_model(stree
     # The same refinement keeping every verified pair ends worse than the model (measured 8.5 deg): the
     # test above fails without the rule.
     keep_all = RefineOptions(guidance=dataclasses.replace(RefineOptions().guidance, max_pair_gap_deg=180.0))
-    kept = run_refine(capture.image_dir, capture.prediction, keep_all, tmp_path / "keep")
+    kept = run_refine(RefineInputs(capture.image_dir), capture.prediction, keep_all, tmp_path / "keep")
     assert kept.guidance.dropped_pairs == 0
     assert _median_error(kept.cam_from_world, capture, kept.registered) > model
 
@@ -140,7 +140,10 @@ def test_two_view_tracks_hold_frames_a_pair_a_period_off_would_turn(tmp_path_fac
     def errors(two_view: bool, folder: str) -> np.ndarray:
         guidance = dataclasses.replace(RefineOptions().guidance, two_view_tracks=two_view)
         result = run_refine(
-            capture.image_dir, capture.prediction, RefineOptions.quick(guidance=guidance), tmp_path / folder
+            RefineInputs(capture.image_dir),
+            capture.prediction,
+            RefineOptions.quick(guidance=guidance),
+            tmp_path / folder,
         )
         assert result.guidance is not None and result.guidance.mode is MatchGuidance.GUIDED and result.registered.all()
         return aligned_rotation_errors_deg(result.cam_from_world[:, :, :3], scene.cam_from_world[:, :, :3])
@@ -160,7 +163,7 @@ def test_a_frame_dense_tracks_move_far_on_lookalikes_is_left_out(street201, tmp_
     sim = SimulationOptions(seed=201, bad_frames=(6,), bad_rotation_deg=25.0)
     truth, _ = simulate(scene, sim)
     prediction = prediction_from_truth(scene, truth, sim)
-    result = run_refine(street201.image_dir, prediction, RefineOptions.quick(), tmp_path)
+    result = run_refine(RefineInputs(street201.image_dir), prediction, RefineOptions.quick(), tmp_path)
     assert result.registered.all() and result.dense is not None and "frame_006.png" in result.dense.frames
     evidence = judge_final_cameras(scene.names, prediction.cam_from_world, result, None, GatesResult((), False))
     assert evidence.per_image[6].verdict is FrameVerdict.CONTRADICTED and not evidence.per_image[6].status.kept

@@ -12,7 +12,7 @@ from ffrecon.geometry.poses import camera_centers
 from ffrecon.sfm.refine.bundle import BundleOptions
 from ffrecon.sfm.refine.guided import GuidanceOptions, MatchGuidance
 from ffrecon.sfm.refine.lens import LensTrial
-from ffrecon.sfm.refine.options import RefineOptions, RefineStatus, WeakReason
+from ffrecon.sfm.refine.options import RefineInputs, RefineOptions, RefineStatus, WeakReason
 from ffrecon.sfm.refine.run import run_refine
 
 
@@ -61,7 +61,7 @@ def test_refine_matches_fewer_pairs_than_exhaustive(refined24, colmap24):
 
 def test_nearly_textureless_frame_is_flagged_and_the_rest_refined(one_flat_frame24, tmp_path):
     capture = one_flat_frame24
-    result = run_refine(capture.image_dir, capture.prediction, RefineOptions(), tmp_path)
+    result = run_refine(RefineInputs(capture.image_dir), capture.prediction, RefineOptions(), tmp_path)
     assert result.status is RefineStatus.PARTIAL
     assert [w.name for w in result.flagged] == ["frame_005.png"]
     assert result.flagged[0].reason in (WeakReason.FEW_FEATURES, WeakReason.FEW_MATCHES)
@@ -82,14 +82,14 @@ def test_feedforward_guidance_rescues_repeated_texture(repeated24, tmp_path):
     capture = repeated24
     truth = capture.scene.cam_from_world
     ff = pose_errors(capture.prediction.cam_from_world, truth)
-    guided = run_refine(capture.image_dir, capture.prediction, RefineOptions(), tmp_path / "auto")
+    guided = run_refine(RefineInputs(capture.image_dir), capture.prediction, RefineOptions(), tmp_path / "auto")
     assert guided.guidance is not None and guided.guidance.mode is MatchGuidance.GUIDED
     errors = pose_errors(guided.cam_from_world, truth, guided.registered)
     assert errors.auc[5] >= 0.95 and errors.median_rotation_deg < 0.3
     assert errors.median_rotation_deg < ff.median_rotation_deg / 5
     # Without guidance, COLMAP's own matching and verification: clearly worse on this scene.
     plain = run_refine(
-        capture.image_dir,
+        RefineInputs(capture.image_dir),
         capture.prediction,
         RefineOptions(guidance=GuidanceOptions(mode=MatchGuidance.NONE)),
         tmp_path / "plain",
@@ -100,8 +100,9 @@ def test_feedforward_guidance_rescues_repeated_texture(repeated24, tmp_path):
 
 def test_pose_priors_keep_the_prediction_frame(orbit24, colmap24, tmp_path):
     """With position priors the gauge is the prediction's itself: no rescaling needed afterwards."""
-    options = RefineOptions(reuse_features_from=colmap24[0].database_path, bundle=BundleOptions(use_pose_priors=True))
-    result = run_refine(orbit24.image_dir, orbit24.prediction, options, tmp_path)
+    options = RefineOptions(bundle=BundleOptions(use_pose_priors=True))
+    inputs = RefineInputs(orbit24.image_dir, reuse_features_from=colmap24[0].database_path)
+    result = run_refine(inputs, orbit24.prediction, options, tmp_path)
     errors = pose_errors(result.cam_from_world, orbit24.scene.cam_from_world, result.registered)
     assert errors.auc[5] >= 0.98 and errors.median_rotation_deg <= 0.1
     assert abs(result.ff_from_refined.scale - 1) < 0.02
@@ -121,7 +122,7 @@ def test_lens_distortion_is_refined_when_the_lens_needs_it(orbit24, refined24, t
     for name, rgb in zip(orbit24.scene.names, orbit24.scene.images):
         Image.fromarray(distort(rgb, camera, (k1, 0.0, 0.0, 0.0))).save(image_dir / name)
     truth = orbit24.scene.cam_from_world
-    result = run_refine(image_dir, orbit24.prediction, RefineOptions(), tmp_path / "radial")
+    result = run_refine(RefineInputs(image_dir), orbit24.prediction, RefineOptions(), tmp_path / "radial")
     assert result.registered.all() and result.distortion is not None
     assert result.distortion[0][0] == pytest.approx(k1, rel=0.15)
     assert result.bundle.lens is LensTrial.KEPT
@@ -130,7 +131,10 @@ def test_lens_distortion_is_refined_when_the_lens_needs_it(orbit24, refined24, t
     assert result.mean_reprojection_error_px < 0.5
     # The same photos with the lens left out: the pinhole model bends the poses and the focal length.
     pinhole = run_refine(
-        image_dir, orbit24.prediction, RefineOptions(bundle=BundleOptions(refine_distortion=False)), tmp_path / "pin"
+        RefineInputs(image_dir),
+        orbit24.prediction,
+        RefineOptions(bundle=BundleOptions(refine_distortion=False)),
+        tmp_path / "pin",
     )
     assert pinhole.distortion is None
     pinhole_errors = pose_errors(pinhole.cam_from_world, truth, pinhole.registered)
@@ -148,8 +152,8 @@ def test_thinned_tracks_reach_the_whole_problems_cameras(orbit24, colmap24, refi
     frames, then whole) on the 24-frame orbit, made long by lowering the threshold: as accurate as solving the
     whole problem from the start, within 0.01 deg of its rotations; the report says how much was thinned."""
     bundle = BundleOptions(thin_from_images=2, max_track_images=3)
-    options = RefineOptions(reuse_features_from=colmap24[0].database_path, bundle=bundle)
-    thinned = run_refine(orbit24.image_dir, orbit24.prediction, options, tmp_path)
+    inputs = RefineInputs(orbit24.image_dir, reuse_features_from=colmap24[0].database_path)
+    thinned = run_refine(inputs, orbit24.prediction, RefineOptions(bundle=bundle), tmp_path)
     whole = refined24[0]
     truth = orbit24.scene.cam_from_world
     errors = pose_errors(thinned.cam_from_world, truth, thinned.registered)

@@ -9,7 +9,7 @@ import pytest
 
 from ffrecon.geometry.metrics import aligned_rotation_errors_deg
 from ffrecon.sfm.crosscheck.gate_types import GatesResult
-from ffrecon.sfm.refine.options import RefineOptions
+from ffrecon.sfm.refine.options import RefineInputs, RefineOptions
 from ffrecon.sfm.refine.relocalize import RelocalizeOptions, fill_holes, relocalize, render_into
 from ffrecon.sfm.refine.run import run_refine
 from ffrecon.sfm.verify.evidence import judge_final_cameras
@@ -76,7 +76,7 @@ def test_the_end_frame_25_deg_off_is_corrected_not_left_unchecked(scene, tmp_pat
     evidence, SIFT finding no verified match): now it is corrected to within 1 deg of the truth."""
     pred = _prediction(scene, FRAME_0_OFF)
     images = write_scene(scene, tmp_path / "s")
-    result = run_refine(images, pred, RefineOptions.quick(), tmp_path / "r")
+    result = run_refine(RefineInputs(images), pred, RefineOptions.quick(), tmp_path / "r")
     ev = judge_final_cameras(scene.names, pred.cam_from_world, result, None, GatesResult((), False))
     assert 0 in [r.index for r in result.relocalized]
     assert ev.per_image[0].status is CameraStatus.CORRECTED and result.registered[0]
@@ -102,7 +102,7 @@ def test_a_frame_the_photos_canvas_cannot_place_is_placed_on_the_wider_one(tmp_p
     poses[6] = found[0].cam_from_world
     errors = aligned_rotation_errors_deg(poses[:, :, :3], wide_5.cam_from_world[:, :, :3])
     assert errors[6] < 5.0
-    result = run_refine(images, pred, RefineOptions.quick(), tmp_path / "r")
+    result = run_refine(RefineInputs(images), pred, RefineOptions.quick(), tmp_path / "r")
     ev = judge_final_cameras(wide_5.names, pred.cam_from_world, result, None, GatesResult((), False))
     assert ev.per_image[6].verdict is FrameVerdict.CONTRADICTED and not ev.gates.blocking
     errors = aligned_rotation_errors_deg(result.cam_from_world[:, :, :3], wide_5.cam_from_world[:, :, :3])
@@ -119,7 +119,7 @@ def test_a_weak_first_placement_is_refined_not_dropped(seed, tmp_path):
     off = SimulationOptions(seed=seed, bad_frames=(7,), bad_rotation_deg=25.0)
     pred = _prediction(wide, off)
     images = write_scene(wide, tmp_path / "s")
-    result = run_refine(images, pred, RefineOptions.quick(), tmp_path / "r")
+    result = run_refine(RefineInputs(images), pred, RefineOptions.quick(), tmp_path / "r")
     ev = judge_final_cameras(wide.names, pred.cam_from_world, result, None, GatesResult((), False))
     assert 7 in [r.index for r in result.relocalized]
     assert ev.per_image[7].verdict is FrameVerdict.CONTRADICTED and not ev.gates.blocking

@@ -8,7 +8,7 @@ from ffrecon.geometry.metrics import aligned_rotation_errors_deg
 from ffrecon.geometry.poses import camera_centers
 from ffrecon.geometry.rotations import axis_angle_to_matrix, random_rotation, rotation_angle_deg
 from ffrecon.sfm.crosscheck.gate_types import GatesResult
-from ffrecon.sfm.refine.options import RefineOptions
+from ffrecon.sfm.refine.options import RefineInputs, RefineOptions
 from ffrecon.sfm.refine.run import run_refine
 from ffrecon.sfm.refine.screen import PairGap, ScreenOptions, blame
 from ffrecon.sfm.verify.evidence import judge_final_cameras
@@ -96,7 +96,7 @@ def test_a_frame_25_deg_off_no_longer_bends_the_others(tmp_path):
     sim = SimulationOptions(seed=7, bad_frames=(1,), bad_rotation_deg=25.0)
     truth, _ = simulate(scene, sim)
     pred = prediction_from_truth(scene, truth, sim)
-    result = run_refine(write_scene(scene, tmp_path / "s"), pred, RefineOptions.quick(), tmp_path / "r")
+    result = run_refine(RefineInputs(write_scene(scene, tmp_path / "s")), pred, RefineOptions.quick(), tmp_path / "r")
     ev = judge_final_cameras(scene.names, pred.cam_from_world, result, None, GatesResult((), False))
     assert [s.index for s in result.screened] == [1]
     assert ev.per_image[1].status is CameraStatus.CORRECTED

@@ -21,7 +21,7 @@ from ffrecon.geometry.metrics import pose_errors
 from ffrecon.geometry.projection import project_points, unproject_pixels
 from ffrecon.sfm.crosscheck.gate_types import GatesResult, GateStatus, GateVerdict
 from ffrecon.sfm.refine.dense import DenseOptions, frame_corners, predicted_map, track_pair
-from ffrecon.sfm.refine.options import RefineOptions, RefineStatus
+from ffrecon.sfm.refine.options import RefineInputs, RefineOptions, RefineStatus
 from ffrecon.sfm.refine.run import run_refine
 from ffrecon.sfm.verify.evidence import judge_final_cameras
 from ffrecon.sfm.verify.verdicts import CameraStatus, FrameVerdict
@@ -73,9 +73,11 @@ def test_the_refinement_holds_every_frame_and_beats_the_model(wide, wide_dir, tm
     """SIFT alone leaves four frames out (too few matches); with dense evidence all eight are refined,
     and the median rotation error drops from the model's ~2 deg to under 1 deg."""
     pred = _prediction(wide)
-    plain = run_refine(wide_dir, pred, RefineOptions(dense=DenseOptions(enabled=False)), tmp_path / "plain")
+    plain = run_refine(
+        RefineInputs(wide_dir), pred, RefineOptions(dense=DenseOptions(enabled=False)), tmp_path / "plain"
+    )
     assert plain.registered.sum() <= 5
-    result = run_refine(wide_dir, pred, RefineOptions(), tmp_path / "dense")
+    result = run_refine(RefineInputs(wide_dir), pred, RefineOptions(), tmp_path / "dense")
     assert result.status is RefineStatus.SUCCESS and result.dense is not None
     model, refined = _rotation_errors(pred.cam_from_world, wide), _rotation_errors(result.cam_from_world, wide)
     assert np.median(model) > 1.5
@@ -89,7 +91,7 @@ def test_a_frame_25_deg_off_is_contradicted_never_confirmed(wide, wide_dir, tmp_
     """Frame 5 is reached by SIFT and dense evidence: refined to the truth, marked corrected. Frame 2's
     own evidence fails; its verified pairs' rotations disagree with its pose: left out."""
     pred = _prediction(wide, SimulationOptions(seed=3, bad_frames=(bad,), bad_rotation_deg=25.0))
-    result = run_refine(wide_dir, pred, RefineOptions.quick(), tmp_path)
+    result = run_refine(RefineInputs(wide_dir), pred, RefineOptions.quick(), tmp_path)
     ev = judge_final_cameras(wide.names, pred.cam_from_world, result, None, GatesResult((), False))
     errors = _rotation_errors(result.cam_from_world, wide)
     assert _rotation_errors(pred.cam_from_world, wide)[bad] > 20
@@ -104,7 +106,7 @@ def test_no_evidence_at_all_is_unchecked_and_does_not_block(wide, wide_dir, tmp_
     """Lack of matches is never a contradiction: every frame unchecked, a warning, not a failed gate."""
     pred = _prediction(wide)
     starved = RefineOptions(min_matches=10**6, dense=DenseOptions(enabled=False))
-    result = run_refine(wide_dir, pred, starved, tmp_path)
+    result = run_refine(RefineInputs(wide_dir), pred, starved, tmp_path)
     assert result.status is RefineStatus.FAILED
     ev = judge_final_cameras(wide.names, pred.cam_from_world, result, None, GatesResult((), False))
     assert ev.count(FrameVerdict.UNCHECKED) == len(wide)
@@ -116,7 +118,9 @@ def test_no_evidence_at_all_is_unchecked_and_does_not_block(wide, wide_dir, tmp_
 def test_sift_friendly_captures_get_no_dense_pass(tmp_path):
     """Where SIFT finds plenty (the demo's kind of scene), dense evidence does not run: no extra time."""
     scene = make_scene(SceneOptions(num_frames=12, width=640, height=480, seed=1))
-    result = run_refine(write_scene(scene, tmp_path / "s"), _prediction(scene), RefineOptions.quick(), tmp_path / "r")
+    result = run_refine(
+        RefineInputs(write_scene(scene, tmp_path / "s")), _prediction(scene), RefineOptions.quick(), tmp_path / "r"
+    )
     assert result.dense is None and result.registered.all()
 
 
@@ -200,7 +204,7 @@ def test_colmap_that_failed_its_gates_is_a_witness_of_rotations_only(wide, wide_
     frames by their rotations only; a healthy one by centres too. Its collapsed centres would otherwise
     leave out frames the refinement placed within a degree (issue 39, room seed 205)."""
     pred = _prediction(wide)
-    result = run_refine(wide_dir, pred, RefineOptions.quick(), tmp_path)
+    result = run_refine(RefineInputs(wide_dir), pred, RefineOptions.quick(), tmp_path)
     colmap = _colmap_with_collapsed_centres(wide)
     failed = GatesResult((GateVerdict("registration", GateStatus.FAIL, 0.5, 0.85, "4 of 8"),), False)
     weak = judge_final_cameras(wide.names, pred.cam_from_world, result, colmap, failed)

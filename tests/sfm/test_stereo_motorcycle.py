@@ -20,7 +20,7 @@ import pytest
 from ffrecon.geometry.rotations import rotation_angle_deg
 from ffrecon.sfm.crosscheck.gate_types import GatesResult
 from ffrecon.sfm.refine.dense import DenseOptions, frame_corners, predicted_map, track_pair
-from ffrecon.sfm.refine.options import RefineOptions
+from ffrecon.sfm.refine.options import RefineInputs, RefineOptions
 from ffrecon.sfm.refine.run import run_refine
 from ffrecon.sfm.verify.evidence import judge_final_cameras
 from ffrecon.sfm.verify.verdicts import FrameVerdict
@@ -114,7 +114,7 @@ def test_the_refined_pair_is_confirmed_and_rectified_again(motorcycle, tmp_path)
     for name, image in zip(NAMES, (left, right)):
         cv2.imwrite(str(tmp_path / name), cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
     pred = _prediction(motorcycle, error=True)
-    result = run_refine(tmp_path, pred, RefineOptions(), tmp_path / "out")
+    result = run_refine(RefineInputs(tmp_path), pred, RefineOptions(), tmp_path / "out")
     assert result.registered.all()
     poses = result.cam_from_world
     relative = poses[1, :, :3] @ poses[0, :, :3].T

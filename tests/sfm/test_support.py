@@ -4,7 +4,7 @@ tests/sfm/test_stereo_motorcycle.py."""
 
 from ffrecon.geometry.metrics import aligned_rotation_errors_deg
 from ffrecon.sfm.crosscheck.gate_types import GatesResult
-from ffrecon.sfm.refine.options import RefineOptions
+from ffrecon.sfm.refine.options import RefineInputs, RefineOptions
 from ffrecon.sfm.refine.run import run_refine
 from ffrecon.sfm.verify.evidence import judge_final_cameras
 from ffrecon.sfm.verify.support import planar_single_pair
@@ -26,7 +26,7 @@ def test_a_frame_on_one_planar_pair_is_not_confirmed(tmp_path):
     sim = SimulationOptions(seed=5)
     truth, _ = simulate(scene, sim)
     pred = prediction_from_truth(scene, truth, sim)
-    result = run_refine(write_scene(scene, tmp_path / "s"), pred, RefineOptions.quick(), tmp_path / "r")
+    result = run_refine(RefineInputs(write_scene(scene, tmp_path / "s")), pred, RefineOptions.quick(), tmp_path / "r")
     ev = judge_final_cameras(scene.names, pred.cam_from_world, result, None, GatesResult((), False))
     errors = aligned_rotation_errors_deg(result.cam_from_world[:, :, :3], scene.cam_from_world[:, :, :3])
     assert ev.per_image[6].status is CameraStatus.PLANAR_PAIR and ev.per_image[6].status.kept

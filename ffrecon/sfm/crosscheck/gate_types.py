@@ -5,13 +5,10 @@ verdict of a run in which no camera could be checked.
 from __future__ import annotations
 
 import enum
-import logging
 from collections.abc import Callable, Collection
 from dataclasses import dataclass
 
 from ffrecon.checks import check_number
-
-logger = logging.getLogger("ffrecon.sfm")
 
 
 class GateStatus(enum.Enum):

@@ -11,10 +11,7 @@ import numpy as np
 import pycolmap
 
 from ffrecon.geometry.metrics import aligned_rotation_errors_deg
-from ffrecon.sfm.features import (
-    colmap_log_level,
-    feature_stats,
-)
+from ffrecon.sfm.features import colmap_log_level, feature_stats
 from ffrecon.sfm.refine.dense import add_dense_evidence, short_frames
 from ffrecon.sfm.refine.links import LinkOptions, detached_frames
 from ffrecon.sfm.refine.matching import _initial_model, _weak_by_features

@@ -7,7 +7,6 @@ intrinsics and pose priors are under ffrecon's control and the solver summary is
 
 from __future__ import annotations
 
-import logging
 from dataclasses import dataclass
 
 import numpy as np
@@ -15,8 +14,6 @@ import pycolmap
 
 from ffrecon.checks import check_number
 from ffrecon.sfm.refine.lens import LensTrial
-
-logger = logging.getLogger("ffrecon.sfm")
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -11,10 +11,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from ffrecon.colmap_io import (
-    pinhole_to_colmap,
-    reconstruction_from_cameras,
-)
+from ffrecon.colmap_io import pinhole_to_colmap, reconstruction_from_cameras
 from ffrecon.errors import InputError
 from ffrecon.geometry.overlap import OverlapGraph
 from ffrecon.sfm.features import (
@@ -97,6 +94,7 @@ def _prepare_database(
     db_path: Path,
     timer: StageTimer,
     mask_dir: Path | None = None,
+    reuse_features_from: Path | None = None,
 ) -> tuple[dict[str, int], list[PinholeCamera], dict[str, pycolmap.Camera], list[str]]:
     """Database with the feed-forward cameras and SIFT of every image.
 
@@ -122,11 +120,11 @@ def _prepare_database(
     }
     set_database_cameras(db_path, list(colmap_cameras.values()))
     with timer.stage("feature_extraction"):
-        copied = copy_features(options.reuse_features_from, db_path, names) if options.reuse_features_from else []
+        copied = copy_features(reuse_features_from, db_path, names) if reuse_features_from else []
         if len(copied) < len(names):
             extract_sift(db_path, image_dir, [n for n in names if n not in copied], options.sift, mask_dir=mask_dir)
     if copied:
-        logger.info("reused SIFT features of %d images from %s", len(copied), options.reuse_features_from)
+        logger.info("reused SIFT features of %d images from %s", len(copied), reuse_features_from)
     return image_ids, cameras, {n: colmap_cameras[camera_of[n]] for n in names}, copied
 
 
@@ -155,14 +153,19 @@ def _initial_model(
 
 
 def _reuse_matches(
-    db_path: Path, graph: OverlapGraph, names: tuple[str, ...], copied: list[str], options: RefineOptions
+    db_path: Path,
+    graph: OverlapGraph,
+    names: tuple[str, ...],
+    copied: list[str],
+    options: RefineOptions,
+    reuse_features_from: Path | None,
 ) -> list[tuple[str, str]]:
     """The cross-check's verified matches of the pairs that the feed-forward geometry says overlap at all.
 
     They cost nothing to reuse, so every such pair is taken, not only the best few per image that
     :func:`overlap_graph` picks for fresh matching: the refinement sees as many constraints as COLMAP did.
     """
-    if options.reuse_features_from is None or not copied:
+    if reuse_features_from is None or not copied:
         return []
     reused_images = set(copied)
     score = graph.score()
@@ -172,7 +175,7 @@ def _reuse_matches(
         for j in range(i + 1, len(names))
         if score[i, j] >= options.overlap.min_any_overlap and {names[i], names[j]} <= reused_images
     ]
-    reused = copy_verified_matches(options.reuse_features_from, db_path, overlapping)
+    reused = copy_verified_matches(reuse_features_from, db_path, overlapping)
     logger.info("reused the cross-check's verified matches of %d overlapping pairs", len(reused))
     return reused
 

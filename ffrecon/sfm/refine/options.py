@@ -1,9 +1,9 @@
-"""The refinement's options, quick mode's preset and its result types (:func:`ffrecon.sfm.refine.run.run_refine`)."""
+"""The refinement's options, quick mode's preset, its inputs and its result types
+(:func:`ffrecon.sfm.refine.run.run_refine`)."""
 
 from __future__ import annotations
 
 import enum
-import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -12,11 +12,8 @@ import pycolmap
 
 from ffrecon.checks import check_number
 from ffrecon.geometry.alignment import Sim3
-from ffrecon.geometry.overlap import OverlapOptions
-from ffrecon.sfm.features import (
-    FeatureStats,
-    SiftOptions,
-)
+from ffrecon.geometry.overlap import OverlapGraph, OverlapOptions
+from ffrecon.sfm.features import FeatureStats, SiftOptions
 from ffrecon.sfm.refine.bundle import BundleOptions, BundleSummary
 from ffrecon.sfm.refine.dense import DenseOptions, DenseStats
 from ffrecon.sfm.refine.guided import GuidanceOptions, GuidanceStats
@@ -25,9 +22,6 @@ from ffrecon.sfm.refine.relocalize import Relocalized, RelocalizeOptions
 from ffrecon.sfm.refine.screen import ScreenOptions, Suspect
 from ffrecon.timing import Timings
 from ffrecon.types import PinholeCamera
-
-logger = logging.getLogger("ffrecon.sfm")
-
 
 # Quick mode's refinement (RefineOptions.quick); measured in docs/pipeline.md, "Quick mode".
 QUICK_SIFT = SiftOptions(first_octave=0, upsample_below_px=500, max_image_size=1600, max_num_features=4096)
@@ -79,7 +73,6 @@ class RefineOptions:
     links: LinkOptions = LinkOptions()
     # Frames whose verified pairs agree on a rotation far from the model's start the adjustment from it
     screen: ScreenOptions = ScreenOptions()
-    reuse_features_from: Path | None = None  # a COLMAP database with SIFT of the same images (the cross-check's)
     single_camera: bool = True  # one shared camera (median feed-forward intrinsics) if all images share a size
     square_pixels: bool = True  # one focal length per camera (fx = fy)
     min_features: int = 100
@@ -109,6 +102,41 @@ class RefineOptions:
         """
         preset = {"sift": QUICK_SIFT, "overlap": QUICK_OVERLAP, "bundle": QUICK_BUNDLE}
         return cls(**{**preset, **overrides})
+
+
+def key_options(options: RefineOptions) -> object:
+    """What the refinement's resume key hashes for ``options``: their repr as it read while the features to reuse
+    were an option (``reuse_features_from=None``: a run never set it), so that moving them to
+    :class:`RefineInputs` left the key of the same options the same."""
+    text = repr(options)
+    at = text.rfind(", single_camera=")
+    return _Shown(text[:at] + ", reuse_features_from=None" + text[at:])
+
+
+class _Shown:
+    """An object whose repr is ``text`` (what a resume key hashes)."""
+
+    def __init__(self, text: str) -> None:
+        self.text = text
+
+    def __repr__(self) -> str:
+        return self.text
+
+
+@dataclass(frozen=True)
+class RefineInputs:
+    """What the refinement runs on besides the prediction: the run's files and what the stages before it made.
+    Not options: they are not in its resume key (the keys of the stages that made them are)."""
+
+    image_dir: Path  # the images named in the prediction
+    mask_dir: Path | None = None  # COLMAP's masks of those images (``<name>.png``, 0: no features there); None: none
+    reuse_features_from: Path | None = None  # a COLMAP database with SIFT of the same images (the cross-check's)
+    # Frames whose poses (the user's, --poses) stay as the prediction holds them: never reseeded, relocalised
+    # or registered again, constant in every adjustment.
+    fixed: frozenset[str] = frozenset()
+    # The prediction's overlap graph when already made under ``RefineOptions.overlap`` (the cross-check's model
+    # pairing: 28 s at 500 frames); None: made by the refinement.
+    graph: OverlapGraph | None = None
 
 
 @dataclass(frozen=True)

@@ -21,13 +21,9 @@ import numpy as np
 import pycolmap
 
 from ffrecon.capture import Capture
-from ffrecon.colmap_io import (
-    cam_from_world_by_name,
-    cameras_by_name,
-    write_reconstruction,
-)
+from ffrecon.colmap_io import cam_from_world_by_name, cameras_by_name, write_reconstruction
 from ffrecon.geometry.alignment import Sim3
-from ffrecon.geometry.overlap import OverlapGraph, overlap_graph
+from ffrecon.geometry.overlap import overlap_graph
 from ffrecon.geometry.undistort import NO_DISTORTION, opencv_coefficients
 from ffrecon.sfm.crosscheck.run import ColmapResult
 from ffrecon.sfm.features import (
@@ -48,7 +44,7 @@ from ffrecon.sfm.refine.matching import (
     _reuse_matches,
     _screen,
 )
-from ffrecon.sfm.refine.options import RefineOptions, RefineResult, RefineStatus
+from ffrecon.sfm.refine.options import RefineInputs, RefineOptions, RefineResult, RefineStatus
 from ffrecon.sfm.refine.passes import sim3_to_ff_frame
 from ffrecon.sfm.refine.screen import reseeded
 from ffrecon.timing import StageTimer
@@ -61,7 +57,7 @@ def extract_refine_features(
     capture: Capture, sift: SiftOptions, out_dir: Path, threads: Callable[[], int] | None = None
 ) -> Path:
     """SIFT of the capture's photos (and masks) into a fresh COLMAP database, ``out_dir/sift/database.db``, for the
-    refinement to reuse (:attr:`RefineOptions.reuse_features_from`); returns its path. ``threads``: see
+    refinement to reuse (:attr:`RefineInputs.reuse_features_from`); returns its path. ``threads``: see
     :func:`extract_sift`.
 
     Quick mode runs it beside the feed-forward inference, the part COLMAP's extraction plays in the full
@@ -75,32 +71,19 @@ def extract_refine_features(
     return db_path
 
 
-def run_refine(
-    image_dir: Path,
-    prediction: Prediction,
-    options: RefineOptions,
-    out_dir: Path,
-    mask_dir: Path | None = None,
-    fixed: frozenset[str] = frozenset(),
-    graph: OverlapGraph | None = None,
-) -> RefineResult:
+def run_refine(inputs: RefineInputs, prediction: Prediction, options: RefineOptions, out_dir: Path) -> RefineResult:
     """Refine the feed-forward cameras; writes the refined model to ``out_dir/refine/model`` (work files beside it;
     the run's ``sparse/0``, the final cameras, is written from it by the pipeline).
 
     Args:
-        image_dir: folder holding the images named in ``prediction.names``.
-        mask_dir: COLMAP's masks of those images (``<name>.png``, 0: no features there); None: none.
-        fixed: frames whose poses (the user's, ``--poses``) stay as the prediction holds them: never reseeded,
-            relocalised or registered again, constant in every adjustment.
+        inputs: the images (and masks), SIFT to reuse, frames whose poses stay fixed, the overlap graph.
         prediction: feed-forward cameras (cam_from_world, OpenCV) and depth, original-photo pixels.
-        graph: the prediction's overlap graph when already made under ``options.overlap`` (the cross-check's
-            model pairing: 28 s at 500 frames); None: made here.
     Returns:
         :class:`RefineResult` with poses in the prediction's world frame. Weak frames are flagged, not
         fatal; with fewer than two usable frames the status is FAILED and the feed-forward cameras
         are returned unrefined (nothing is written).
     """
-    image_dir, out_dir = Path(image_dir), Path(out_dir)
+    image_dir, out_dir, fixed, graph = Path(inputs.image_dir), Path(out_dir), inputs.fixed, inputs.graph
     _check_inputs(image_dir, prediction)
     names = tuple(prediction.names)
     timer = StageTimer()
@@ -111,11 +94,11 @@ def run_refine(
         if graph is None or graph.options != options.overlap or len(graph.overlap) != len(prediction):
             graph = overlap_graph(prediction, options.overlap)
     image_ids, cameras, colmap_cameras, copied = _prepare_database(
-        image_dir, prediction, options, db_path, timer, mask_dir
+        image_dir, prediction, options, db_path, timer, inputs.mask_dir, inputs.reuse_features_from
     )
     pairs = [(names[i], names[j]) for i, j in graph.pairs]
     with timer.stage("matching"):
-        reused = _reuse_matches(db_path, graph, names, copied, options)
+        reused = _reuse_matches(db_path, graph, names, copied, options, inputs.reuse_features_from)
         verified = _match_unguided(db_path, pairs, reused, options, work / "pairs.txt")
     with timer.stage("screening"):
         screened = tuple(s for s in _screen(db_path, prediction, verified, options) if names[s.index] not in fixed)
@@ -239,7 +222,7 @@ def sift_beside_skip_reason(
 ) -> str | None:
     """Why the refinement's SIFT is not extracted ahead, beside the inference (only quick mode runs it there,
     when ``concurrent``, and when the refinement will run on a model's cameras and extracts its own), or None."""
-    wanted = options.enabled and options.reuse_features_from is None and model is not None and views >= 2
+    wanted = options.enabled and model is not None and views >= 2
     if mode is RunMode.QUICK and concurrent and wanted:
         return None
     return "extracted by the refinement itself (only quick mode extracts it beside the inference)"
@@ -258,9 +241,9 @@ def run_refine_reusing(
     options: RefineOptions,
     out_dir: Path,
 ) -> RefineResult:
-    """:func:`run_refine` on a capture's photos (and masks), reusing SIFT already extracted (unless ``options``
-    name features to reuse): the COLMAP cross-check's database (SIFT once, used twice), else quick mode's
-    ``sift`` extracted beside the inference, else none (the refinement extracts its own). Intrinsics the user
+    """:func:`run_refine` on a capture's photos (and masks), reusing SIFT already extracted: the COLMAP
+    cross-check's database (SIFT once, used twice), else quick mode's ``sift`` extracted beside the inference,
+    else none (the refinement extracts its own). Intrinsics the user
     gave to hold fixed (``--intrinsics``; the prediction holds them) the adjustment keeps as they are
     (pinhole, focal fixed)."""
     fixed_intrinsics = bool(capture.known_cameras) and capture.intrinsics_fixed
@@ -271,10 +254,12 @@ def run_refine_reusing(
     if fixed_intrinsics:
         bundle = dataclasses.replace(options.bundle, refine_focal_length=False, refine_principal_point=False)
         options = dataclasses.replace(options, bundle=bundle, square_pixels=False)
-    if options.reuse_features_from is None and isinstance(colmap, ColmapResult):
-        options = dataclasses.replace(options, reuse_features_from=colmap.database_path)
-    elif options.reuse_features_from is None and isinstance(sift, Path):
-        options = dataclasses.replace(options, reuse_features_from=sift)
-    fixed = given if capture.poses_fixed else frozenset()
-    graph = colmap.model_overlap if isinstance(colmap, ColmapResult) else None  # the same prediction's
-    return run_refine(capture.image_dir, prediction, options, out_dir, capture.mask_dir, fixed, graph)
+    reused = colmap.database_path if isinstance(colmap, ColmapResult) else sift if isinstance(sift, Path) else None
+    inputs = RefineInputs(
+        capture.image_dir,
+        capture.mask_dir,
+        reuse_features_from=reused,
+        fixed=given if capture.poses_fixed else frozenset(),
+        graph=colmap.model_overlap if isinstance(colmap, ColmapResult) else None,  # the same prediction's
+    )
+    return run_refine(inputs, prediction, options, out_dir)
