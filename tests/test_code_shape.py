@@ -102,3 +102,28 @@ def test_the_shape_checks_see_a_violation(tmp_path):
     probe.write_text('def f():\n    """Long because it is a probe."""\n' + "    x = 1\n" * 60 + "\n" * 440)
     (node,) = [n for n in ast.walk(ast.parse(probe.read_text())) if isinstance(n, ast.FunctionDef)]
     assert _code_lines(node) == 61 > MAX_LINES and _module_lines(probe) == 502 > MAX_MODULE_LINES
+
+
+# The subsystems of ffrecon/sfm, each importing only those before it (the modules they share first).
+SFM_ORDER = ("features", "verified_pairs", "crosscheck", "refine", "compare", "verify")
+
+
+def _sfm_imports() -> set[tuple[str, str]]:
+    """(importing subsystem, imported subsystem) over every import between two subsystems of ffrecon/sfm."""
+    found = set()
+    for path in sorted((PACKAGE / "sfm").rglob("*.py")):
+        parts = path.relative_to(PACKAGE / "sfm").with_suffix("").parts
+        if parts == ("__init__",):
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = [node.module or ""] if isinstance(node, ast.ImportFrom) else []
+            names += [a.name for a in node.names] if isinstance(node, ast.Import) else []
+            for name in names:
+                if name.startswith("ffrecon.sfm.") and name.split(".")[2] != parts[0]:
+                    found.add((parts[0], name.split(".")[2]))
+    return found
+
+
+def test_sfm_subsystems_import_one_way():
+    backwards = {(a, b) for a, b in _sfm_imports() if SFM_ORDER.index(b) > SFM_ORDER.index(a)}
+    assert not backwards, f"an sfm subsystem imports one after it ({' < '.join(SFM_ORDER)}): {backwards}"
