@@ -210,9 +210,12 @@ def final_cameras(
 
 def require_checked(evidence: EvidenceResult, colmap: ColmapResult | Skipped, refine: RefineResult) -> EvidenceResult:
     """``evidence`` with its ``checked_share`` verdict failing (blocking unless forced) when no final camera was
-    checked: every frame kept is unchecked (none confirmed, none corrected). Else ``evidence`` as it is."""
+    checked: every frame kept is unchecked (none confirmed, none corrected, none refined on guided matches). Else
+    ``evidence`` as it is."""
     kept = [e for e in evidence.per_image if e.status.kept]
-    if evidence.model_unsuited or not kept or any(e.verdict is not FrameVerdict.UNCHECKED for e in kept):
+    # a frame refined on guided matches (look-alike surfaces) is unchecked, but adjusted on matches that fit
+    held = any(e.verdict is not FrameVerdict.UNCHECKED or e.status is CameraStatus.GUIDED for e in kept)
+    if evidence.model_unsuited or not kept or held:
         return evidence
     colmap_text = (
         f"COLMAP registered {colmap.num_registered} of {len(colmap.names)} images and "

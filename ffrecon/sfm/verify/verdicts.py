@@ -30,13 +30,14 @@ class CameraStatus(enum.Enum):
     CONTRADICTED = "contradicted by its matches"  # its verified pairs' rotations disagree with its pose: left out
     UNCHECKED = "unchecked"  # no evidence either way: keeps the model's camera
     PLANAR_PAIR = "refined on one planar pair"  # placed by one pair whose matches lie on a plane: ambiguous
+    GUIDED = "refined on guided matches"  # look-alike surfaces: its matches were chosen by the model's cameras
     PHOTO_MISFIT = "contradicted by the photos"  # the confirmed frames, seen from its camera, do not look like it
 
     @property
     def verdict(self) -> FrameVerdict:
         if self in (CameraStatus.CONFIRMED, CameraStatus.REFINED, CameraStatus.COLMAP_ONLY):
             return FrameVerdict.CONFIRMED
-        unchecked = self in (CameraStatus.UNCHECKED, CameraStatus.PLANAR_PAIR)
+        unchecked = self in (CameraStatus.UNCHECKED, CameraStatus.PLANAR_PAIR, CameraStatus.GUIDED)
         return FrameVerdict.UNCHECKED if unchecked else FrameVerdict.CONTRADICTED
 
     @property
