@@ -1,9 +1,9 @@
 """Two pieces of work at the same time: one in the calling thread, one in a thread beside it.
 
 The feed-forward inference and the COLMAP cross-check read only the capture, so the pipeline runs
-them side by side (:func:`ffrecon.stages.pose_stages`). Threads are enough: onnxruntime and pycolmap
-release the GIL while they compute. They share the machine's cores through a :class:`CoreShare`:
-the feed-forward stage *claims* the threads it keeps busy (one, and onnxruntime's while the network
+them side by side (``POSES`` in :mod:`ffrecon.stages`, a :class:`~ffrecon.state.Beside`). Threads are
+enough: onnxruntime and pycolmap release the GIL while they compute. They share the machine's cores through a
+:class:`CoreShare`: the feed-forward stage *claims* the threads it keeps busy (one, and onnxruntime's while the network
 runs); the work beside asks, at the start of each of its steps (each batch of SIFT extraction,
 matching), how many cores are left.
 
