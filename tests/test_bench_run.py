@@ -103,3 +103,14 @@ def test_the_splat_budget_goes_only_to_runs_that_make_a_splat(bench, tmp_path):
     with_splat = command["default+splat"]
     assert "--no-splat" not in with_splat and with_splat[with_splat.index("--splat-seconds") + 1] == "30.0"
     assert "--quick" not in with_splat
+
+
+# Where a run's "other" seconds (wall no stage of report.json holds) went (issue 40, item 1).
+def test_other_seconds_are_split_into_their_parts_and_sum_to_other(bench):
+    stats = {"first": [2.9, 2.8], "last": [60.8, 76.0], "end": [63.2, 78.4]}
+    parts = bench.other_parts(stats, other_s=7.05, wall=64.8)
+    assert parts["imports+parse"] == pytest.approx(2.9)
+    assert parts["report+summary"] == pytest.approx(2.4)
+    assert parts["start+exit"] == pytest.approx(1.6)
+    assert sum(parts.values()) == pytest.approx(7.05)
+    assert bench.other_parts({}, 1.0, 2.0) == {}  # a child that recorded nothing: no parts

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from ffrecon.geometry.rotations import rotation_angle_deg
-from ffrecon.sfm.compare.poses import PoseComparison, compare_poses
+from ffrecon.sfm.compare.poses import compare_poses
 from ffrecon.sfm.crosscheck.run import ColmapResult
 from ffrecon.sfm.refine.options import RefineResult
 from ffrecon.sfm.verified_pairs import relative_rotations
@@ -61,12 +61,13 @@ def _per_image(
         model_vs_colmap = compare_poses(
             ff_cam_from_world, colmap.cam_from_world, names, None, ref_registered=colmap.registered
         )
+    off = {d.name: d.reason for d in comparison.disagreements} if comparison is not None else {}
     limit = options.max_correction_deg
     out = []
     for k, name in enumerate(names):
         if refine.registered[k]:
             change = _rotation_change_deg(refine.cam_from_world[k], ff_cam_from_world[k])
-            says = _colmap_word(name, comparison, healthy) if comparison is not None and colmap.registered[k] else None
+            says = _colmap_word(off.get(name), healthy) if comparison is not None and colmap.registered[k] else None
             out.append(_refined_frame(k, name, change, refine, colmap, says, options))
         elif model_vs_colmap is not None and colmap.registered[k]:
             change = float(model_vs_colmap.per_image_rotation_deg[k])
@@ -93,10 +94,10 @@ class _ColmapWord:
     why: str
 
 
-def _colmap_word(name: str, comparison: PoseComparison, healthy: bool) -> _ColmapWord:
-    off = {d.name: d.reason for d in comparison.disagreements}
-    if name in off:
-        return _ColmapWord(False, off[name])
+def _colmap_word(off: str | None, healthy: bool) -> _ColmapWord:
+    """``off``: why COLMAP's pose disagrees (None: it agrees)."""
+    if off is not None:
+        return _ColmapWord(False, off)
     return _ColmapWord(
         True, "COLMAP's pose agrees" if healthy else "COLMAP's rotation agrees (its centres not compared)"
     )
