@@ -35,6 +35,7 @@ from ffrecon.sfm.features import (
     feature_stats,
 )
 from ffrecon.sfm.refine.adjust import _adjust_with_dense
+from ffrecon.sfm.refine.components import place_parts
 from ffrecon.sfm.refine.matching import (
     _check_inputs,
     _guide,
@@ -147,9 +148,11 @@ def _log_refined(result: RefineResult) -> None:
 def _export_in_ff_frame(rec: pycolmap.Reconstruction, prediction: Prediction, image_dir: Path, model_dir: Path) -> Sim3:
     """Move ``rec`` into the prediction's world frame, colour its points and write it to ``model_dir``.
 
-    Returns ``ff_from_refined``, the similarity that moved it.
+    Returns ``ff_from_refined``, the similarity that moved it (the largest part's, when parts that share no point
+    are placed each by its own: :mod:`ffrecon.sfm.refine.components`).
     """
-    ff_from_refined = sim3_to_ff_frame(rec, prediction.names, prediction.cam_from_world)
+    parts = place_parts(rec, prediction.names, prediction.cam_from_world)
+    ff_from_refined = parts[0] if parts else sim3_to_ff_frame(rec, prediction.names, prediction.cam_from_world)
     with colmap_log_level():
         rec.extract_colors_for_all_images(str(image_dir))
     shutil.rmtree(model_dir, ignore_errors=True)
