@@ -177,6 +177,7 @@ def run_case(case: Case, args) -> dict:
             "good_contradicted": len(good_contradicted),
             "verdicts": letters,
             "whys": " | ".join(whys),
+            "dense": _dense_line(report, scene.names, model_errors),
         }
         if case.bad is not None:
             name = scene.names[case.bad]
@@ -190,6 +191,15 @@ def run_case(case: Case, args) -> dict:
             )
             row["bad_unchecked_exported"] = exported and verdict == "unchecked" and (err is None or err > 5.0)
         return row
+
+
+def _dense_line(report: dict, names, model_errors) -> str:
+    """Per frame the dense evidence ran for: ``name:verified/predicted@model error`` (a diagnostic for the CSV)."""
+    dense = (report.get("refine") or {}).get("dense_evidence") or {}
+    verified, predicted = dense.get("per_frame", {}), dense.get("per_frame_predicted", {})
+    return " ".join(
+        f"{n}:{verified[n]}/{predicted.get(n, '?')}@{model_errors[k]:.1f}" for k, n in enumerate(names) if n in verified
+    )
 
 
 def _line(row: dict) -> str:

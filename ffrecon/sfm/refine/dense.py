@@ -32,7 +32,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
@@ -86,12 +86,17 @@ class DenseStats:
     num_verified: int  # ... and COLMAP's verification: written to the database
     per_frame: dict[str, int]  # verified correspondences per frame
     seconds: float
+    # Per frame: its corners and its partners' corners the model's cameras and depth put inside the other frame
+    # of a pair it was tracked in: what the tracking tried (the model's prediction said they overlap there).
+    per_frame_predicted: dict[str, int] = field(default_factory=dict)
 
     def merged(self, other: DenseStats) -> DenseStats:
         """Two passes as one (the second for frames the first bundle adjustment still left out)."""
-        per_frame = dict(self.per_frame)
+        per_frame, predicted = dict(self.per_frame), dict(self.per_frame_predicted)
         for name, count in other.per_frame.items():
             per_frame[name] = per_frame.get(name, 0) + count
+        for name, count in other.per_frame_predicted.items():
+            predicted[name] = predicted.get(name, 0) + count
         frames = self.frames + tuple(f for f in other.frames if f not in self.frames)
         return DenseStats(
             frames,
@@ -100,6 +105,7 @@ class DenseStats:
             self.num_verified + other.num_verified,
             per_frame,
             self.seconds + other.seconds,
+            predicted,
         )
 
     def to_report(self) -> dict:
@@ -109,6 +115,7 @@ class DenseStats:
             "num_tracked": self.num_tracked,
             "num_verified": self.num_verified,
             "per_frame": dict(self.per_frame),
+            "per_frame_predicted": dict(self.per_frame_predicted),
             "seconds": round(self.seconds, 3),
         }
 
@@ -271,6 +278,7 @@ def add_dense_evidence(
     pairs = dense_pairs(score, frames, options)
     views = _Views(Path(image_dir), names, options)
     per_frame = dict.fromkeys((names[k] for k in frames), 0)
+    predicted = dict.fromkeys(per_frame, 0)
     tracked = verified = 0
     db = pycolmap.Database.open(str(db_path))
     try:
@@ -280,6 +288,9 @@ def add_dense_evidence(
         for i, j in pairs:
             id_i, id_j = images[names[i]].image_id, images[names[j]].image_id
             found = [_found(a, b, views, prediction, options) for a, b in ((i, j), (j, i))]
+            for k in (i, j):
+                if names[k] in predicted:
+                    predicted[names[k]] += found[0][2] + found[1][2]
             xy_i = np.concatenate([views(i)[1][found[0][0]] + 0.5, found[1][1]])  # OpenCV's indices -> COLMAP's rule
             xy_j = np.concatenate([found[0][1], views(j)[1][found[1][0]] + 0.5])
             tracked += len(xy_i)
@@ -300,7 +311,7 @@ def add_dense_evidence(
     finally:
         db.close()
     seconds = time.perf_counter() - start_s
-    stats = DenseStats(tuple(names[k] for k in frames), len(pairs), tracked, verified, per_frame, seconds)
+    stats = DenseStats(tuple(names[k] for k in frames), len(pairs), tracked, verified, per_frame, seconds, predicted)
     logger.info(
         "dense evidence for %d frames SIFT left short: %d pairs tracked, %d of %d correspondences verified (%.1f s)",
         len(frames),
@@ -330,10 +341,13 @@ class _Views:
 
 
 def _found(a: int, b: int, views: _Views, prediction: Prediction, options: DenseOptions):
-    """:func:`track_pair` of frame a's corners into frame b."""
+    """:func:`track_pair` of frame a's corners into frame b, and how many of them the prediction put in b."""
     (gray_a, corners_a), (gray_b, _) = views(a), views(b)
     xy_map = predicted_map(prediction, a, b, (gray_a.shape[1], gray_a.shape[0]), options.min_depth_conf)
-    return track_pair(gray_a, gray_b, corners_a, xy_map, options)
+    h, w = gray_a.shape
+    rows = corners_a[:, 1].round().astype(int).clip(0, h - 1)
+    cols = corners_a[:, 0].round().astype(int).clip(0, w - 1)
+    return (*track_pair(gray_a, gray_b, corners_a, xy_map, options), int((xy_map[rows, cols, 0] >= 0).sum()))
 
 
 def _verify(
