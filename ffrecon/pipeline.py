@@ -21,6 +21,7 @@ from ffrecon.resume import StageRunner, rebase_paths
 from ffrecon.sfm.compare.comparisons import check_references
 from ffrecon.stages import STAGES
 from ffrecon.state import Beside, RunState, Stage, StagePlan
+from ffrecon.timing import Clock
 from ffrecon.types import RunMode
 from ffrecon.workspace import staged_output
 
@@ -32,16 +33,26 @@ StageList = tuple[Stage | Beside, ...]
 
 
 def run(
-    source: Path, out_dir: Path, model: Path | None, options: RunOptions | None = None, *, stages: StageList = STAGES
+    source: Path,
+    out_dir: Path,
+    model: Path | None,
+    options: RunOptions | None = None,
+    *,
+    stages: StageList = STAGES,
+    started: Clock | None = None,
 ) -> RunResults:
     """Reconstruct ``source`` (folder of photos or a video) with ``model`` into ``out_dir``.
 
     Without a model (None) the cameras come from COLMAP and the splat is seeded from its points. ``stages``:
     the stage list to run (:data:`ffrecon.stages.STAGES`; a test may run a copy with a stage added).
+    ``started``: when the caller's work began (the command line passes the process's start), else this call;
+    report.json's timings hold "startup", from then to the first stage, and "report", from the last stage to
+    report.json's write (:func:`~ffrecon.report.build.write_report`).
 
     Raises :class:`~ffrecon.errors.Interrupted` on Ctrl-C (KeyboardInterrupt), naming the stages
     kept for ``--resume``; other :class:`~ffrecon.errors.FFReconError` for unusable input.
     """
+    started = started or Clock.now("run() called")
     options = options or RunOptions()
     check_run_options(model, options)
     created = dt.datetime.now().isoformat(timespec="seconds")
@@ -51,14 +62,17 @@ def run(
         work = staging.path
         runner = StageRunner(work, reuse=not options.fresh)
         try:
-            results = _run_stages(Path(source), model and Path(model), options, runner, created, stages)
+            results, startup = _run_stages(
+                Path(source), model and Path(model), options, runner, created, stages, started
+            )
         except KeyboardInterrupt:
             resume = options.command or "the same command"
             raise Interrupted(runner.current, runner.finished, str(work), _resume_command(resume)) from None
+        stages_ended = Clock.now("last stage ended")
         # A rejected run does not replace earlier good results: it stays where it was built (said in a warning).
         kept_aside = staging.keeps_earlier(results.verdict is Verdict.GATE_FAILED)
         results = rebase_paths(results, work, work if kept_aside else staging.out_dir)  # where the files end up
-        write_report(results, work)
+        write_report(results, work, startup=(*startup, started.origin), report_started=stages_ended)
         staging.verdict = results.verdict.value
     return results
 
@@ -84,13 +98,22 @@ def _resume_command(command: str) -> str:
 
 
 def _run_stages(
-    source: Path, model: Path | None, options: RunOptions, runner: StageRunner, created: str, stages: StageList
-) -> RunResults:
-    """The whole run: the stages in order, each reading the state so far; the final state is the results."""
+    source: Path,
+    model: Path | None,
+    options: RunOptions,
+    runner: StageRunner,
+    created: str,
+    stages: StageList,
+    started: Clock,
+) -> tuple[RunResults, tuple[float, float]]:
+    """The whole run: the stages in order, each reading the state so far; the final state is the results. With
+    them the wall and CPU seconds from ``started`` to the first stage (the interpreter, imports, the folder's lock,
+    the inputs' keys)."""
     plan = StagePlan(runner, options)
     plan.inputs_key("source", source)
     plan.inputs_key("model", model)
     state = RunState(source, model, runner.run_dir)
+    startup = started.since()
     for step in stages:
         state = plan.run(state, step)
     return RunResults.of(
@@ -102,4 +125,4 @@ def _run_stages(
         mode=options.mode,
         overlaps=tuple(runner.overlaps),
         stages=tuple(stages),
-    )
+    ), startup

@@ -4,6 +4,7 @@ steps inside COLMAP, refinement and the splat)."""
 from __future__ import annotations
 
 import contextlib
+import os
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -28,6 +29,42 @@ def cpu_seconds() -> float:
         return time.process_time()
     me, children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
     return me.ru_utime + me.ru_stime + children.ru_utime + children.ru_stime
+
+
+@dataclass(frozen=True)
+class Clock:
+    """A moment of the run: ``wall`` (:func:`time.perf_counter`) and ``cpu`` (:func:`cpu_seconds`) then, and what
+    it was (``origin``: the process's start, a call).
+
+    >>> start = Clock.now()
+    >>> wall, cpu = start.since()
+    >>> wall >= 0 and cpu >= 0
+    True
+    """
+
+    wall: float
+    cpu: float
+    origin: str = "now"
+
+    @classmethod
+    def now(cls, origin: str = "now") -> "Clock":
+        return cls(time.perf_counter(), cpu_seconds(), origin)
+
+    @classmethod
+    def process_start(cls) -> "Clock | None":
+        """When this process started, from the kernel (``/proc/self/stat``'s start time, in clock ticks of 10 ms
+        since boot, against ``CLOCK_BOOTTIME``), with no CPU spent yet; None where ``/proc`` is missing."""
+        try:
+            with open("/proc/self/stat", "rb") as stat:  # after the ")" that ends the command name: field 3 on
+                ticks = int(stat.read().rsplit(b")", 1)[1].split()[19])
+            age = time.clock_gettime(time.CLOCK_BOOTTIME) - ticks / os.sysconf("SC_CLK_TCK")
+        except (OSError, ValueError, IndexError, AttributeError):
+            return None
+        return cls(time.perf_counter() - max(age, 0.0), 0.0, "process start")
+
+    def since(self) -> tuple[float, float]:
+        """``(wall seconds, CPU seconds)`` from this moment to now."""
+        return time.perf_counter() - self.wall, max(cpu_seconds() - self.cpu, 0.0)
 
 
 @dataclass

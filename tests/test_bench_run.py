@@ -114,3 +114,17 @@ def test_other_seconds_are_split_into_their_parts_and_sum_to_other(bench):
     assert parts["start+exit"] == pytest.approx(1.6)
     assert sum(parts.values()) == pytest.approx(7.05)
     assert bench.other_parts({}, 1.0, 2.0) == {}  # a child that recorded nothing: no parts
+
+
+def test_other_seconds_once_the_report_times_the_runs_own_startup_and_report(bench):
+    """With report.json's "startup" and "report" owned, "other" is split into what follows the report's entry, the
+    gaps between stages and the process's start and exit; the parts still sum to "other"."""
+    stats = {"first": [2.9, 2.8], "last": [60.8, 76.0], "end": [61.0, 76.1]}
+    timings = {"startup": 3.3, "capture": 10.0, "feedforward": 47.7, "report": 0.15}
+    report = {"timings": {k: {"seconds": v} for k, v in timings.items()}, "concurrent_stages": []}
+    wall = 61.5
+    other = wall - bench.stages_wall(report)
+    parts = bench.other_parts(stats, other_s=other, wall=wall, report=report)
+    assert parts["after the report"] == pytest.approx(0.05)
+    assert parts["between stages"] == pytest.approx(0.2)
+    assert sum(parts.values()) == pytest.approx(other) and "imports+parse" not in parts

@@ -12,8 +12,9 @@ child too, so that this process stays small: a child starts at its parent's high
 - ``ffrecon run IMAGES -o OUT --model MODEL --reference GT [--quick]``, one per mode. ``GT`` is the scene's
   ground truth written as a COLMAP model, so that the report scores the final cameras against it.
 
-Per-stage seconds come from each run's ``report.json`` ("timings"); "other" is the wall time no stage
-accounts for (interpreter start, imports, writing the report; stages that ran side by side count once).
+Per-stage seconds come from each run's ``report.json`` ("timings", with the run's own "startup": from the process's
+start to the first stage, and "report": from the last stage to report.json's write); "other" is the wall time
+measured here, outside the child, that no entry accounts for (stages that ran side by side count once).
 Each stage's steps come from its own section's ``timings_s`` (wall) and ``cpu_s`` (user + system CPU, where
 the stage records it: the COLMAP cross-check and the splat do), with how much of the stage they cover; each
 run's whole CPU seconds (user + system, the child and its children, from ``os.wait4``) are the "cpu s" column,
@@ -286,7 +287,9 @@ def ffrecon_child(stats_path: Path, argv: list[str]) -> int:
     import ffrecon.models.runner as runner
     import ffrecon.state as plan_module
     from ffrecon.cli import main as ffrecon_main
-    from ffrecon.timing import cpu_seconds
+    from ffrecon.timing import Clock, cpu_seconds
+
+    started = Clock.process_start() or Clock.now("bench_run child called")  # as the ffrecon command times it
 
     stats: dict = {"steps": [], "inference": {"calls": 0, "wall_s": 0.0, "cpu_s": 0.0}}
     plan_run, model_run = plan_module.StagePlan.run, runner.OnnxModel.run
@@ -314,7 +317,7 @@ def ffrecon_child(stats_path: Path, argv: list[str]) -> int:
 
     plan_module.StagePlan.run, runner.OnnxModel.run = plan_step, model_call
     try:
-        return ffrecon_main(argv)
+        return ffrecon_main(argv, started=started)
     finally:
         stats["end"] = (time.perf_counter() - t0, cpu_seconds())
         plan_module.StagePlan.run, runner.OnnxModel.run = plan_run, model_run
@@ -545,26 +548,43 @@ def run_ffrecon(
     if stats.is_file():
         ran = {name for name, t in report.get("timings", {}).items() if not t.get("reused")}
         row["by_step"] = stage_cpu(json.loads(stats.read_text()), ran)
-        row["other_parts"] = other_parts(json.loads(stats.read_text()), row["other_s"], wall)
+        row["other_parts"] = other_parts(json.loads(stats.read_text()), row["other_s"], wall, report)
     if (out / "sparse" / "0").is_dir():
         row["loop_drift_pct"] = loop_drift_pct(out / "sparse" / "0", inputs.scene_dir)
     return row
 
 
-def other_parts(stats: dict, other_s: float, wall: float) -> dict:
-    """Where a run's "other" seconds (wall no stage of ``report.json`` holds) went, from :func:`ffrecon_child`'s
-    stats: the imports and parsing before the first stage, the report after the last, the interpreter's start
-    and exit (the child's wall outside its own clock: module teardown, torch's 0.4 s of it), and the rest (inside
-    the plan's steps but outside the stages' seconds: records, resume keys, the gaps between stages).
+def other_parts(stats: dict, other_s: float, wall: float, report: dict | None = None) -> dict:
+    """Where a run's "other" seconds (wall that no entry of ``report.json``'s timings holds) went, from
+    :func:`ffrecon_child`'s stats and the run's ``report``.
+
+    Where the report times the run's own "startup" (from the process's start to the first stage) and "report"
+    (from the last stage to report.json's write): what follows the report's entry (report.json written, the
+    results swapped into OUT, the summary), the gaps between stages (inside the plan's steps but outside the
+    stages' seconds: records, resume keys), and the rest: the process's start before the kernel's record of it
+    and its exit. From an older report without them: the imports and parsing before the first stage, the report
+    after the last, the interpreter's start and exit (the child's wall outside its own clock), and the gaps.
 
     >>> other_parts({"first": (3.0, 2.9), "last": (60.0, 70.0), "end": (62.0, 72.0)}, 7.0, 63.5)
     {'imports+parse': 3.0, 'report+summary': 2.0, 'start+exit': 1.5, 'between stages': 0.5}
+    >>> report = {"timings": {"startup": {"seconds": 3.5}, "a": {"seconds": 56.6}, "report": {"seconds": 1.9}}}
+    >>> other_parts({"first": (3.0, 2.9), "last": (60.0, 70.0), "end": (62.0, 72.0)}, 0.6, 62.6, report)
+    {'after the report': 0.1, 'between stages': 0.4, 'start+exit': 0.1}
     """
     first, last, end = stats.get("first"), stats.get("last"), stats.get("end")
     if not (first and last and end):
         return {}
-    parts = {"imports+parse": first[0], "report+summary": end[0] - last[0], "start+exit": wall - end[0]}
-    parts["between stages"] = other_s - sum(parts.values())
+    timings = (report or {}).get("timings", {})
+    own = {name: timings.get(name, {}).get("seconds") for name in ("startup", "report")}
+    if None in own.values():
+        parts = {"imports+parse": first[0], "report+summary": end[0] - last[0], "start+exit": wall - end[0]}
+    else:
+        stages = stages_wall(report)
+        parts = {
+            "after the report": end[0] - last[0] - own["report"],
+            "between stages": last[0] - first[0] - (stages - own["startup"] - own["report"]),
+        }
+    parts[next(k for k in ("between stages", "start+exit") if k not in parts)] = other_s - sum(parts.values())
     return {k: round(v, 4) for k, v in parts.items()}
 
 
@@ -653,8 +673,10 @@ def _num(value, fmt: str, width: int) -> str:
 
 
 def print_table(rows: list[dict]) -> None:
-    extra = sorted({k for r in rows for k in r.get("stages", {})} - set(STAGES) - {"checks"})
-    columns = [*STAGES, "checks", *extra]
+    named = {k for r in rows for k in r.get("stages", {})}
+    extra = sorted(named - set(STAGES) - {"checks", "startup", "report"})
+    # the run's own entries first and last: from the process's start to the first stage, after the last stage
+    columns = [*({"startup"} & named), *STAGES, "checks", *extra, *({"report"} & named)]
     short = {"feedforward": "ff", "exports": "export"}
     head = "".join(f"{short.get(c, c)[:8]:>9}" for c in columns)
     print(f"{'method':<24}{'wall s':>8}{'xCOLMAP':>8}{head}{'other':>8}{'cpu s':>8}{'xCPU':>6}{'peakGB':>7}", end="")
@@ -845,4 +867,9 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    code = main()
+    if sys.argv[1:2] == ["--ffrecon-child"]:  # it leaves as the ffrecon command does: at once, everything written
+        from ffrecon.cli import leave
+
+        leave(code)
+    sys.exit(code)

@@ -23,6 +23,7 @@ from ffrecon.report.html import render_html
 from ffrecon.results import QUICK_STATEMENT, RunMode, RunResults, Skipped
 from ffrecon.sfm.refine.options import RefineResult, RefineStatus
 from ffrecon.state import each_stage
+from ffrecon.timing import Clock
 
 
 def _jsonable(obj):
@@ -143,11 +144,42 @@ def build_report(results: RunResults) -> dict:
     return _jsonable(report)
 
 
-def write_report(results: RunResults, run_dir: Path) -> tuple[Path, Path]:
-    """Write ``report.json`` and ``report.html`` into ``run_dir`` (the folder ``results`` describe)."""
+def run_timing(seconds: float, cpu_seconds: float, since: str) -> dict:
+    """A timings entry of the run's own work (not a stage's): "startup" and "report" (:func:`write_report`)."""
+    return {
+        "seconds": round(seconds, 4),
+        "cpu_seconds": round(cpu_seconds, 4),
+        "reused": False,
+        "first_seconds": None,
+        "concurrent_with": None,
+        "peak_rss_gb": None,
+        "since": since,
+    }
+
+
+def write_report(
+    results: RunResults,
+    run_dir: Path,
+    *,
+    startup: tuple[float, float, str] | None = None,
+    report_started: Clock | None = None,
+) -> tuple[Path, Path]:
+    """Write ``report.html``, then ``report.json`` into ``run_dir`` (the folder ``results`` describe).
+
+    ``startup``: the run's ``(wall, CPU)`` seconds before its first stage and since when (the process's start,
+    or the call): the first entry of the timings ("startup"). ``report_started``: when the last stage ended;
+    the timings' last entry ("report") is the time from then to the moment before report.json is written:
+    the results gathered, this page built and written. report.json cannot hold the time it takes to write
+    itself (milliseconds: it is written last), nor what follows (the staging folder swapped into OUT, the
+    summary printed, the exit); the page shows "startup" and the stages, report.json "report" too.
+    """
     report = build_report(results)
-    json_path = Path(run_dir) / "report.json"
-    json_path.write_text(json.dumps(report, indent=2))
+    if startup is not None:
+        report["timings"] = {"startup": run_timing(*startup), **report["timings"]}
     html_path = Path(run_dir) / "report.html"
     html_path.write_text(render_html(report, run_dir, results.stages))
+    if report_started is not None:
+        report["timings"]["report"] = run_timing(*report_started.since(), report_started.origin)
+    json_path = Path(run_dir) / "report.json"
+    json_path.write_text(json.dumps(report, indent=2))
     return json_path, html_path
