@@ -194,11 +194,14 @@ def run_case(case: Case, args) -> dict:
 
 
 def _dense_line(report: dict, names, model_errors) -> str:
-    """Per frame the dense evidence ran for: ``name:verified/predicted@model error`` (a diagnostic for the CSV)."""
+    """Per frame: ``name:dense verified/dense predicted/r<overlap reach>@model error`` (a diagnostic for the CSV;
+    ``-`` where dense evidence did not run for the frame)."""
     dense = (report.get("refine") or {}).get("dense_evidence") or {}
     verified, predicted = dense.get("per_frame", {}), dense.get("per_frame_predicted", {})
+    reach = (report.get("refine") or {}).get("overlap_reach") or {}
     return " ".join(
-        f"{n}:{verified[n]}/{predicted.get(n, '?')}@{model_errors[k]:.1f}" for k, n in enumerate(names) if n in verified
+        f"{n}:{verified.get(n, '-')}/{predicted.get(n, '-')}/r{reach.get(n, '?')}@{model_errors[k]:.1f}"
+        for k, n in enumerate(names)
     )
 
 

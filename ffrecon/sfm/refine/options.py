@@ -167,6 +167,9 @@ class RefineResult:
     database_path: Path | None  # the refinement's COLMAP database (SIFT and dense matches), out_dir/refine
     observations: np.ndarray | None  # [N] int, triangulated observations per frame in the refined model
     reconstruction: pycolmap.Reconstruction | None = field(default=None, repr=False, compare=False)
+    # [N] each frame's largest overlap with another frame, as the model's cameras and depth predict it (the larger
+    # direction, OverlapGraph.reach); empty where the refinement did not build the graph
+    overlap_reach: tuple[float, ...] = ()
 
     def to_report(self) -> dict:
         err = self.mean_reprojection_error_px
@@ -198,6 +201,7 @@ class RefineResult:
             "timings_s": self.timings.to_report(),
             "cpu_s": self.timings.cpu_report(),
             "features": self.features.to_report(),
+            "overlap_reach": {n: round(float(r), 3) for n, r in zip(self.names, self.overlap_reach)},
         }
 
 

@@ -122,6 +122,7 @@ def run_refine(inputs: RefineInputs, prediction: Prediction, options: RefineOpti
         dense=dense,
         relocalized=relocalized,
         bundle=summary,
+        overlap_reach=tuple(np.where(np.eye(len(names), dtype=bool), 0.0, graph.reach()).max(axis=1).tolist()),
     )
     if len(refined_names) < 2:
         logger.warning("refinement failed: %d usable frames; keeping the feed-forward cameras", len(refined_names))

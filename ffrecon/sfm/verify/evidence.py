@@ -38,7 +38,7 @@ import numpy as np
 from ffrecon.sfm.crosscheck.gate_types import GatesResult, GateStatus, GateVerdict
 from ffrecon.sfm.crosscheck.run import ColmapResult
 from ffrecon.sfm.refine.options import RefineResult
-from ffrecon.sfm.verify.frames import _per_image, _photometric
+from ffrecon.sfm.verify.frames import _dense_misfits, _per_image, _photometric
 from ffrecon.sfm.verify.verdicts import CameraStatus, EvidenceOptions, EvidenceResult, FrameVerdict
 from ffrecon.sfm.verify.witness import _distrusted, _healthy, _unsuited
 from ffrecon.types import Prediction, Skipped
@@ -86,6 +86,7 @@ def judge_final_cameras(
     unsuited = _unsuited(names, ff_cam_from_world, colmap, witness, options)
     healthy = _healthy(colmap, witness)
     per_image, comparison = _per_image(names, ff_cam_from_world, refine, colmap, options, healthy)
+    per_image = _dense_misfits(per_image, refine, options)
     if photos is not None and depth is not None:
         limit = options.max_correction_deg
         per_image = _photometric(per_image, ff_cam_from_world, refine, photos, depth, options.photometric, limit)

@@ -174,6 +174,42 @@ def _photometric(per_image, ff_cam_from_world, refine: RefineResult, photos, dep
     return tuple(out)
 
 
+def _dense_misfits(per_image, refine: RefineResult, options: EvidenceOptions):
+    """``per_image`` with the unchecked frames that dense tracking from the model's prediction contradicts left
+    out (:attr:`EvidenceOptions.min_dense_predicted`, :attr:`EvidenceOptions.dense_misfit_ratio`).
+
+    Dense correspondences are tracked from where the model's depth and cameras put a frame's corners in its
+    overlapping frames, refined within a small window (:mod:`ffrecon.sfm.refine.dense`). A camera a few degrees
+    off leaves them within the window; one 25 deg off puts them far from their match, and none survive the
+    checks and the pair's verification. On a repeated tile, where no SIFT match or photo comparison told the two
+    apart, that was the one sign: on the object family (seed 205, the frame 25 deg off) it found none of the
+    frame's 1,900 predicted corners, where the others verified 15-60 % of theirs."""
+    dense = refine.dense
+    if dense is None or not dense.per_frame_predicted:
+        return per_image
+    share = {
+        name: dense.per_frame.get(name, 0) / tried
+        for name, tried in dense.per_frame_predicted.items()
+        if tried >= options.min_dense_predicted
+    }
+    out = list(per_image)
+    for k, e in enumerate(out):
+        others = [v for name, v in share.items() if name != e.name]
+        if e.status is not CameraStatus.UNCHECKED or e.name not in share or len(others) < 2:
+            continue
+        typical = float(np.median(others))
+        if typical > 0 and share[e.name] <= options.dense_misfit_ratio * typical:
+            said = e.why.removesuffix("the model's camera is kept").rstrip(":; ")
+            why = (
+                f"{said}; but dense tracking from the model's prediction verified {dense.per_frame.get(e.name, 0)} "
+                f"of the {dense.per_frame_predicted[e.name]} corners it put inside the frames it overlaps "
+                f"({share[e.name]:.0%}; the other frames tracked: {typical:.0%}, median): its camera is not where "
+                "the model says, left out"
+            )
+            out[k] = CameraEvidence(e.name, CameraStatus.CONTRADICTED, why, e.correction_deg)
+    return tuple(out)
+
+
 def _relocalized_not_kept(names, refine: RefineResult, flagged: dict, out: list, limit: float) -> None:
     """Fill ``out`` (``None`` where undecided) for the frames the renderings placed more than ``limit`` from
     the model that the adjustment did not keep: contradicted, left out (not unchecked with the model's

@@ -62,6 +62,12 @@ class EvidenceOptions:
     # pattern's period nearest the prediction. Good frames moved 1.0-4.0 deg on the repeated-tile street (seed
     # 201, --quick), the frame 25 deg off 7.6 deg (to 15.9 deg from the truth).
     max_lookalike_dense_change_deg: float = 5.0
+    # A frame nothing else checks is contradicted when dense tracking from the model's prediction
+    # (sfm/refine/dense.py) found almost none of the corners the prediction put inside its overlapping frames,
+    # where the other frames tracked found theirs: at least min_dense_predicted corners tried, and a share
+    # verified at most dense_misfit_ratio times the median share of the others (at least two of them).
+    min_dense_predicted: int = 200
+    dense_misfit_ratio: float = 0.1
     min_pair_inliers: int = 10  # verified matches of a pair whose relative rotation counts as evidence
     # A pair with this many verified matches is decisive alone (COLMAP's own bar for an initial pair); a weaker
     # one counts in proportion. A frame the refinement did not hold is contradicted by its pairs only when
@@ -83,6 +89,8 @@ class EvidenceOptions:
         for name in ("min_common_images", "min_independent_observations"):
             check_number(f"EvidenceOptions.{name}", getattr(self, name), low=0, integer=True)
         check_number("EvidenceOptions.min_pair_inliers", self.min_pair_inliers, low=5, integer=True)
+        check_number("EvidenceOptions.min_dense_predicted", self.min_dense_predicted, low=1, integer=True)
+        check_number("EvidenceOptions.dense_misfit_ratio", self.dense_misfit_ratio, low=0, high=1)
         check_number("EvidenceOptions.decisive_pair_inliers", self.decisive_pair_inliers, low=1, integer=True)
         for name in ("max_correction_deg", "max_lookalike_dense_change_deg"):
             check_number(f"EvidenceOptions.{name}", getattr(self, name), low=0, low_open=True, high=180)
