@@ -18,7 +18,7 @@ from pathlib import Path
 from ffrecon.errors import InputError, OutputExistsError, ResourceError
 from ffrecon.formats.camera_path import read_camera_path
 from ffrecon.formats.splat_ply import read_splat_ply
-from ffrecon.splat.optimize import OptimizeOptions
+from ffrecon.splat.optimize_options import OptimizeOptions
 from ffrecon.splat.stage import SplatDevice, resolve_device
 from ffrecon.splat.video import path_frames, render_camera_path
 

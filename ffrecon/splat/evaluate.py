@@ -25,13 +25,15 @@ from ffrecon.geometry.poses import camera_centers
 from ffrecon.geometry.rotations import rotation_angle_deg
 from ffrecon.splat.appearance import apply_color_transform, fit_color_transform
 from ffrecon.splat.budget import ViewCosts
-from ffrecon.splat.optimize import OptimizeOptions, OptimizeResult, scene_scale, unit_float
+from ffrecon.splat.optimize import scene_scale
+from ffrecon.splat.optimize_options import OptimizeOptions, OptimizeResult
 from ffrecon.splat.options import SplatOptions
 from ffrecon.splat.outputs import write_png
 from ffrecon.splat.render_gsplat import render_view_on
 from ffrecon.splat.result import PoseChange, ViewMetrics
 from ffrecon.splat.ssim import ssim_mean
 from ffrecon.splat.stage_run import StageRun
+from ffrecon.splat.train_views import unit_float
 from ffrecon.types import PinholeCamera
 
 logger = logging.getLogger("ffrecon.splat")

@@ -10,7 +10,7 @@ import numpy as np
 from ffrecon.checks import check_number
 from ffrecon.errors import InputError
 from ffrecon.splat.clean import CleanOptions
-from ffrecon.splat.optimize import OptimizeOptions
+from ffrecon.splat.optimize_options import OptimizeOptions
 from ffrecon.splat.render_gsplat import gsplat_available
 
 

@@ -42,7 +42,8 @@ from ffrecon.splat.evaluate import (
     with_masks,
 )
 from ffrecon.splat.memory import splat_peak_bytes, training_side
-from ffrecon.splat.optimize import OptimizeResult, cpu_threads, scene_scale, torch_threads
+from ffrecon.splat.optimize import cpu_threads, scene_scale, torch_threads
+from ffrecon.splat.optimize_options import OptimizeResult
 from ffrecon.splat.options import SplatDevice, SplatOptions, ViewPriors, resolve_device
 from ffrecon.splat.outputs import MIN_VIDEO_FRAMES, OUTPUTS, write_outputs
 from ffrecon.splat.render import warm_up

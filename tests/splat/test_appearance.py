@@ -14,8 +14,9 @@ from ffrecon.splat.appearance import (
     random_color_changes,
 )
 from ffrecon.splat.densify import Densifier, DensifyOptions
-from ffrecon.splat.optimize import OptimizeOptions, _densify, _trainable
+from ffrecon.splat.optimize import OptimizeOptions
 from ffrecon.splat.stage import SplatOptions, color_corrected, image_metrics, run_splat, split_views
+from ffrecon.splat.trainable import _densify, _trainable
 from ffrecon.synthetic import SceneOptions, make_scene
 
 

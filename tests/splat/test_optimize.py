@@ -12,9 +12,10 @@ from ffrecon.gaussians import Gaussians, rgb_to_sh_dc
 from ffrecon.geometry.poses import look_at_cam_from_world
 from ffrecon.geometry.rotations import axis_angle_to_matrix, rotation_angle_deg
 from ffrecon.splat.densify import Densifier, DensifyOptions, replace_rows
-from ffrecon.splat.optimize import OptimizeOptions, downscaled, optimize, resolution_factor
+from ffrecon.splat.optimize import OptimizeOptions, optimize
 from ffrecon.splat.render import render
 from ffrecon.splat.ssim import ssim_map
+from ffrecon.splat.train_views import downscaled, resolution_factor
 
 W, H = 64, 48
 K = np.array([[60.0, 0, 32], [0, 60.0, 24], [0, 0, 1]])
