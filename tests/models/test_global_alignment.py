@@ -13,13 +13,8 @@ from ffrecon.geometry.metrics import pose_errors
 from ffrecon.geometry.poses import look_at_cam_from_world, transform_points
 from ffrecon.geometry.projection import pixel_centers, unproject_depth
 from ffrecon.geometry.rotations import axis_angle_to_matrix
-from ffrecon.models.global_alignment import (
-    AlignmentOptions,
-    PairPrediction,
-    estimate_focal,
-    global_align,
-    maximum_spanning_tree,
-)
+from ffrecon.models.alignment_init import estimate_focal, maximum_spanning_tree
+from ffrecon.models.global_alignment import AlignmentOptions, PairPrediction, global_align
 
 SIZE_HW = (32, 48)
 
