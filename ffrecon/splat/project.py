@@ -158,6 +158,84 @@ def _quat_backward(qn, dr, dqn):
     )  # fmt: skip
 
 
+@njit(cache=True)
+def _conic_backward(i, d_conics, cov, eps2d, in_front, d_cov):
+    """``d_cov [2, 2]``: the gradient of the 2D covariance from that of Gaussian ``i``'s conic (``cov [2, 2]``
+    is the covariance before ``eps2d``; an undrawable one is inverted with determinant 1, as the forward)."""
+    a, b, c = cov[0, 0] + eps2d, cov[0, 1], cov[1, 1] + eps2d
+    det = a * c - b * b
+    if not (in_front and det > 0 and math.isfinite(det)):
+        det = 1.0
+    # conic = (c, -b, a) / det, the entries of S^-1 (off-diagonal once): dS = -S^-1 G S^-1.
+    i00, i01, i11 = c / det, -b / det, a / det
+    g00, g01, g11 = d_conics[i, 0], 0.5 * d_conics[i, 1], d_conics[i, 2]
+    h00, h01, h10, h11 = i00 * g00 + i01 * g01, i00 * g01 + i01 * g11, i01 * g00 + i11 * g01, i01 * g01 + i11 * g11
+    d_cov[0, 0] = -(h00 * i00 + h01 * i01)
+    d_cov[0, 1] = d_cov[1, 0] = -(h00 * i01 + h01 * i11)
+    d_cov[1, 1] = -(h10 * i01 + h11 * i11)
+
+
+@njit(cache=True)
+def _shape_backward(i, d_cov, t_mat, sigma, m, rq, s, qn, qnorm, out, tmp23, tmp33, dt23):
+    """From ``d_cov`` through ``cov2d = T Sigma T^T`` and ``Sigma = M M^T``, ``M = Rq diag(s)``: Gaussian
+    ``i``'s log scales and quaternion (``out[i, 3:10]``); returns ``dT [2, 3]`` (in ``dt23``). Overwrites
+    ``sigma`` (with ``dM``), ``tmp23`` and ``tmp33``."""
+    # cov2d = T Sigma T^T: dT = 2 dC T Sigma, dSigma = T^T dC T
+    d_c_t = _mm(d_cov, t_mat, tmp23)
+    d_t = _mm(d_c_t, sigma, dt23)
+    for r in range(2):
+        for col in range(3):
+            d_t[r, col] *= 2.0
+    d_sigma = _mm(t_mat.T, d_c_t, tmp33)
+    # Sigma = M M^T, M = Rq diag(s): dM = 2 dSigma M (into sigma's buffer, no longer needed)
+    d_m = _mm(d_sigma, m, sigma)
+    for j in range(3):
+        d_s = 2.0 * (d_m[0, j] * rq[0, j] + d_m[1, j] * rq[1, j] + d_m[2, j] * rq[2, j])
+        out[i, 7 + j] = d_s * s[j]  # s = exp(log s)
+        for r in range(3):
+            d_m[r, j] *= 2.0 * s[j]  # now d Rq
+    d_qn = out[i, 3:7]
+    _quat_backward(qn, d_m, d_qn)
+    proj = qn[0] * d_qn[0] + qn[1] * d_qn[1] + qn[2] * d_qn[2] + qn[3] * d_qn[3]
+    for j in range(4):
+        d_qn[j] = (d_qn[j] - qn[j] * proj) / qnorm  # q_unit = q / |q|
+    return d_t
+
+
+@njit(cache=True)
+def _camera_backward(i, d_t, rot, jac, p, cam, terms, d_means2d, d_depths, tmp23, d_rot):
+    """From ``dT`` (``T = J R``), the pixel and the depth of Gaussian ``i`` to its camera-frame centre: returns
+    ``(dpx, dpy, dpz)`` and writes ``dR`` (this term of it) into ``d_rot [3, 3]``. ``terms``: what
+    :func:`_camera_terms` returned. Overwrites ``tmp23``."""
+    in_front, zs, clamped_x, clamped_y, tx, ty = terms
+    # T = J R_cam: dJ = dT R^T, dR += J^T dT
+    d_jac = _mm(d_t, rot.T, tmp23)
+    _mm(jac.T, d_t, d_rot)
+    fx, fy = cam[0], cam[1]
+    d_zs = (
+        -d_jac[0, 0] * fx / zs**2 + 2 * d_jac[0, 2] * fx * tx / zs**3
+        - d_jac[1, 1] * fy / zs**2 + 2 * d_jac[1, 2] * fy * ty / zs**3
+    )  # fmt: skip
+    d_tx, d_ty = -d_jac[0, 2] * fx / zs**2, -d_jac[1, 2] * fy / zs**2
+    # tx = zs clamp(x / zs): x where unclamped, zs * limit where clamped
+    dpx = dpy = 0.0
+    if clamped_x:
+        d_zs += d_tx * tx / zs
+    else:
+        dpx += d_tx
+    if clamped_y:
+        d_zs += d_ty * ty / zs
+    else:
+        dpy += d_ty
+    # pixel = (fx x / zs + cx, fy y / zs + cy); depth = z
+    du, dv = d_means2d[i, 0], d_means2d[i, 1]
+    dpx += du * fx / zs
+    dpy += dv * fy / zs
+    d_zs += -du * fx * p[0] / zs**2 - dv * fy * p[1] / zs**2
+    dpz = d_depths[i] + (d_zs if in_front else 0.0)
+    return dpx, dpy, dpz
+
+
 @njit(cache=True, parallel=True)
 def _project_backward(
     means,
@@ -180,75 +258,25 @@ def _project_backward(
     """Backward: ``out [N, 11]`` (means 3, quaternion 4, log scales 3, logit 1) and the pose's
     ``pose [threads, 12]`` (d rot row-major, then d trans), summed by the caller.
 
-    Long because it is the chain rule of :func:`_project` written out step by step, each step
-    commented with the forward relation it inverts.
+    The chain rule of :func:`_project` in the reverse order of its steps: the conic
+    (:func:`_conic_backward`), the 3D covariance's shape (:func:`_shape_backward`), the camera
+    (:func:`_camera_backward`), then the centre, the pose and the opacity here.
     """
     ps, jacs, ms, qns, rqs, ss, ts, tmp23s, sigmas, tmp33s, d_covs, tmp22s, dt23s = _scratch(threads)
     for i in prange(means.shape[0]):
         me = numba.get_thread_id()
         p, jac, m, qn, rq, s, t_mat = ps[me], jacs[me], ms[me], qns[me], rqs[me], ss[me], ts[me]
         tmp23, sigma, tmp33, d_cov, tmp22, dt23 = tmp23s[me], sigmas[me], tmp33s[me], d_covs[me], tmp22s[me], dt23s[me]
-        in_front, zs, clamped_x, clamped_y, tx, ty = _camera_terms(i, means, rot, trans, cam, near, p, jac)
+        terms = _camera_terms(i, means, rot, trans, cam, near, p, jac)
         qnorm = _gaussian_factor(i, quats, log_scales, m, qn, rq, s)
         _mm(jac, rot, t_mat)
         _mm(m, m.T, sigma)
         _mm(t_mat, sigma, tmp23)
         _mm(tmp23, t_mat.T, tmp22)  # cov2d without eps2d
-        a, b, c = tmp22[0, 0] + eps2d, tmp22[0, 1], tmp22[1, 1] + eps2d
-        det = a * c - b * b
-        if not (in_front and det > 0 and math.isfinite(det)):
-            det = 1.0
-        # conic = (c, -b, a) / det, the entries of S^-1 (off-diagonal once): dS = -S^-1 G S^-1.
-        i00, i01, i11 = c / det, -b / det, a / det
-        g00, g01, g11 = d_conics[i, 0], 0.5 * d_conics[i, 1], d_conics[i, 2]
-        h00, h01, h10, h11 = i00 * g00 + i01 * g01, i00 * g01 + i01 * g11, i01 * g00 + i11 * g01, i01 * g01 + i11 * g11
-        d_cov[0, 0] = -(h00 * i00 + h01 * i01)
-        d_cov[0, 1] = d_cov[1, 0] = -(h00 * i01 + h01 * i11)
-        d_cov[1, 1] = -(h10 * i01 + h11 * i11)
-        # cov2d = T Sigma T^T: dT = 2 dC T Sigma, dSigma = T^T dC T
-        d_c_t = _mm(d_cov, t_mat, tmp23)
-        d_t = _mm(d_c_t, sigma, dt23)
-        for r in range(2):
-            for col in range(3):
-                d_t[r, col] *= 2.0
-        d_sigma = _mm(t_mat.T, d_c_t, tmp33)
-        # Sigma = M M^T, M = Rq diag(s): dM = 2 dSigma M (into sigma's buffer, no longer needed)
-        d_m = _mm(d_sigma, m, sigma)
-        for j in range(3):
-            d_s = 2.0 * (d_m[0, j] * rq[0, j] + d_m[1, j] * rq[1, j] + d_m[2, j] * rq[2, j])
-            out[i, 7 + j] = d_s * s[j]  # s = exp(log s)
-            for r in range(3):
-                d_m[r, j] *= 2.0 * s[j]  # now d Rq
-        d_qn = out[i, 3:7]
-        _quat_backward(qn, d_m, d_qn)
-        proj = qn[0] * d_qn[0] + qn[1] * d_qn[1] + qn[2] * d_qn[2] + qn[3] * d_qn[3]
-        for j in range(4):
-            d_qn[j] = (d_qn[j] - qn[j] * proj) / qnorm  # q_unit = q / |q|
-        # T = J R_cam: dJ = dT R^T, dR += J^T dT
-        d_jac = _mm(d_t, rot.T, tmp23)
-        d_rot = _mm(jac.T, d_t, tmp33)
-        fx, fy = cam[0], cam[1]
-        d_zs = (
-            -d_jac[0, 0] * fx / zs**2 + 2 * d_jac[0, 2] * fx * tx / zs**3
-            - d_jac[1, 1] * fy / zs**2 + 2 * d_jac[1, 2] * fy * ty / zs**3
-        )  # fmt: skip
-        d_tx, d_ty = -d_jac[0, 2] * fx / zs**2, -d_jac[1, 2] * fy / zs**2
-        # tx = zs clamp(x / zs): x where unclamped, zs * limit where clamped
-        dpx = dpy = 0.0
-        if clamped_x:
-            d_zs += d_tx * tx / zs
-        else:
-            dpx += d_tx
-        if clamped_y:
-            d_zs += d_ty * ty / zs
-        else:
-            dpy += d_ty
-        # pixel = (fx x / zs + cx, fy y / zs + cy); depth = z
-        du, dv = d_means2d[i, 0], d_means2d[i, 1]
-        dpx += du * fx / zs
-        dpy += dv * fy / zs
-        d_zs += -du * fx * p[0] / zs**2 - dv * fy * p[1] / zs**2
-        dpz = d_depths[i] + (d_zs if in_front else 0.0)
+        _conic_backward(i, d_conics, tmp22, eps2d, terms[0], d_cov)
+        d_t = _shape_backward(i, d_cov, t_mat, sigma, m, rq, s, qn, qnorm, out, tmp23, tmp33, dt23)
+        d_rot = tmp33
+        dpx, dpy, dpz = _camera_backward(i, d_t, rot, jac, p, cam, terms, d_means2d, d_depths, tmp23, d_rot)
         # p = R m + t
         for j in range(3):
             out[i, j] = rot[0, j] * dpx + rot[1, j] * dpy + rot[2, j] * dpz

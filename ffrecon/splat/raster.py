@@ -279,6 +279,37 @@ def _forward(
             t_final[row, col] = trans[p]
 
 
+@njit(inline="always")
+def _tile_seed(out, t_final, grad_out, grad_alpha, x0, y0, nx, n, grad_bg_mine):
+    """The tile's incoming gradient ``g_out [F, n]`` and ``rest [n]``, the suffix sum before any pair
+    (``S = out . g - T_N g_alpha``); adds the background's gradient into ``grad_bg_mine [F]``."""
+    num_feat, dtype = out.shape[2], out.dtype
+    g_out = np.empty((num_feat, n), dtype)
+    rest = np.empty(n, dtype)
+    for p in range(n):
+        row, col = y0 + p // nx, x0 + p % nx
+        rest[p] = -t_final[row, col] * grad_alpha[row, col]
+        for f in range(num_feat):
+            g_out[f, p] = grad_out[row, col, f]
+            rest[p] += out[row, col, f] * g_out[f, p]
+            grad_bg_mine[f] += t_final[row, col] * g_out[f, p]
+    return g_out, rest
+
+
+@njit(inline="always")
+def _add_pair_grads(grad_gauss_mine, g, conics, u, v, g0, g1, g2, g3, g4, g5):
+    """The chain rule from a pair's coefficients ``(c0..c5)`` of :func:`_pair_coefficients` (their gradients
+    ``g0..g5``) to Gaussian ``g``'s ``(u, v, a, b, c, log o)``, added into ``grad_gauss_mine [N, 6 + F]``;
+    ``u, v`` are relative to the tile centre."""
+    a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
+    grad_gauss_mine[g, 0] += -a * g3 - b * g4 + (a * u + b * v) * g5
+    grad_gauss_mine[g, 1] += -b * g3 - c * g4 + (b * u + c * v) * g5
+    grad_gauss_mine[g, 2] += 0.5 * g0 - u * g3 + 0.5 * u * u * g5
+    grad_gauss_mine[g, 3] += g1 - v * g3 - u * g4 + u * v * g5
+    grad_gauss_mine[g, 4] += 0.5 * g2 - v * g4 + 0.5 * v * v * g5
+    grad_gauss_mine[g, 5] += -g5
+
+
 @njit(cache=True, parallel=True, fastmath=True)
 def _backward(
     tile_start,
@@ -300,10 +331,10 @@ def _backward(
 ):
     """Gradients (see the module docstring) added into ``grad_gauss [threads, N, 6 + F]`` (means2d x, y;
     conic a, b, c; log opacity; features) and ``grad_bg [threads, F]``, one slice per thread (no races;
-    the caller sums them). Tiles are visited in ``tile_order``.
-
-    Long because the chain rule through the pair coefficients is spelt out inline: a helper call per
-    pair would keep the loop from being compiled as one piece.
+    the caller sums them). Tiles are visited in ``tile_order``; per tile the incoming gradient
+    (:func:`_tile_seed`), then per pair, front to back, its features, its alphas and the chain rule to its 2D
+    Gaussian (:func:`_add_pair_grads`). The helpers are inlined in numba's IR (``inline="always"``): as compiled
+    calls, a per-pair one with a loop measured 2.8x slower and changed the float32 gradients' last bits.
     """
     height, width, num_feat = out.shape
     dtype = out.dtype
@@ -314,15 +345,7 @@ def _backward(
         zero, one, a_max = k_const[0], k_const[1], k_const[3]
         lx, ly, cx, cy, x0, y0, nx, ny = _tile_pixels(t, tiles_x, tile_size, width, height, dtype)
         n = nx * ny
-        g_out = np.empty((num_feat, n), dtype)
-        rest = np.empty(n, dtype)  # S before any pair: out . g - T_N g_alpha
-        for p in range(n):
-            row, col = y0 + p // nx, x0 + p % nx
-            rest[p] = -t_final[row, col] * grad_alpha[row, col]
-            for f in range(num_feat):
-                g_out[f, p] = grad_out[row, col, f]
-                rest[p] += out[row, col, f] * g_out[f, p]
-                grad_bg[mine, f] += t_final[row, col] * g_out[f, p]
+        g_out, rest = _tile_seed(out, t_final, grad_out, grad_alpha, x0, y0, nx, n, grad_bg[mine])
         trans = np.ones(n, dtype)
         alpha = np.empty(n, dtype)
         wg = np.empty(n, dtype)
@@ -354,14 +377,7 @@ def _backward(
                 g3 -= dy * x
                 g4 -= dy * y
                 g5 -= dy
-            a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
-            # chain rule from (c0..c5) to (u, v, a, b, c, log o); u, v are relative to the tile centre.
-            grad_gauss[mine, g, 0] += -a * g3 - b * g4 + (a * u + b * v) * g5
-            grad_gauss[mine, g, 1] += -b * g3 - c * g4 + (b * u + c * v) * g5
-            grad_gauss[mine, g, 2] += 0.5 * g0 - u * g3 + 0.5 * u * u * g5
-            grad_gauss[mine, g, 3] += g1 - v * g3 - u * g4 + u * v * g5
-            grad_gauss[mine, g, 4] += 0.5 * g2 - v * g4 + 0.5 * v * v * g5
-            grad_gauss[mine, g, 5] += -g5
+            _add_pair_grads(grad_gauss[mine], g, conics, u, v, g0, g1, g2, g3, g4, g5)
 
 
 def _numpy(x: torch.Tensor, dtype: torch.dtype) -> np.ndarray:
@@ -425,26 +441,11 @@ def _compile_backward(dtype: np.dtype, num_feat: int) -> None:
     """
     if dtype in _BACKWARD_READY:
         return
-    one = np.zeros(1, dtype)
-    threads = numba.get_num_threads()
-    _backward(
-        np.zeros(2, np.int64),
-        np.zeros(0, np.int64),
-        np.zeros((1, 2), dtype),
-        np.zeros((1, 3), dtype),
-        one,
-        np.zeros((1, num_feat), dtype),
-        np.zeros(num_feat, dtype),
-        1,
-        1,
-        np.zeros((1, 1, num_feat), dtype),
-        np.ones((1, 1), dtype),
-        np.zeros((1, 1, num_feat), dtype),
-        np.zeros((1, 1), dtype),
-        np.argsort(np.zeros(1, np.int64)),
-        np.zeros((threads, 1, PAIR_GRADS + num_feat), dtype),
-        np.zeros((threads, num_feat), dtype),
-    )
+    z, threads = np.zeros, numba.get_num_threads()
+    gaussians = (z((1, 2), dtype), z((1, 3), dtype), z(1, dtype), z((1, num_feat), dtype), z(num_feat, dtype))
+    image = (z((1, 1, num_feat), dtype), np.ones((1, 1), dtype), z((1, 1, num_feat), dtype), z((1, 1), dtype))
+    grads = (z((threads, 1, PAIR_GRADS + num_feat), dtype), z((threads, num_feat), dtype))
+    _backward(z(2, np.int64), z(0, np.int64), *gaussians, 1, 1, *image, np.argsort(z(1, np.int64)), *grads)
     _BACKWARD_READY.add(dtype)
 
 

@@ -79,47 +79,16 @@ def render(
         with_depth: also composite the camera z (training leaves it off).
     Returns:
         :class:`RenderOutput` with ``rgb [H, W, 3]``, ``alpha [H, W]``, ``depth [H, W]`` (or None).
-
-    Long because its 14 parameters and the projection call take a line each; the body is one straight
-    pass (project, bin, composite) that reads best in one place.
     """
     warm_up()
     dtype = means.dtype
-    proj = project_gaussians(
-        means,
-        quats_wxyz,
-        log_scales,
-        opacity_logits,
-        cam_from_world,
-        K,
-        width,
-        height,
-        near=options.near,
-        eps2d=options.eps2d,
-    )
-    if sh_degree is not None:
-        rot, trans = cam_from_world[:3, :3], cam_from_world[:3, 3]
-        center = -(rot.T @ trans)
-        dirs = torch.nn.functional.normalize(means - center, dim=1)
-        rgb = sh_to_rgb(colors, dirs, sh_degree)
-    else:
-        rgb = colors
-    layout = bin_gaussians(
-        proj.means2d,
-        proj.conics,
-        proj.log_opacity,
-        proj.extent,
-        proj.depths,
-        proj.visible,
-        width,
-        height,
-        tile_size=options.tile_size,
-    )
-    feat = torch.cat([rgb, proj.depths[:, None]], dim=1) if with_depth else rgb
-    bg = torch.zeros(3, dtype=dtype) if background is None else background.to(dtype)
-    if with_depth:
-        bg = torch.cat([bg, bg.new_zeros(1)])
-    img, alpha = composite(proj.means2d, proj.conics, proj.log_opacity, feat.to(dtype), bg, layout, width, height)
+    gaussians = (means, quats_wxyz, log_scales, opacity_logits)
+    proj = project_gaussians(*gaussians, cam_from_world, K, width, height, near=options.near, eps2d=options.eps2d)
+    rgb = _view_colors(colors, means, cam_from_world, sh_degree)
+    screen = (proj.means2d, proj.conics, proj.log_opacity)
+    layout = bin_gaussians(*screen, proj.extent, proj.depths, proj.visible, width, height, tile_size=options.tile_size)
+    feat, bg = _features(rgb, proj.depths, background, with_depth, dtype)
+    img, alpha = composite(*screen, feat, bg, layout, width, height)
     visible = torch.zeros(len(means), dtype=torch.bool)
     visible[torch.from_numpy(layout.pair_gauss)] = True
     return RenderOutput(
@@ -131,6 +100,31 @@ def render(
         extent=proj.extent,
         layout=layout,
     )
+
+
+def _view_colors(
+    colors: torch.Tensor, means: torch.Tensor, cam_from_world: torch.Tensor, sh_degree: int | None
+) -> torch.Tensor:
+    """``[N, 3]`` RGB of each Gaussian seen from the camera: ``colors`` as they are without ``sh_degree``,
+    else the SH coefficients ``[N, B, 3]`` evaluated along the ray from the camera centre to the mean."""
+    if sh_degree is None:
+        return colors
+    rot, trans = cam_from_world[:3, :3], cam_from_world[:3, 3]
+    center = -(rot.T @ trans)
+    dirs = torch.nn.functional.normalize(means - center, dim=1)
+    return sh_to_rgb(colors, dirs, sh_degree)
+
+
+def _features(
+    rgb: torch.Tensor, depths: torch.Tensor, background: torch.Tensor | None, with_depth: bool, dtype: torch.dtype
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(feat [N, F], background [F])`` to composite, in ``dtype``: RGB, and with ``with_depth`` the camera z
+    (over a background depth of 0); the background is black when None."""
+    feat = torch.cat([rgb, depths[:, None]], dim=1) if with_depth else rgb
+    bg = torch.zeros(3, dtype=dtype) if background is None else background.to(dtype)
+    if with_depth:
+        bg = torch.cat([bg, bg.new_zeros(1)])
+    return feat.to(dtype), bg
 
 
 def render_view(
