@@ -107,6 +107,28 @@ class CropBoxAction(argparse.Action):
         setattr(namespace, self.dest, crop_box_from_args(values, option_string or "--crop-box"))
 
 
+class Later:
+    """A help text made when help is shown, for a default held by an options class whose module loads torch,
+    open3d or numba (seconds), which parsing a command line or refusing one does not need: argparse makes the text
+    with ``help % params`` then.
+
+    >>> Later(lambda: "%(dest)s: 10%% of the memory") % {"dest": "chunk_size"}
+    'chunk_size: 10% of the memory'
+    """
+
+    def __init__(self, make) -> None:
+        self.make = make
+
+    def __mod__(self, params) -> str:
+        return self.make() % params
+
+    def __str__(self) -> str:
+        return self.make()
+
+    def strip(self) -> str:  # argparse asks whether the text is blank before making it
+        return self.make().strip()
+
+
 def given(**values) -> dict:
     """The options the user gave (None: not given, so the options class's default stands)."""
     return {k: v for k, v in values.items() if v is not None}

@@ -7,11 +7,13 @@ one defaults to None and its help text reads the value from there (tests/test_cl
 from __future__ import annotations
 
 import argparse
+import sys
 
 from ffrecon import __version__
 from ffrecon.cli.argtypes import (
     SEED_MAX,
     CropBoxAction,
+    Later,
     Parser,
     field_default,
     in_range,
@@ -21,7 +23,7 @@ from ffrecon.cli.argtypes import (
     text_arg,
 )
 from ffrecon.cli.needs import check_partners
-from ffrecon.cli.tool_parsers import add_export_parser, add_render_parser, add_view_parser
+from ffrecon.cli.tool_parsers import COMMAND_HELP, add_export_parser, add_render_parser, add_view_parser
 
 # The demo scene's frames: a side from capture's smallest cap (ffrecon.capture.MIN_IMAGE_SIZE, below which SIFT
 # and the models find next to nothing) to DEMO_MAX_SIDE; from DEMO_MIN_FRAMES to DEMO_MAX_FRAMES of them.
@@ -29,9 +31,37 @@ DEMO_MIN_SIDE, DEMO_MAX_SIDE = 64, 4096
 DEMO_MIN_FRAMES, DEMO_MAX_FRAMES = 8, 1000  # 8: the demo's model makes frame 7 badly wrong (DemoOptions)
 
 
+# The option classes whose modules load torch, open3d or numba, imported when a value given or a help text shown
+# needs them (their help texts are made then: :class:`~ffrecon.cli.argtypes.Later`).
+def _multiview_options():
+    from ffrecon.models.multiview import MultiviewOptions
+
+    return MultiviewOptions
+
+
+def _feedforward_options():
+    from ffrecon.models.stage import FeedForwardOptions
+
+    return FeedForwardOptions
+
+
+def _ray_options():
+    from ffrecon.models.distributed import RayOptions
+
+    return RayOptions
+
+
+def _optimize_options():
+    from ffrecon.splat.optimize import OptimizeOptions
+
+    return OptimizeOptions
+
+
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     """The command line, every value and every option's partner checked (an InputError else)."""
-    args = build_parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    command = next((a for a in argv if not a.startswith("-")), "")  # no option before it takes a value
+    args = build_parser(command).parse_args(argv)
     check_partners(args)
     return args
 
@@ -79,22 +109,24 @@ def _add_model_call_options(p: argparse.ArgumentParser) -> None:
     """Options of ``run`` and ``demo`` for the model's calls (defaults: MultiviewOptions' and
     FeedForwardOptions')."""
     from ffrecon.models.memory import MEMORY_FRACTION
-    from ffrecon.models.multiview import MultiviewOptions
-    from ffrecon.models.stage import FeedForwardOptions
 
     p.add_argument(
         "--chunk-size",
-        type=number_arg(lambda v: MultiviewOptions(chunk_size=v, chunk_overlap=1)),
+        type=number_arg(lambda v: _multiview_options()(chunk_size=v, chunk_overlap=1)),
         default=None,
         help=f"frames per model call (default: as many as fit in {MEMORY_FRACTION * 100:g}%% of the free memory; "
         "docs/benchmarks.md)",
     )
     p.add_argument(
         "--chunk-overlap",
-        type=number_arg(lambda v: MultiviewOptions(chunk_overlap=v)),
+        type=number_arg(lambda v: _multiview_options()(chunk_overlap=v)),
         default=None,
-        help="frames shared by consecutive chunks, at least 1 and less than the chunk size "
-        f"(default {field_default(MultiviewOptions, 'chunk_overlap')})",
+        help=Later(
+            lambda: (
+                "frames shared by consecutive chunks, at least 1 and less than the chunk size "
+                f"(default {field_default(_multiview_options(), 'chunk_overlap')})"
+            )
+        ),
     )
     p.add_argument(
         "--preprocess",
@@ -110,7 +142,7 @@ def _add_model_call_options(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--threads",
-        type=number_arg(lambda v: FeedForwardOptions(threads=v)),
+        type=number_arg(lambda v: _feedforward_options()(threads=v)),
         default=None,
         help="CPU threads for inference, >= 1 (default: all)",
     )
@@ -119,7 +151,6 @@ def _add_model_call_options(p: argparse.ArgumentParser) -> None:
 
 def _add_ray_options(p: argparse.ArgumentParser) -> None:
     """The model's chunks on Ray (defaults: RayOptions')."""
-    from ffrecon.models.distributed import RayOptions
 
     p.add_argument(
         "--ray",
@@ -132,13 +163,13 @@ def _add_ray_options(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--ray-workers",
-        type=number_arg(lambda v: RayOptions(workers=v)),
+        type=number_arg(lambda v: _ray_options()(workers=v)),
         default=None,
         help="with --ray: model sessions (default: as many as the cluster's CPUs allow, one per chunk at most)",
     )
     p.add_argument(
         "--ray-gpus",
-        type=number_arg(lambda v: RayOptions(gpus_per_worker=v), integer=False),
+        type=number_arg(lambda v: _ray_options()(gpus_per_worker=v), integer=False),
         default=None,
         help="with --ray: GPUs per model session (1 on a GPU cluster: onnxruntime runs on CUDA there; "
         "default: none, the CPU)",
@@ -212,7 +243,6 @@ def add_run_options(p: argparse.ArgumentParser) -> None:
     their checks (each class's ``__post_init__``: a bad value is an InputError naming the flag)."""
     from ffrecon.capture import CaptureOptions
     from ffrecon.sfm.crosscheck.gate_types import GateOptions
-    from ffrecon.splat.optimize import OptimizeOptions
 
     _add_output_folder_options(p)
     _add_model_call_options(p)
@@ -246,10 +276,14 @@ def add_run_options(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--splat-seconds",
-        type=number_arg(lambda v: OptimizeOptions.brief(max_seconds=v), integer=False),
+        type=number_arg(lambda v: _optimize_options().brief(max_seconds=v), integer=False),
         default=None,
-        help="the splat stage's budget in seconds, > 0: its optimisation, held-out scores, cleaning, pose check, "
-        f"renders, video and SPZ together (default {field_default(OptimizeOptions, 'max_seconds')})",
+        help=Later(
+            lambda: (
+                "the splat stage's budget in seconds, > 0: its optimisation, held-out scores, cleaning, pose "
+                f"check, renders, video and SPZ together (default {field_default(_optimize_options(), 'max_seconds')})"
+            )
+        ),
     )
     p.add_argument(
         "--crop-box",
@@ -267,13 +301,33 @@ def add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("-q", "--quiet", action="store_true")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    from ffrecon.capture import CaptureOptions
-
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The parser of every subcommand (None), or of ``command`` with its options and the others listed alone
+    (``ffrecon --help``, ``--version`` and a misspelt command read only their names and lines): the subcommands'
+    help texts read their defaults from option classes whose modules load torch, open3d and numba (1-2.5 s)."""
     parser = Parser(prog="ffrecon", description="Photos or a video in, a verified 3D reconstruction out.")
     parser.add_argument("--version", action="version", version=f"ffrecon {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
-    run = sub.add_parser("run", help="reconstruct a folder of photos or a video")
+    adders = {
+        "run": _add_run_parser,
+        "demo": add_demo_parser,
+        "inspect-model": _add_inspect_parser,
+        "export-model": add_export_parser,
+        "view": add_view_parser,
+        "render": add_render_parser,
+    }
+    for name, line in COMMAND_HELP.items():
+        if command is None or command == name:
+            adders[name](sub)
+        else:
+            sub.add_parser(name, help=line)
+    return parser
+
+
+def _add_run_parser(sub) -> None:
+    from ffrecon.capture import CaptureOptions
+
+    run = sub.add_parser("run", help=COMMAND_HELP["run"])
     run.add_argument(
         "input", type=path_arg("the input"), help="folder of images (jpg, png, tiff, webp, bmp) or a video file"
     )
@@ -294,13 +348,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--skip-bad-images", action="store_true", help="leave out unreadable files and non-images instead of stopping"
     )
     add_run_options(run)
-    add_demo_parser(sub)
-    inspect = sub.add_parser("inspect-model", help="show a model's family, inputs, outputs and preprocessing")
+
+
+def _add_inspect_parser(sub) -> None:
+    inspect = sub.add_parser("inspect-model", help=COMMAND_HELP["inspect-model"])
     inspect.add_argument("model", type=model_file_arg("the model", "ffrecon inspect-model"), help="an .onnx file")
-    add_export_parser(sub)
-    add_view_parser(sub)
-    add_render_parser(sub)
-    return parser
 
 
 # demo's flags for fields of ffrecon.synthetic.SceneOptions, which does not check them: (dest, field, help, low,
@@ -318,7 +370,7 @@ def add_demo_parser(sub) -> None:
     those of ``run``."""
     from ffrecon.synthetic import SceneOptions
 
-    demo = sub.add_parser("demo", help="synthetic scene + simulated model through every stage (no downloads)")
+    demo = sub.add_parser("demo", help=COMMAND_HELP["demo"])
     for dest, name, what, low, high in DEMO_SCENE_FLAGS:
         default = field_default(SceneOptions, name)
         check = in_range(f"SceneOptions.{name}", f"--{dest}", low=low, high=high)

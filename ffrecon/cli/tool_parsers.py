@@ -10,10 +10,21 @@ from ffrecon.cli.argtypes import SEED_MAX, field_default, in_range, keyword_defa
 # writes up to torch.onnx._constants.ONNX_TORCHSCRIPT_EXPORTER_MAX_OPSET (20 in torch 2.13)
 MIN_OPSET, TORCHSCRIPT_MAX_OPSET = 15, 20
 
+# Each subcommand's line in `ffrecon --help`, in its order (the parser lists them all, and fills in the options of
+# the one given alone: :func:`ffrecon.cli.parser.build_parser`).
+COMMAND_HELP = {
+    "run": "reconstruct a folder of photos or a video",
+    "demo": "synthetic scene + simulated model through every stage (no downloads)",
+    "inspect-model": "show a model's family, inputs, outputs and preprocessing",
+    "export-model": "turn an upstream checkpoint into an ONNX model file ffrecon runs",
+    "view": "open an output folder's cameras, points and splat in the browser",
+    "render": "render an output folder's splat along a camera path (camera_path.json)",
+}
+
 
 def add_render_parser(sub) -> None:
     """``render``: a run's splat along a nerfstudio camera path (:mod:`ffrecon.render_path`)."""
-    render = sub.add_parser("render", help="render an output folder's splat along a camera path (camera_path.json)")
+    render = sub.add_parser("render", help=COMMAND_HELP["render"])
     render.add_argument("out", type=path_arg("the output folder"), help="an output folder of `ffrecon run -o OUT`")
     render.add_argument(
         "--camera-path",
@@ -38,7 +49,7 @@ def add_view_parser(sub) -> None:
     address's :func:`~ffrecon.view.start_viewer`'s."""
     from ffrecon.view import ViewOptions, start_viewer
 
-    view = sub.add_parser("view", help="open an output folder's cameras, points and splat in the browser")
+    view = sub.add_parser("view", help=COMMAND_HELP["view"])
     view.add_argument("out", type=path_arg("the output folder"), help="an output folder of `ffrecon run -o OUT`")
     view.add_argument(
         "--host",
@@ -73,7 +84,7 @@ def add_export_parser(sub) -> None:
     families = "\n".join(f"  {name:<10} {entry.summary}" for name, entry in FAMILIES.items())
     export = sub.add_parser(
         "export-model",
-        help="turn an upstream checkpoint into an ONNX model file ffrecon runs",
+        help=COMMAND_HELP["export-model"],
         description=(
             "Export a public model to ONNX with ffrecon's contract names, then check onnxruntime against PyTorch."
             f"\n\nfamilies:\n{families}\n\n"
