@@ -89,6 +89,8 @@ class DenseStats:
     # Per frame: its corners and its partners' corners the model's cameras and depth put inside the other frame
     # of a pair it was tracked in: what the tracking tried (the model's prediction said they overlap there).
     per_frame_predicted: dict[str, int] = field(default_factory=dict)
+    # Per pair tracked: (frame, frame, corners predicted inside the other frame in both directions, verified).
+    pairs: tuple[tuple[str, str, int, int], ...] = ()
 
     def merged(self, other: DenseStats) -> DenseStats:
         """Two passes as one (the second for frames the first bundle adjustment still left out)."""
@@ -106,6 +108,7 @@ class DenseStats:
             per_frame,
             self.seconds + other.seconds,
             predicted,
+            self.pairs + other.pairs,
         )
 
     def to_report(self) -> dict:
@@ -116,6 +119,7 @@ class DenseStats:
             "num_verified": self.num_verified,
             "per_frame": dict(self.per_frame),
             "per_frame_predicted": dict(self.per_frame_predicted),
+            "pairs": [list(p) for p in self.pairs],
             "seconds": round(self.seconds, 3),
         }
 
@@ -277,41 +281,34 @@ def add_dense_evidence(
     names = list(prediction.names)
     pairs = dense_pairs(score, frames, options)
     views = _Views(Path(image_dir), names, options)
-    per_frame = dict.fromkeys((names[k] for k in frames), 0)
-    predicted = dict.fromkeys(per_frame, 0)
-    tracked = verified = 0
+    counts = []  # per pair: (predicted, tracked, verified)
     db = pycolmap.Database.open(str(db_path))
     try:
         images = {im.name: im for im in db.read_all_images()}
         cameras = {name: db.read_camera(im.camera_id) for name, im in images.items()}
         keypoints = _Keypoints(db, views, {images[n].image_id: k for k, n in enumerate(names)})
         for i, j in pairs:
-            id_i, id_j = images[names[i]].image_id, images[names[j]].image_id
+            ids = (images[names[i]].image_id, images[names[j]].image_id)
             found = [_found(a, b, views, prediction, options) for a, b in ((i, j), (j, i))]
-            for k in (i, j):
-                if names[k] in predicted:
-                    predicted[names[k]] += found[0][2] + found[1][2]
-            xy_i = np.concatenate([views(i)[1][found[0][0]] + 0.5, found[1][1]])  # OpenCV's indices -> COLMAP's rule
-            xy_j = np.concatenate([found[0][1], views(j)[1][found[1][0]] + 0.5])
-            tracked += len(xy_i)
-            inliers = _verify(cameras[names[i]], xy_i, cameras[names[j]], xy_j, options)
-            if len(inliers) < options.min_inliers:
-                continue
-            # A corner is one keypoint of its frame in every pair, so that tracks run through it; a
-            # position it was found at in another frame is a keypoint of that pair only.
-            ahead, back = inliers[inliers < len(found[0][0])], inliers[inliers >= len(found[0][0])] - len(found[0][0])
-            kp_i = [keypoints.corners(id_i, found[0][0][ahead]), keypoints.add(id_i, found[1][1][back])]
-            kp_j = [keypoints.add(id_j, found[0][1][ahead]), keypoints.corners(id_j, found[1][0][back])]
-            _add_matches(db, id_i, id_j, np.stack([np.concatenate(kp_i), np.concatenate(kp_j)], axis=1))
-            verified += len(inliers)
-            for k in (i, j):
-                if names[k] in per_frame:
-                    per_frame[names[k]] += len(inliers)
+            counts.append(
+                _write_pair(db, keypoints, ids, (i, j), found, views, (cameras[names[i]], cameras[names[j]]), options)
+            )
         keypoints.write()
     finally:
         db.close()
     seconds = time.perf_counter() - start_s
-    stats = DenseStats(tuple(names[k] for k in frames), len(pairs), tracked, verified, per_frame, seconds, predicted)
+    per_frame = dict.fromkeys((names[k] for k in frames), 0)
+    predicted = dict.fromkeys(per_frame, 0)
+    for (i, j), (tried, _, kept) in zip(pairs, counts):
+        for name in (names[i], names[j]):
+            if name in per_frame:
+                per_frame[name] += kept
+                predicted[name] += tried
+    tracked, verified = sum(c[1] for c in counts), sum(c[2] for c in counts)
+    pair_counts = tuple((names[i], names[j], c[0], c[2]) for (i, j), c in zip(pairs, counts))
+    stats = DenseStats(
+        tuple(names[k] for k in frames), len(pairs), tracked, verified, per_frame, seconds, predicted, pair_counts
+    )
     logger.info(
         "dense evidence for %d frames SIFT left short: %d pairs tracked, %d of %d correspondences verified (%.1f s)",
         len(frames),
@@ -321,6 +318,25 @@ def add_dense_evidence(
         seconds,
     )
     return stats
+
+
+def _write_pair(db, keypoints, ids, pair, found, views, cameras, options: DenseOptions) -> tuple[int, int, int]:
+    """Verify one pair's tracked correspondences (``found``: :func:`_found` both ways) and write the inliers;
+    returns (corners predicted inside the other frame, correspondences tracked, verified)."""
+    (i, j), (id_i, id_j) = pair, ids
+    predicted = found[0][2] + found[1][2]
+    xy_i = np.concatenate([views(i)[1][found[0][0]] + 0.5, found[1][1]])  # OpenCV's indices -> COLMAP's rule
+    xy_j = np.concatenate([found[0][1], views(j)[1][found[1][0]] + 0.5])
+    inliers = _verify(cameras[0], xy_i, cameras[1], xy_j, options)
+    if len(inliers) < options.min_inliers:
+        return predicted, len(xy_i), 0
+    # A corner is one keypoint of its frame in every pair, so that tracks run through it; a
+    # position it was found at in another frame is a keypoint of that pair only.
+    ahead, back = inliers[inliers < len(found[0][0])], inliers[inliers >= len(found[0][0])] - len(found[0][0])
+    kp_i = [keypoints.corners(id_i, found[0][0][ahead]), keypoints.add(id_i, found[1][1][back])]
+    kp_j = [keypoints.add(id_j, found[0][1][ahead]), keypoints.corners(id_j, found[1][0][back])]
+    _add_matches(db, id_i, id_j, np.stack([np.concatenate(kp_i), np.concatenate(kp_j)], axis=1))
+    return predicted, len(xy_i), len(inliers)
 
 
 class _Views:

@@ -180,34 +180,48 @@ def _dense_misfits(per_image, refine: RefineResult, options: EvidenceOptions):
 
     Dense correspondences are tracked from where the model's depth and cameras put a frame's corners in its
     overlapping frames, refined within a small window (:mod:`ffrecon.sfm.refine.dense`). A camera a few degrees
-    off leaves them within the window; one 25 deg off puts them far from their match, and none survive the
-    checks and the pair's verification. On a repeated tile, where no SIFT match or photo comparison told the two
-    apart, that was the one sign: on the object family (seed 205, the frame 25 deg off) it found none of the
-    frame's 1,900 predicted corners, where the others verified 15-60 % of theirs."""
+    off leaves them within the window; one 25 deg off puts them far from their match, and almost none survive
+    the checks and the pair's verification. The frames are judged one at a time, the worst first, each on its
+    pairs with frames not yet left out: a pair with a frame 25 deg off fails for its partner too (room seed 203,
+    frame 6 off: frame 5, 3.2 deg off in the model, had tracked only with frame 6 and its other failing pair)."""
     dense = refine.dense
-    if dense is None or not dense.per_frame_predicted:
+    if dense is None or not dense.pairs:
         return per_image
-    share = {
-        name: dense.per_frame.get(name, 0) / tried
-        for name, tried in dense.per_frame_predicted.items()
-        if tried >= options.min_dense_predicted
-    }
-    out = list(per_image)
-    for k, e in enumerate(out):
-        others = [v for name, v in share.items() if name != e.name]
-        if e.status is not CameraStatus.UNCHECKED or e.name not in share or len(others) < 2:
-            continue
-        typical = float(np.median(others))
-        if typical > 0 and share[e.name] <= options.dense_misfit_ratio * typical:
-            said = e.why.removesuffix("the model's camera is kept").rstrip(":; ")
-            why = (
-                f"{said}; but dense tracking from the model's prediction verified {dense.per_frame.get(e.name, 0)} "
-                f"of the {dense.per_frame_predicted[e.name]} corners it put inside the frames it overlaps "
-                f"({share[e.name]:.0%}; the other frames tracked: {typical:.0%}, median): its camera is not where "
-                "the model says, left out"
-            )
-            out[k] = CameraEvidence(e.name, CameraStatus.CONTRADICTED, why, e.correction_deg)
+    out, left = list(per_image), set()
+    for _ in range(len(out)):
+        shares = _dense_shares(dense.pairs, left, options.min_dense_predicted)
+        judged = [k for k, e in enumerate(out) if e.status is CameraStatus.UNCHECKED and e.name in shares]
+        if not judged:
+            break
+        k = min(judged, key=lambda k: (shares[out[k].name][0], -shares[out[k].name][1]))  # ties: the most tried
+        e, (share, tried, kept) = out[k], shares[out[k].name]
+        others = [v[0] for name, v in shares.items() if name != e.name]
+        typical = float(np.median(others)) if len(others) >= 2 else 0.0
+        if typical <= 0 or share > options.dense_misfit_ratio * typical:
+            break
+        said = e.why.removesuffix("the model's camera is kept").rstrip(":; ")
+        why = (
+            f"{said}; but dense tracking from the model's prediction verified {kept} of the {tried} corners it put "
+            f"inside the frames it overlaps ({share:.0%}; the other frames tracked: {typical:.0%}, median): its "
+            "camera is not where the model says, left out"
+        )
+        out[k] = CameraEvidence(e.name, CameraStatus.CONTRADICTED, why, e.correction_deg)
+        left.add(e.name)
     return tuple(out)
+
+
+def _dense_shares(pairs, left: set[str], min_predicted: int) -> dict[str, tuple[float, int, int]]:
+    """Per frame, over its tracked pairs with frames not in ``left``: (share verified, corners predicted,
+    verified), for the frames with at least ``min_predicted`` predicted."""
+    tried: dict[str, int] = {}
+    kept: dict[str, int] = {}
+    for a, b, predicted, verified in pairs:
+        if a in left or b in left:
+            continue
+        for name in (a, b):
+            tried[name] = tried.get(name, 0) + predicted
+            kept[name] = kept.get(name, 0) + verified
+    return {n: (kept[n] / t, t, kept[n]) for n, t in tried.items() if t >= min_predicted and n not in left}
 
 
 def _relocalized_not_kept(names, refine: RefineResult, flagged: dict, out: list, limit: float) -> None:
