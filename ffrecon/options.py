@@ -15,7 +15,7 @@ from ffrecon.sfm.crosscheck.gate_types import GateOptions
 from ffrecon.sfm.crosscheck.options import ColmapOptions
 from ffrecon.sfm.refine.options import RefineOptions
 from ffrecon.sfm.verify.verdicts import EvidenceOptions
-from ffrecon.splat.stage import SplatOptions
+from ffrecon.splat.options import SplatOptions
 from ffrecon.types import RunMode
 
 

@@ -22,8 +22,8 @@ from ffrecon.sfm.crosscheck.run import pairs_from_model, run_colmap_on
 from ffrecon.sfm.refine import run as refine
 from ffrecon.sfm.refine.options import key_options
 from ffrecon.sfm.verify.evidence import evidence_skip_reason, judge_refined_cameras
-from ffrecon.splat import stage as splat
 from ffrecon.splat.final import seed_comparison_skip_reason, splat_final_cameras, splat_from_colmap_points, with_curves
+from ffrecon.splat.outputs import OUTPUTS as SPLAT_OUTPUTS
 from ffrecon.splat.seed import no_seed_reason
 from ffrecon.state import Beside, Stage, StateView
 from ffrecon.types import QUICK_NO_CROSSCHECK, Prediction, RunMode
@@ -62,6 +62,15 @@ def blocked(state: StateView) -> str | None:
     return state.why_not(*state.verdicts) if state.views >= 2 else None
 
 
+def check_splat_fits(capture: Capture, options) -> None:
+    """Refuse, before any pose is made, a splat that cannot fit in memory; the splat stage's module (torch and
+    the compiled kernels) loads only when the splat is on."""
+    if options.splat.enabled:
+        from ffrecon.splat.stage import check_splat_fits
+
+        check_splat_fits([f.size_wh for f in capture.frames], options.splat)
+
+
 CAPTURE = Stage(
     "capture",
     ("source",),
@@ -69,7 +78,7 @@ CAPTURE = Stage(
     lambda o: o.capture,
     files=lambda s, o: (o.capture.intrinsics, o.capture.masks, o.capture.poses),
     outputs=("images", "masks"),
-    check=lambda capture, o: splat.check_splat_fits([f.size_wh for f in capture.frames], o.splat),
+    check=lambda capture, o: check_splat_fits(capture, o),
     report=sections.capture_entries,
     page=(("Capture", stage_html.capture_section),),
 )
@@ -205,7 +214,7 @@ SPLAT = Stage(
         or (None if s.final else f"no cameras: {NO_CAMERAS}")
         or splat_seed_reason(s)
     ),
-    outputs=splat.OUTPUTS,
+    outputs=SPLAT_OUTPUTS,
     page=(("Gaussian splat", splat_section),),
 )
 SEED_COMPARISON = Stage(

@@ -30,7 +30,7 @@ from ffrecon.sfm.crosscheck.gate_types import GatesResult
 from ffrecon.sfm.crosscheck.run import ColmapResult
 from ffrecon.sfm.refine.options import RefineResult
 from ffrecon.sfm.verify.verdicts import EvidenceResult
-from ffrecon.splat.stage import SplatResult
+from ffrecon.splat.result import SplatResult
 from ffrecon.types import ONE_VIEW, Prediction, Skipped
 
 log = logging.getLogger("ffrecon")

@@ -11,12 +11,15 @@ import enum
 import logging
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import open3d as o3d
 
 from ffrecon.checks import check_number, check_shape
 from ffrecon.errors import InputError
+
+if TYPE_CHECKING:
+    import open3d as o3d
 
 logger = logging.getLogger("ffrecon.export")
 
@@ -59,6 +62,8 @@ def poisson_mesh(
     Normals are estimated from neighbours and flipped to face the nearest of ``camera_centers
     [N, 3]`` (every point was seen from some camera, so its surface faces that way).
     """
+    import open3d as o3d  # 0.45 s: here, only the runs that make a mesh need it
+
     check_shape("xyz", xyz, (None, 3))
     check_shape("rgb", rgb, (len(xyz), 3))
     if len(xyz) < 100:
@@ -94,6 +99,7 @@ def remove_small_components(
     """``mesh`` without the connected components (edge-connected triangles) holding fewer than ``min_fraction``
     of its triangles, and how many components went. Changes ``mesh`` in place.
 
+    >>> import open3d as o3d
     >>> box = o3d.geometry.TriangleMesh.create_box()
     >>> speck = o3d.geometry.TriangleMesh.create_tetrahedron(radius=0.01).translate((5.0, 0.0, 0.0))
     >>> mesh, removed = remove_small_components(box + speck, 0.3)
@@ -116,6 +122,8 @@ def write_mesh_files(
 ) -> tuple[Path, Path | None]:
     """Write ``mesh`` as binary PLY (open3d) and, when ``glb_path`` is given, as GLB (trimesh) with the same
     vertices in the same order, vertex colours as RGBA8 and vertex normals."""
+    import open3d as o3d  # 0.45 s: here, only the runs that make a mesh need it
+
     ply_path = Path(ply_path)
     ply_path.parent.mkdir(parents=True, exist_ok=True)
     if not mesh.has_vertex_normals():

@@ -9,7 +9,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import open3d as o3d
 
 from ffrecon.checks import check_number
 from ffrecon.geometry.projection import pixel_centers, unproject_pixels
@@ -158,6 +157,8 @@ def downsample(
 
 def _cleaned(points: np.ndarray, colours: np.ndarray, options: FuseOptions) -> tuple[np.ndarray, np.ndarray]:
     """Statistical outliers dropped (``options.remove_outliers``), with open3d."""
+    import open3d as o3d  # 0.45 s: here, so that loading the options does not load it
+
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
     cloud.colors = o3d.utility.Vector3dVector(np.clip(colours, 0, 1).astype(np.float64))
     if options.remove_outliers and len(cloud.points) > 50:
@@ -197,6 +198,8 @@ def _voxel_means(xyz: np.ndarray, rgb: np.ndarray, voxel: float) -> tuple[np.nda
 
 def write_point_cloud(path: Path, xyz: np.ndarray, rgb: np.ndarray) -> Path:
     """Binary PLY with float32 xyz and uchar colours (open3d writes it; trimesh and COLMAP read it)."""
+    import open3d as o3d  # 0.45 s: here, so that loading the options does not load it
+
     cloud = o3d.t.geometry.PointCloud(o3d.core.Tensor(np.asarray(xyz, np.float32)))
     cloud.point.colors = o3d.core.Tensor(np.clip(np.round(np.asarray(rgb) * 255), 0, 255).astype(np.uint8))
     if not o3d.t.io.write_point_cloud(str(path), cloud, write_ascii=False):

@@ -17,13 +17,16 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-import torch
 
 from ffrecon.checks import check_number
 from ffrecon.errors import InputError
 from ffrecon.geometry.alignment import Sim3
+
+if TYPE_CHECKING:  # torch (0.9 s to import) is imported by the functions that solve: every run loads the options
+    import torch
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -60,6 +63,8 @@ class PoseGraphResult:
 
 def _hat(omega: torch.Tensor) -> torch.Tensor:
     """``[..., 3, 3]`` skew matrices of ``[..., 3]`` vectors."""
+    import torch
+
     zero = torch.zeros_like(omega[..., 0])
     x, y, z = omega.unbind(-1)
     return torch.stack(
@@ -70,6 +75,8 @@ def _hat(omega: torch.Tensor) -> torch.Tensor:
 def _log_rotation(rot: torch.Tensor) -> torch.Tensor:
     """``[..., 3]`` axis * angle of ``[..., 3, 3]`` rotations (angle below 180 deg). The skew part's norm is
     padded by 1e-30 under the root so that the gradient stays finite at the identity."""
+    import torch
+
     skew = 0.5 * (rot - rot.transpose(-1, -2))
     vee = torch.stack([skew[..., 2, 1], skew[..., 0, 2], skew[..., 1, 0]], -1)  # sin(angle) * axis
     sin = torch.sqrt((vee**2).sum(-1) + 1e-30)
@@ -81,6 +88,8 @@ class _Graph:
     """The nodes' current estimate and the edges, as float64 tensors; residuals of a parameter step."""
 
     def __init__(self, nodes: Sequence[Sim3], edges: Sequence[Sim3Edge], length_scale: float) -> None:
+        import torch
+
         def stack(values) -> torch.Tensor:
             return torch.as_tensor(np.asarray(values, np.float64))
 
@@ -97,12 +106,16 @@ class _Graph:
 
     def _moved(self, step: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Every node's rotation, translation and log scale after ``step`` ``[K - 1, 7]`` (node 0 stays)."""
+        import torch
+
         full = torch.cat([torch.zeros(1, 7, dtype=step.dtype), step])
         rot = torch.linalg.matrix_exp(_hat(full[:, :3])) @ self.rot
         return rot, self.trans + full[:, 3:6], self.log_scale + full[:, 6]
 
     def residuals(self, step: torch.Tensor) -> torch.Tensor:
         """``[E, 7]`` weighted residuals of ``Z^-1 . X_b^-1 . X_a`` for every edge."""
+        import torch
+
         rot, trans, log_scale = self._moved(step)
         ra, rb, ta, tb = rot[self.a], rot[self.b], trans[self.a], trans[self.b]
         rel_rot = rb.transpose(1, 2) @ ra
@@ -119,6 +132,8 @@ class _Graph:
         self.rot, self.trans, self.log_scale = (v.detach() for v in self._moved(step))
 
     def nodes(self) -> tuple[Sim3, ...]:
+        import torch
+
         return tuple(
             Sim3(float(torch.exp(s)), r.numpy().copy(), t.numpy().copy())
             for r, t, s in zip(self.rot, self.trans, self.log_scale)
@@ -139,6 +154,8 @@ def optimize_pose_graph(
     >>> np.allclose(result.world_from_node[1].rotation, turn.rotation), result.cost_after < 1e-20
     (True, True)
     """
+    import torch
+
     nodes = len(world_from_node)
     bad = [(e.a, e.b) for e in edges if not (0 <= e.a < nodes and 0 <= e.b < nodes) or e.a == e.b]
     if bad or not np.isfinite(length_scale) or length_scale <= 0:

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from ffrecon.checks import check_number
 from ffrecon.errors import FFReconError, ModelError
 from ffrecon.geometry.alignment import Sim3, umeyama
 from ffrecon.geometry.projection import pixel_centers
@@ -53,6 +54,23 @@ class PairPrediction:
 class ConfidenceWeight(enum.Enum):
     LOG = "log"  # w = log(conf): DUSt3R's default; pixels with conf 1 carry (almost) no weight
     LINEAR = "linear"  # w = conf
+
+
+@dataclass(frozen=True, kw_only=True)
+class AlignmentOptions:
+    iterations: int = 300  # Adam steps (0: initialisation only)
+    lr: float = 0.01  # Adam learning rate; lengths are normalised so the median depth is 1
+    lr_min: float = 1e-5  # end of the cosine schedule
+    confidence_weight: ConfidenceWeight = ConfidenceWeight.LOG
+    depth_downsample: int = 1  # depth unknowns on a grid this many times coarser (bilinear up)
+    optimize_focal: bool = True
+    keep_best: bool = True  # return the lowest-loss iterate (False: the last one)
+
+    def __post_init__(self) -> None:
+        check_number("AlignmentOptions.iterations", self.iterations, low=0, integer=True)
+        check_number("AlignmentOptions.lr", self.lr, low=0, low_open=True)
+        check_number("AlignmentOptions.lr_min", self.lr_min, low=0)
+        check_number("AlignmentOptions.depth_downsample", self.depth_downsample, low=1, integer=True)
 
 
 def estimate_focal(

@@ -30,11 +30,13 @@ import torch
 import torch.nn.functional as F
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 
-from ffrecon.checks import check_number, require_finite
+from ffrecon.checks import require_finite
 from ffrecon.errors import FFReconError, ModelError
 from ffrecon.geometry.poses import invert_pose
 from ffrecon.geometry.projection import pixel_centers
-from ffrecon.models.alignment_init import ConfidenceWeight, PairPrediction, _Init, _weights, initialise
+
+# AlignmentOptions and PairPrediction live beside the initialisation (no torch there); still importable from here
+from ffrecon.models.alignment_init import AlignmentOptions, PairPrediction, _Init, _weights, initialise
 
 MODEL_FIX = (
     "the pairs come from the feed-forward model: check it on two photos with `ffrecon inspect-model` and re-export "
@@ -42,23 +44,6 @@ MODEL_FIX = (
 )
 
 log = logging.getLogger("ffrecon.models.global_alignment")
-
-
-@dataclass(frozen=True, kw_only=True)
-class AlignmentOptions:
-    iterations: int = 300  # Adam steps (0: initialisation only)
-    lr: float = 0.01  # Adam learning rate; lengths are normalised so the median depth is 1
-    lr_min: float = 1e-5  # end of the cosine schedule
-    confidence_weight: ConfidenceWeight = ConfidenceWeight.LOG
-    depth_downsample: int = 1  # depth unknowns on a grid this many times coarser (bilinear up)
-    optimize_focal: bool = True
-    keep_best: bool = True  # return the lowest-loss iterate (False: the last one)
-
-    def __post_init__(self) -> None:
-        check_number("AlignmentOptions.iterations", self.iterations, low=0, integer=True)
-        check_number("AlignmentOptions.lr", self.lr, low=0, low_open=True)
-        check_number("AlignmentOptions.lr_min", self.lr_min, low=0)
-        check_number("AlignmentOptions.depth_downsample", self.depth_downsample, low=1, integer=True)
 
 
 @dataclass(frozen=True)

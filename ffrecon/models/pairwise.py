@@ -12,6 +12,7 @@ import enum
 import logging
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 from PIL import Image
@@ -19,9 +20,12 @@ from tqdm.auto import tqdm
 
 from ffrecon.checks import check_finite, check_number, require_outputs
 from ffrecon.errors import FFReconError, InputError, ModelError
-from ffrecon.models.global_alignment import AlignmentOptions, AlignmentResult, PairPrediction, global_align
+from ffrecon.models.alignment_init import AlignmentOptions, PairPrediction
 from ffrecon.models.resize import ResizeTransform
 from ffrecon.types import ModelFamily, ModelInfo, PinholeCamera, Prediction
+
+if TYPE_CHECKING:
+    from ffrecon.models.global_alignment import AlignmentResult
 
 log = logging.getLogger("ffrecon.models.pairwise")
 
@@ -377,6 +381,8 @@ def predict_pairwise(
     if stride > 1:
         predictions = [downsample_pair(p, stride) for p in predictions]
     size_hw = (batch.shape[2] // stride, batch.shape[3] // stride)
+    from ffrecon.models.global_alignment import global_align  # torch and kornia: only pairwise models need them
+
     result = global_align(predictions, size_hw, options.alignment)
     cameras, depths, confs = _alignment_in_original_pixels(result, transforms, stride, options.max_depth_side)
     return Prediction(tuple(names), result.cam_from_world, cameras, depths, confs, model)

@@ -12,7 +12,7 @@ import numpy as np
 from ffrecon.report.markup import field_default, figure, gallery, ordinal, table, thumb
 from ffrecon.report.media import animated_webp, video_frames
 from ffrecon.report.plots import curves_png
-from ffrecon.splat.stage import SplatOptions
+from ffrecon.splat.options import SplatOptions
 
 
 def curve_caption() -> str:

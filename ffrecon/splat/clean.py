@@ -13,15 +13,16 @@ import logging
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import open3d as o3d
-import torch
 
 from ffrecon.checks import check_number
 from ffrecon.errors import InputError
-from ffrecon.gaussians import Gaussians
 from ffrecon.types import PinholeCamera
+
+if TYPE_CHECKING:
+    from ffrecon.gaussians import Gaussians
 
 logger = logging.getLogger("ffrecon.splat")
 
@@ -211,6 +212,8 @@ def auto_crop_box(
 
 def floater_mask(points: np.ndarray, neighbours: int, std_ratio: float) -> np.ndarray:
     """``[M]`` bool, True for statistical outliers (isolated points)."""
+    import open3d as o3d  # 0.45 s: here, so that loading CleanOptions (every run) does not load it
+
     if std_ratio <= 0 or len(points) <= neighbours:
         return np.zeros(len(points), bool)
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
@@ -232,6 +235,8 @@ class _Steps:
         self.floor = self.current - max_drop_db if judge is not None else None
 
     def step(self, name: str, bad: np.ndarray, forced: bool = False) -> None:
+        import torch  # 0.9 s: here, so that loading CleanOptions (every run) does not load it
+
         hit = self.keep & bad
         if not hit.any():
             self.steps.append(CleanStep(name, 0, False, self.current, self.current, "nothing to remove"))
@@ -272,6 +277,8 @@ def clean_gaussians(
     Returns:
         ``(cleaned Gaussians, CleanReport)``.
     """
+    import torch  # 0.9 s: here, so that loading CleanOptions (every run) does not load it
+
     means = gaussians.means.detach().double().numpy()
     opacity = torch.sigmoid(gaussians.opacity_logits.detach()).double().numpy()
     scale = torch.exp(gaussians.log_scales.detach()).amax(1).double().numpy()

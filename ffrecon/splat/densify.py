@@ -9,13 +9,12 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
 
 import kornia
 import torch
 
-from ffrecon.checks import check_number
 from ffrecon.gaussians import Gaussians
+from ffrecon.splat.optimize_options import DensifyOptions  # defined there, without torch; still importable here
 
 logger = logging.getLogger("ffrecon.splat")
 
@@ -69,26 +68,6 @@ def replace_rows(
         group["params"] = [new]
         if state:
             optimizer.state[new] = state
-
-
-@dataclass(frozen=True, kw_only=True)
-class DensifyOptions:
-    start_iteration: int = 100  # first densification (3DGS: 500 of 30k; brief runs start earlier)
-    every: int = 100
-    stop_fraction: float = 0.6  # no densification after this fraction of the budget
-    grad_threshold: float = 0.0002  # mean view-space gradient norm (NDC units, as 3DGS)
-    percent_dense: float = 0.01  # clone if largest scale <= this * scene scale, else split
-    prune_opacity: float = 0.005
-    max_world_size: float = 0.1  # prune Gaussians larger than this * scene scale (after the first round)
-
-    def __post_init__(self) -> None:
-        check_number("DensifyOptions.start_iteration", self.start_iteration, low=0, integer=True)
-        check_number("DensifyOptions.every", self.every, low=1, integer=True)
-        for name in ("stop_fraction", "prune_opacity"):
-            check_number(f"DensifyOptions.{name}", getattr(self, name), low=0, high=1)
-        for name in ("grad_threshold", "percent_dense"):
-            check_number(f"DensifyOptions.{name}", getattr(self, name), low=0)
-        check_number("DensifyOptions.max_world_size", self.max_world_size, low=0, low_open=True)
 
 
 class Densifier:

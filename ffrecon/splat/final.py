@@ -18,8 +18,9 @@ from ffrecon.geometry.undistort import undistort_image
 from ffrecon.models.stage import FeedForwardResult
 from ffrecon.sfm.compare.poses import compare_poses
 from ffrecon.sfm.crosscheck.run import ColmapResult
+from ffrecon.splat.options import SplatOptions
+from ffrecon.splat.result import SplatResult
 from ffrecon.splat.seed import seed_from_reconstruction
-from ffrecon.splat.stage import SplatOptions, SplatResult, run_splat, run_splat_from_prediction
 from ffrecon.timing import StageTimer
 from ffrecon.types import Skipped
 
@@ -36,6 +37,8 @@ def splat_final_cameras(
 ) -> SplatResult:
     """The run's splat on the final cameras, in ``work``; reading the photos is the stage's first step (its
     time budget, ``options.optimize.max_seconds``, counts from the start)."""
+    from ffrecon.splat.stage import run_splat, run_splat_from_prediction  # torch: loaded when the splat runs
+
     timer = StageTimer()
     with timer.stage("read_images"):
         images = capture.read_images(list(final.indices))
@@ -91,6 +94,8 @@ def splat_from_colmap_points(
 ) -> SplatResult:
     """The same splat trained from COLMAP's points (moved into the final cameras' frame), same budget, in
     ``work/seed_comparison``."""
+    from ffrecon.splat.stage import run_splat  # torch: loaded when the splat runs
+
     names = capture.names
     full = np.stack([np.eye(3, 4)] * len(names))
     full[list(final.indices)] = final.cam_from_world

@@ -11,7 +11,6 @@ from ffrecon.checks import check_number
 from ffrecon.errors import InputError
 from ffrecon.splat.clean import CleanOptions
 from ffrecon.splat.optimize_options import OptimizeOptions
-from ffrecon.splat.render_gsplat import gsplat_available
 
 
 class SplatDevice(enum.Enum):
@@ -71,6 +70,8 @@ class ViewPriors:
 
 def resolve_device(device: SplatDevice | str) -> str:
     """``"cuda"`` or ``"cpu"``: AUTO picks CUDA when CUDA and gsplat are both available."""
+    from ffrecon.splat.render_gsplat import gsplat_available  # torch: here, where a device is chosen
+
     device = SplatDevice(device)
     if device is SplatDevice.CUDA and not gsplat_available():
         raise InputError(

@@ -4,20 +4,21 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
-import torch
 
 from ffrecon.formats.camera_path import CAMERA_PATH_FILE
-from ffrecon.formats.splat_ply import write_splat_ply
-from ffrecon.formats.web import WebExportError, write_sog, write_splat_spz
-from ffrecon.gaussians import Gaussians
 from ffrecon.splat.budget import budget_reason
 from ffrecon.splat.options import SplatOptions
-from ffrecon.splat.stage_run import StageRun
-from ffrecon.splat.video import write_flythrough
 from ffrecon.types import PinholeCamera
+
+if TYPE_CHECKING:
+    import torch
+
+    from ffrecon.gaussians import Gaussians
+    from ffrecon.splat.stage_run import StageRun
 
 logger = logging.getLogger("ffrecon.splat")
 
@@ -46,6 +47,10 @@ def write_outputs(
     """``splat.ply``, (when ``options.video`` and the stage's budget allow) ``flythrough.mp4`` and the web
     formats asked for (``{"spz_path": ..., "sog_path": ...}``, see :mod:`ffrecon.formats.web`; splat.spz when
     the budget allows, splat.sog, opt-in, whatever it takes); adds their times to ``run.timer``."""
+    from ffrecon.formats.splat_ply import write_splat_ply  # these load torch and numba: here, so that OUTPUTS does not
+    from ffrecon.formats.web import WebExportError, write_sog, write_splat_spz
+    from ffrecon.splat.video import write_flythrough
+
     o, timer = options.optimize, run.timer
     with timer.stage("write_ply"):
         ply_path = write_splat_ply(out_dir / "splat.ply", cleaned, sh_degree=o.sh_degree)

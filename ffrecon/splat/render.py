@@ -21,24 +21,12 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from ffrecon.checks import check_number
 from ffrecon.concurrency import interrupts_deferred
 from ffrecon.gaussians import Gaussians, sh_to_rgb
+from ffrecon.splat.optimize_options import RasterOptions  # defined there, without torch; still importable here
 from ffrecon.splat.project import project_gaussians
 from ffrecon.splat.raster import TileLayout, bin_gaussians, composite
 from ffrecon.types import PinholeCamera
-
-
-@dataclass(frozen=True, kw_only=True)
-class RasterOptions:
-    tile_size: int = 16  # pixels; with the compiled kernels 16 beats 8 (73 vs 84 ms fwd+bwd, 60k Gaussians, 640x480)
-    near: float = 0.01  # Gaussians whose centre has camera z below this are culled
-    eps2d: float = 0.3  # pixels^2 added to the projected covariance (3DGS / gsplat default)
-
-    def __post_init__(self) -> None:
-        check_number("RasterOptions.tile_size", self.tile_size, low=1, integer=True)
-        check_number("RasterOptions.near", self.near, low=0, low_open=True)
-        check_number("RasterOptions.eps2d", self.eps2d, low=0)
 
 
 @dataclass(frozen=True)

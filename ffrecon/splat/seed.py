@@ -10,21 +10,25 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
-import open3d as o3d
 import pycolmap
 
 from ffrecon.checks import check_shape
 from ffrecon.errors import InputError
-from ffrecon.gaussians import Gaussians
 from ffrecon.types import Prediction
+
+if TYPE_CHECKING:
+    from ffrecon.gaussians import Gaussians
 
 logger = logging.getLogger("ffrecon.splat")
 
 
 def voxel_downsample(xyz: np.ndarray, rgb: np.ndarray, voxel_size: float) -> tuple[np.ndarray, np.ndarray]:
     """Average points and colours per voxel (open3d). ``xyz [M, 3]``, ``rgb [M, 3]`` in [0, 1]."""
+    import open3d as o3d  # 0.45 s: here, so that the exports' import of this module does not load it
+
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(xyz, np.float64)))
     pcd.colors = o3d.utility.Vector3dVector(np.asarray(rgb, np.float64))
     down = pcd.voxel_down_sample(float(voxel_size))
@@ -142,6 +146,8 @@ def nearest_neighbour_log_scales(xyz: np.ndarray, k: int = 3) -> np.ndarray:
 
     Duplicates would give a zero scale, so distances are floored at 1e-3 of the median.
     """
+    import open3d as o3d  # 0.45 s: here, so that the exports' import of this module does not load it
+
     pts = o3d.core.Tensor(np.ascontiguousarray(xyz, dtype=np.float32))
     nns = o3d.core.nns.NearestNeighborSearch(pts)
     nns.knn_index()
@@ -155,6 +161,8 @@ def nearest_neighbour_log_scales(xyz: np.ndarray, k: int = 3) -> np.ndarray:
 
 def initial_gaussians(xyz: np.ndarray, rgb: np.ndarray, *, sh_degree: int, opacity: float = 0.1) -> Gaussians:
     """3DGS initialisation: identity rotations, isotropic nearest-neighbour scales, ``opacity``."""
+    from ffrecon.gaussians import Gaussians  # torch: here, only the splat makes Gaussians
+
     check_shape("seed_xyz", xyz, (None, 3))
     check_shape("seed_rgb", rgb, (len(xyz), 3))
     if len(xyz) < 4:
