@@ -49,3 +49,16 @@ def test_spread_centres_with_small_noise_take_the_centres():
     centers = rng.uniform(-5, 5, (12, 3))
     cams = _cameras(centers, rng)
     assert _rotation_error_deg(camera_sim3(cams, _noisy(cams, 5.0, 1e-3, rng))) < 0.05
+
+
+def test_one_centre_far_off_does_not_set_the_scale():
+    """Street tuning seed 203 (repeated tile, drift, ``--quick``): the adjustment sent one frame's centre 3,800 units
+    off (rotation right), the least-squares scale came out -1.8e-5 and every point ended behind its cameras. Centres
+    on a plane take the orientation fit; its scale must hold without that centre."""
+    rng = np.random.default_rng(3)
+    centers = np.c_[rng.uniform(-1, 1, (8, 2)), np.zeros(8)]  # flat: the orientations' fit
+    cams = _cameras(centers, rng)
+    lost = cams.copy()
+    lost[5, :, 3] -= lost[5, :, :3] @ np.array([3000.0, 500.0, -2500.0])  # its centre moved, its rotation kept
+    fit = camera_sim3(lost, _noisy(cams, 1.0, 1e-3, rng))
+    assert abs(fit.scale - 1.7) < 0.02 and _rotation_error_deg(fit) < 1.0

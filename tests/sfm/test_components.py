@@ -9,7 +9,7 @@ import pycolmap
 from ffrecon.colmap_io import cam_from_world_by_name
 from ffrecon.geometry.alignment import Sim3
 from ffrecon.geometry.rotations import axis_angle_to_matrix, rotation_angle_deg
-from ffrecon.sfm.refine.components import _move, parts, place_parts
+from ffrecon.sfm.refine.components import _move, lost_frames, parts, place_parts
 
 
 def _two_parts() -> tuple[pycolmap.Reconstruction, list[str], list[int], list[int]]:
@@ -71,3 +71,24 @@ def test_one_part_is_left_where_it_is():
     assert place_parts(rec, names, turned) == []
     after, _ = cam_from_world_by_name(rec, names)
     assert np.array_equal(after, before)
+
+
+def test_a_frame_whose_position_the_adjustment_lost_is_deregistered():
+    """Street tuning seed 203 (repeated tile, drift, ``--quick``): a frame held by one planar pair ended 3,800 units
+    from the others (extent 1.9) with its rotation right; it keeps the model's camera instead."""
+    options = pycolmap.SyntheticDatasetOptions(num_rigs=1, num_frames_per_rig=5, num_points3D=100)
+    rec = pycolmap.synthesize_dataset(options)
+    names = [rec.image(i).name for i in sorted(rec.reg_image_ids())]
+    model, _ = cam_from_world_by_name(rec, names)
+    lost = rec.find_image_with_name(names[2])
+    pose = rec.frame(lost.frame_id).rig_from_world
+    rec.frame(lost.frame_id).rig_from_world = pycolmap.Rigid3d(pose.rotation, pose.translation + [3000.0, 0, 0])
+    nudged = rec.find_image_with_name(names[3])  # a centre moved well within the extent stays
+    pose = rec.frame(nudged.frame_id).rig_from_world
+    rec.frame(nudged.frame_id).rig_from_world = pycolmap.Rigid3d(pose.rotation, pose.translation + [0.05, 0, 0])
+
+    weak = lost_frames(rec, names, model)
+
+    assert [w.name for w in weak] == [names[2]] and weak[0].value > 100
+    assert "lost its position" in weak[0].describe()
+    assert not rec.image(lost.image_id).has_pose and rec.image(nudged.image_id).has_pose

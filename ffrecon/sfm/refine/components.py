@@ -27,6 +27,7 @@ from ffrecon.colmap_io import cam_from_world_by_name
 from ffrecon.geometry.alignment import Sim3, camera_sim3
 from ffrecon.geometry.rotations import matrix_to_quat_xyzw
 from ffrecon.sfm.refine.links import shared_points
+from ffrecon.sfm.refine.options import WeakFrame, WeakReason
 
 logger = logging.getLogger(__name__)
 
@@ -103,3 +104,27 @@ def _move(rec: pycolmap.Reconstruction, image_ids: Sequence[int], point_ids: Seq
         frame.rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(matrix_to_quat_xyzw(rotation)), translation)
     for point_id in point_ids:
         rec.point3D(point_id).xyz = sim.apply(np.asarray(rec.point3D(point_id).xyz))
+
+
+def lost_frames(rec: pycolmap.Reconstruction, names: Sequence[str], ff_cam_from_world: np.ndarray) -> list[WeakFrame]:
+    """Deregister the frames of ``rec`` (already in the prediction's world) whose centre ended further from the
+    model's centre than the model's cameras' extent (the largest distance between two of its centres).
+
+    An adjustment can hold a frame's rotation and lose its position: on the repeated-tile street (tuning seed
+    203, drift, ``--quick``) a frame held by one planar pair ended 3,800 units from the others (extent 1.9) at
+    2.4 px; written to ``sparse/0`` that camera would sit kilometres off. Such a frame keeps the model's camera
+    and is judged as any frame the refinement did not hold.
+    """
+    centres = -np.einsum("nji,nj->ni", ff_cam_from_world[:, :, :3], ff_cam_from_world[:, :, 3])
+    extent = float(np.max(np.linalg.norm(centres[:, None] - centres[None], axis=-1))) if len(centres) > 1 else 0.0
+    index = {n: k for k, n in enumerate(names)}
+    out = []
+    for image_id in sorted(rec.reg_image_ids()):
+        image = rec.image(image_id)
+        moved = float(np.linalg.norm(np.asarray(image.projection_center()) - centres[index[image.name]]))
+        if extent > 0 and moved > extent:
+            out.append(WeakFrame(image.name, WeakReason.LOST_CENTRE, int(round(100 * moved / extent)), 100))
+            rec.deregister_frame(image.frame_id)
+    if out:
+        logger.warning("frames whose refined position was lost, left to the evidence: %s", [w.name for w in out])
+    return out

@@ -40,6 +40,7 @@ class WeakReason(enum.Enum):
     FEW_MATCHES = "few_matches"  # features, but too few verified matches with overlapping frames
     FEW_OBSERVATIONS = "few_observations"  # too few triangulated observations survive refinement
     WEAK_LINK = "weak_link"  # held to the other refined frames only by weak links or ones the model contradicts
+    LOST_CENTRE = "lost_centre"  # its refined centre ended further from the model's than the cameras' extent
 
 
 @dataclass(frozen=True)
@@ -50,6 +51,11 @@ class WeakFrame:
     threshold: int
 
     def describe(self) -> str:
+        if self.reason is WeakReason.LOST_CENTRE:
+            return (
+                f"{self.name}: its refined centre ended {self.value} % of the cameras' extent from the model's "
+                f"(> {self.threshold} %): the adjustment lost its position; kept out of the refinement"
+            )
         what = {
             WeakReason.FEW_FEATURES: "SIFT keypoints",
             WeakReason.FEW_MATCHES: "verified matches",

@@ -35,7 +35,7 @@ from ffrecon.sfm.features import (
     feature_stats,
 )
 from ffrecon.sfm.refine.adjust import _adjust_with_dense
-from ffrecon.sfm.refine.components import place_parts
+from ffrecon.sfm.refine.components import lost_frames, place_parts
 from ffrecon.sfm.refine.matching import (
     _check_inputs,
     _guide,
@@ -129,7 +129,14 @@ def run_refine(inputs: RefineInputs, prediction: Prediction, options: RefineOpti
         return _unrefined_result(prediction, timings=timer.freeze(), **provenance)
     model_dir = out_dir / "refine" / "model"
     with timer.stage("export"):
-        ff_from_refined = _export_in_ff_frame(rec, prediction, image_dir, model_dir)
+        ff_from_refined = _to_ff_frame(rec, prediction)
+        provenance["flagged"] += tuple(lost_frames(rec, prediction.names, prediction.cam_from_world))
+        if rec.num_reg_images() < 2:
+            logger.warning(
+                "refinement failed: fewer than two frames kept their position; keeping the feed-forward cameras"
+            )
+            return _unrefined_result(prediction, timings=timer.freeze(), **provenance)
+        _write_model(rec, image_dir, model_dir)
     result = _refined_result(rec, prediction, ff_from_refined, model_dir, timings=timer.freeze(), **provenance)
     _log_refined(result)
     return result
@@ -146,19 +153,20 @@ def _log_refined(result: RefineResult) -> None:
     )
 
 
-def _export_in_ff_frame(rec: pycolmap.Reconstruction, prediction: Prediction, image_dir: Path, model_dir: Path) -> Sim3:
-    """Move ``rec`` into the prediction's world frame, colour its points and write it to ``model_dir``.
-
-    Returns ``ff_from_refined``, the similarity that moved it (the largest part's, when parts that share no point
-    are placed each by its own: :mod:`ffrecon.sfm.refine.components`).
-    """
+def _to_ff_frame(rec: pycolmap.Reconstruction, prediction: Prediction) -> Sim3:
+    """Move ``rec`` into the prediction's world frame; returns ``ff_from_refined``, the similarity that moved it
+    (the largest part's, when parts that share no point are placed each by its own:
+    :mod:`ffrecon.sfm.refine.components`)."""
     parts = place_parts(rec, prediction.names, prediction.cam_from_world)
-    ff_from_refined = parts[0] if parts else sim3_to_ff_frame(rec, prediction.names, prediction.cam_from_world)
+    return parts[0] if parts else sim3_to_ff_frame(rec, prediction.names, prediction.cam_from_world)
+
+
+def _write_model(rec: pycolmap.Reconstruction, image_dir: Path, model_dir: Path) -> None:
+    """Colour ``rec``'s points from the photos and write it to ``model_dir``."""
     with colmap_log_level():
         rec.extract_colors_for_all_images(str(image_dir))
     shutil.rmtree(model_dir, ignore_errors=True)
     write_reconstruction(rec, model_dir)
-    return ff_from_refined
 
 
 def _unrefined_result(prediction: Prediction, **provenance) -> RefineResult:
