@@ -92,3 +92,16 @@ def test_a_frame_whose_position_the_adjustment_lost_is_deregistered():
     assert [w.name for w in weak] == [names[2]] and weak[0].value > 100
     assert "lost its position" in weak[0].describe()
     assert not rec.image(lost.image_id).has_pose and rec.image(nudged.image_id).has_pose
+
+
+def test_a_part_of_one_frame_moves_with_the_largest_part():
+    """One frame fixes no scale of its own: it is carried by the largest part's similarity, not collapsed."""
+    rec, names, first, second = _two_parts()
+    for image_id in second[1:]:
+        rec.deregister_frame(rec.image(image_id).frame_id)
+    assert [len(p) for p in parts(rec)] == [3, 1]
+    model, _ = cam_from_world_by_name(rec, names)
+    sims = place_parts(rec, names, model)
+    assert sims[1] is sims[0]
+    placed, registered = cam_from_world_by_name(rec, names)
+    assert np.allclose(placed[registered], model[registered], atol=1e-6)

@@ -81,6 +81,8 @@ def place_parts(rec: pycolmap.Reconstruction, names: Sequence[str], ff_cam_from_
         group_names = [rec.image(i).name for i in group]
         refined, _ = cam_from_world_by_name(rec, group_names)
         sim = camera_sim3(refined, ff_cam_from_world[[index[n] for n in group_names]])
+        if p > 0 and (len(group) < 2 or not (np.isfinite(sim.scale) and sim.scale > 0)):
+            sim = sims[0]  # one frame, or centres that fix no scale: it moves with the largest part
         _move(rec, group, [q for q, part in point_part.items() if part == p], sim)
         sims.append(sim)
     logger.info(
