@@ -1,6 +1,8 @@
 """Screening of the model's rotations against the verified pairs' own (sfm/refine/screen.py, issue 21): a frame
 the model turned far off is found before the adjustment and starts it from its pairs' rotation."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -81,6 +83,26 @@ def test_two_frames_sharing_only_each_other_cannot_be_told_apart(true):
     model = _off(true[:2], 1)
     assert blame(_gaps(true[:2], model, [(0, 1)]), model) == ()
     assert blame(_gaps(true[:2], model, [(0, 1)]), model, ScreenOptions(min_agreeing=1)) == ()
+
+
+def test_pairs_weigh_by_their_inliers(true):
+    """Room seed 210 (repeated tile, frame 1 25 deg off): its two strongest pairs (73 and 126 inliers) agreed on a
+    rotation within 4 deg of the truth, two weak ones (22 and 47) scattered. Counted one pair each, 2 of 4 is no
+    majority and the frame was not blamed; weighed by inliers it is. The same pairs with the weights swapped blame
+    nobody: two weak pairs do not outvote two strong ones."""
+    model = _off(true, 1)
+    pairs = [(0, 1), (1, 2), (1, 3), (1, 4), (2, 3), (3, 4), (4, 5), (0, 5)]
+    scatter = {
+        (1, 3): axis_angle_to_matrix(np.array([np.radians(40.0), 0, 0])) @ true[3, :, :3] @ true[1, :, :3].T,
+        (1, 4): axis_angle_to_matrix(np.array([0, 0, np.radians(-60.0)])) @ true[4, :, :3] @ true[1, :, :3].T,
+    }
+    gaps = _gaps(true, model, pairs, scatter)
+    inliers = {(0, 1): 73, (1, 2): 126, (1, 3): 22, (1, 4): 47}
+    weighed = tuple(dataclasses.replace(g, num_inliers=inliers.get((g.index1, g.index2), 50)) for g in gaps)
+    assert [s.index for s in blame(weighed, model)] == [1]
+    swapped = {(0, 1): 22, (1, 2): 47, (1, 3): 73, (1, 4): 126}
+    light = tuple(dataclasses.replace(g, num_inliers=swapped.get((g.index1, g.index2), 50)) for g in gaps)
+    assert blame(light, model) == ()
 
 
 # Seed 7 of the wide-baseline scene, frame 1 turned 25 deg: before the screen, the adjustment kept frame 1
