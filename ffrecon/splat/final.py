@@ -27,6 +27,20 @@ from ffrecon.types import Skipped
 CURVE_EVERY = 20  # iterations between held-out scores when the two seeds are compared
 
 
+def run_splat(*args, **kwargs) -> SplatResult:
+    """:func:`ffrecon.splat.stage.run_splat`, whose module (torch, the compiled kernels) loads when a splat runs."""
+    from ffrecon.splat.stage import run_splat
+
+    return run_splat(*args, **kwargs)
+
+
+def run_splat_from_prediction(*args, **kwargs) -> SplatResult:
+    """:func:`ffrecon.splat.stage.run_splat_from_prediction`, loaded as :func:`run_splat` is."""
+    from ffrecon.splat.stage import run_splat_from_prediction
+
+    return run_splat_from_prediction(*args, **kwargs)
+
+
 def splat_final_cameras(
     final: FinalCameras,
     ff: FeedForwardResult | Skipped,
@@ -37,8 +51,6 @@ def splat_final_cameras(
 ) -> SplatResult:
     """The run's splat on the final cameras, in ``work``; reading the photos is the stage's first step (its
     time budget, ``options.optimize.max_seconds``, counts from the start)."""
-    from ffrecon.splat.stage import run_splat, run_splat_from_prediction  # torch: loaded when the splat runs
-
     timer = StageTimer()
     with timer.stage("read_images"):
         images = capture.read_images(list(final.indices))
@@ -94,8 +106,6 @@ def splat_from_colmap_points(
 ) -> SplatResult:
     """The same splat trained from COLMAP's points (moved into the final cameras' frame), same budget, in
     ``work/seed_comparison``."""
-    from ffrecon.splat.stage import run_splat  # torch: loaded when the splat runs
-
     names = capture.names
     full = np.stack([np.eye(3, 4)] * len(names))
     full[list(final.indices)] = final.cam_from_world
