@@ -64,6 +64,7 @@ def test_all_zero_masks_fail_the_gate_naming_the_masks_and_export_nothing(small_
     assert main([*run, *FAST]) == 5
     err = _err(capsys)
     assert "the masks ignore every pixel of 8 of 8 frames" in err
+    assert "ffrecon: GATE_FAILED - " in err  # with -q too, the run says why it stopped
     report = json.loads((out / "report.json").read_text())
     assert report["verdict"]["status"] == "gate_failed" and "mask polarity: 0 = ignore" in report["verdict"]["message"]
     gate = next(g for g in report["gates"] if g["name"] == "depth_coverage")

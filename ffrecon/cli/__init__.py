@@ -16,6 +16,7 @@ import sys
 import warnings
 from pathlib import Path
 
+from ffrecon.cli import signals
 from ffrecon.cli.argtypes import SEED_MAX
 from ffrecon.cli.commands import (
     _export_options,
@@ -27,7 +28,7 @@ from ffrecon.cli.commands import (
 )
 from ffrecon.cli.needs import OPTION_NEEDS, VIDEO_SUFFIXES, check_partners
 from ffrecon.cli.parser import DEMO_MAX_FRAMES, DEMO_MAX_SIDE, DEMO_MIN_FRAMES, DEMO_MIN_SIDE, build_parser, parse_args
-from ffrecon.cli.run import _run_command, _run_options, _scene_options, print_summary
+from ffrecon.cli.run import _run_command, _run_options, _scene_options, print_summary, print_verdict
 from ffrecon.cli.signals import (
     ignore_sigterm,
     import_native_libraries,
@@ -121,6 +122,8 @@ def main(argv: list[str] | None = None, *, started: Clock | None = None) -> int:
     args, results = done
     if not getattr(args, "quiet", False):
         print_summary(results)
+    elif results.exit_code != 0:
+        print_verdict(results)
     return results.exit_code
 
 
@@ -140,11 +143,19 @@ def _guarded(argv: list[str] | None, started: Clock):
         if err.fix:
             print(f"  fix: {err.fix}", file=sys.stderr)
         return err.exit_code
+    except ImportError:
+        if not signals.received:
+            raise
+        return _interrupted()  # the signal arrived inside a native library's initialisation
     except KeyboardInterrupt:
-        print("ffrecon: interrupted; earlier results are untouched", file=sys.stderr)
-        leave_if_work_beside(Interrupted.exit_code)
-        return Interrupted.exit_code
+        return _interrupted()
     return done if isinstance(done, int) else (args, done)
+
+
+def _interrupted() -> int:
+    print("ffrecon: interrupted; earlier results are untouched", file=sys.stderr)
+    leave_if_work_beside(Interrupted.exit_code)
+    return Interrupted.exit_code
 
 
 @contextlib.contextmanager

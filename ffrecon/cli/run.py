@@ -123,18 +123,30 @@ def _run_command(args: argparse.Namespace):
     return run(args.input, args.out, args.model, _run_options(args), started=started)
 
 
-def print_summary(results) -> None:
-    """The end-of-run summary, from the report.json the run wrote (built again where there is none)."""
+def _report(results) -> dict:
+    """The report.json the run wrote (built again where there is none)."""
     import json
 
     from ffrecon.report.build import build_report
+
+    try:
+        return json.loads((results.out_dir / "report.json").read_text())
+    except (OSError, ValueError):
+        return build_report(results)
+
+
+def print_verdict(results) -> None:
+    """The run's verdict as one line on stderr: with ``--quiet`` a run that ends with a non-zero exit code still
+    says why (a gate's own log line may name a witness's failure, not the one that stopped the run)."""
+    verdict = _report(results)["verdict"]
+    print(f"ffrecon: {verdict['status'].upper()} - {verdict['message']}", file=sys.stderr)
+
+
+def print_summary(results) -> None:
+    """The end-of-run summary, from the report.json the run wrote (built again where there is none)."""
     from ffrecon.report.html import summary_rows, wall_seconds
 
-    written = results.out_dir / "report.json"
-    try:
-        report = json.loads(written.read_text())
-    except (OSError, ValueError):
-        report = build_report(results)
+    report = _report(results)
     verdict = report["verdict"]
     print(f"\nffrecon: {verdict['status'].upper()} - {verdict['message']}")
     for item, value in summary_rows(report):

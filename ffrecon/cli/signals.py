@@ -40,8 +40,21 @@ def blocked_in_the_kernel():
         signal.pthread_sigmask(signal.SIG_SETMASK, before)
 
 
+# The signals that ended the command (SIGTERM or Ctrl-C while sigterm_as_ctrl_c holds): a KeyboardInterrupt raised
+# inside a C extension's initialisation comes out as an ImportError ("initialization failed"); the command then
+# reads it as the interruption it is (libraries a stage imports when it needs them, e.g. Open3D, load mid-run).
+received: list[int] = []
+
+
 def terminate(signum, frame) -> None:
     """SIGTERM ends the run like Ctrl-C: finished stages kept, one line said, no stack trace."""
+    received.append(signum)
+    raise KeyboardInterrupt
+
+
+def interrupt(signum, frame) -> None:
+    """Ctrl-C, as Python's own handler, remembered (:data:`received`)."""
+    received.append(signum)
     raise KeyboardInterrupt
 
 
@@ -77,10 +90,15 @@ def sigterm_as_ctrl_c():
     """While a command runs, SIGTERM raises KeyboardInterrupt (:func:`terminate`); the handler before is put back
     at the end."""
     previous = signal.signal(signal.SIGTERM, terminate)
+    ctrl_c = signal.getsignal(signal.SIGINT)
+    if ctrl_c is signal.default_int_handler:
+        signal.signal(signal.SIGINT, interrupt)
     try:
         yield
     finally:
         signal.signal(signal.SIGTERM, previous)
+        if ctrl_c is signal.default_int_handler:
+            signal.signal(signal.SIGINT, ctrl_c)
 
 
 def take_sigterm_back() -> None:
