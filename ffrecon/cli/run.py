@@ -135,11 +135,15 @@ def _report(results) -> dict:
         return build_report(results)
 
 
+def _verdict_line(report: dict) -> str:
+    verdict = report["verdict"]
+    return f"ffrecon: {verdict['status'].upper()} - {verdict['message']}"
+
+
 def print_verdict(results) -> None:
     """The run's verdict as one line on stderr: with ``--quiet`` a run that ends with a non-zero exit code still
     says why (a gate's own log line may name a witness's failure, not the one that stopped the run)."""
-    verdict = _report(results)["verdict"]
-    print(f"ffrecon: {verdict['status'].upper()} - {verdict['message']}", file=sys.stderr)
+    print(_verdict_line(_report(results)), file=sys.stderr)
 
 
 def print_summary(results) -> None:
@@ -147,8 +151,7 @@ def print_summary(results) -> None:
     from ffrecon.report.html import summary_rows, wall_seconds
 
     report = _report(results)
-    verdict = report["verdict"]
-    print(f"\nffrecon: {verdict['status'].upper()} - {verdict['message']}")
+    print(f"\n{_verdict_line(report)}")
     for item, value in summary_rows(report):
         print(f"  {item:<28} {value}")
     for item in report["skipped_stages"]:

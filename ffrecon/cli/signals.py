@@ -47,13 +47,8 @@ received: list[int] = []
 
 
 def terminate(signum, frame) -> None:
-    """SIGTERM ends the run like Ctrl-C: finished stages kept, one line said, no stack trace."""
-    received.append(signum)
-    raise KeyboardInterrupt
-
-
-def interrupt(signum, frame) -> None:
-    """Ctrl-C, as Python's own handler, remembered (:data:`received`)."""
+    """SIGTERM ends the run like Ctrl-C: finished stages kept, one line said, no stack trace. Ctrl-C takes it too
+    (as Python's own handler, and remembered in :data:`received`)."""
     received.append(signum)
     raise KeyboardInterrupt
 
@@ -92,7 +87,7 @@ def sigterm_as_ctrl_c():
     previous = signal.signal(signal.SIGTERM, terminate)
     ctrl_c = signal.getsignal(signal.SIGINT)
     if ctrl_c is signal.default_int_handler:
-        signal.signal(signal.SIGINT, interrupt)
+        signal.signal(signal.SIGINT, terminate)
     try:
         yield
     finally:

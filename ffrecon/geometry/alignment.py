@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ffrecon.checks import check_shape, require_finite
+from ffrecon.geometry.poses import camera_centers
 from ffrecon.geometry.rotations import rotation_angle_deg
 
 
@@ -147,9 +148,7 @@ def robust_sim3_from_cameras(src_cam_from_world: np.ndarray, dst_cam_from_world:
     keep = angles <= 3 * np.median(angles) + 1e-9
     if 3 <= keep.sum() < len(keep):
         sim = sim3_from_cameras(src_cam_from_world[keep], dst_cam_from_world[keep])
-    src_c = -np.einsum("nji,nj->ni", src_cam_from_world[:, :, :3], src_cam_from_world[:, :, 3])
-    dst_c = -np.einsum("nji,nj->ni", dst_cam_from_world[:, :, :3], dst_cam_from_world[:, :, 3])
-    return _robust_centres(sim, src_c, dst_c)
+    return _robust_centres(sim, camera_centers(src_cam_from_world), camera_centers(dst_cam_from_world))
 
 
 def _robust_centres(sim: Sim3, src: np.ndarray, dst: np.ndarray) -> Sim3:

@@ -15,8 +15,7 @@ def _refine(pairs: list[tuple[int, int, int, int]]):
     """A refinement whose dense evidence tracked ``pairs``: (frame, frame, corners predicted, verified)."""
     named = tuple((NAMES[a], NAMES[b], tried, kept) for a, b, tried, kept in pairs)
     per_frame = {n: sum(p[3] for p in named if n in p[:2]) for n in NAMES}
-    predicted = {n: sum(p[2] for p in named if n in p[:2]) for n in NAMES}
-    stats = DenseStats(tuple(NAMES), len(pairs), 0, sum(per_frame.values()) // 2, per_frame, 1.0, predicted, named)
+    stats = DenseStats(tuple(NAMES), len(pairs), 0, sum(per_frame.values()) // 2, per_frame, 1.0, named)
     return SimpleNamespace(dense=stats)
 
 

@@ -25,8 +25,9 @@ import pycolmap
 
 from ffrecon.colmap_io import cam_from_world_by_name
 from ffrecon.geometry.alignment import Sim3, camera_sim3
+from ffrecon.geometry.poses import camera_centers
 from ffrecon.geometry.rotations import matrix_to_quat_xyzw
-from ffrecon.sfm.refine.links import shared_points
+from ffrecon.sfm.refine.links import group_labels, shared_points
 from ffrecon.sfm.refine.options import WeakFrame, WeakReason
 
 logger = logging.getLogger(__name__)
@@ -39,19 +40,10 @@ def parts(rec: pycolmap.Reconstruction) -> list[list[int]]:
     """The registered images of ``rec`` grouped by shared points (at least ``MIN_SHARED_POINTS`` between two
     frames join them), largest part first; image ids in increasing order."""
     registered = sorted(rec.reg_image_ids())
-    parent = list(range(len(registered)))
-
-    def root(k: int) -> int:
-        while parent[k] != k:
-            parent[k] = parent[parent[k]]
-            k = parent[k]
-        return k
-
-    for a, b in np.argwhere(np.triu(shared_points(rec, registered) >= MIN_SHARED_POINTS, 1)):
-        parent[root(int(a))] = root(int(b))
+    joined = np.argwhere(np.triu(shared_points(rec, registered) >= MIN_SHARED_POINTS, 1))
     groups: dict[int, list[int]] = {}
-    for k, image_id in enumerate(registered):
-        groups.setdefault(root(k), []).append(image_id)
+    for label, image_id in zip(group_labels(len(registered), joined.tolist()), registered):
+        groups.setdefault(label, []).append(image_id)
     return sorted(groups.values(), key=lambda g: (-len(g), g[0]))
 
 
@@ -117,7 +109,7 @@ def lost_frames(rec: pycolmap.Reconstruction, names: Sequence[str], ff_cam_from_
     2.4 px; written to ``sparse/0`` that camera would sit kilometres off. Such a frame keeps the model's camera
     and is judged as any frame the refinement did not hold.
     """
-    centres = -np.einsum("nji,nj->ni", ff_cam_from_world[:, :, :3], ff_cam_from_world[:, :, 3])
+    centres = camera_centers(ff_cam_from_world)
     extent = float(np.max(np.linalg.norm(centres[:, None] - centres[None], axis=-1))) if len(centres) > 1 else 0.0
     index = {n: k for k, n in enumerate(names)}
     out = []

@@ -32,7 +32,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -86,19 +86,24 @@ class DenseStats:
     num_verified: int  # ... and COLMAP's verification: written to the database
     per_frame: dict[str, int]  # verified correspondences per frame
     seconds: float
-    # Per frame: its corners and its partners' corners the model's cameras and depth put inside the other frame
-    # of a pair it was tracked in: what the tracking tried (the model's prediction said they overlap there).
-    per_frame_predicted: dict[str, int] = field(default_factory=dict)
     # Per pair tracked: (frame, frame, corners predicted inside the other frame in both directions, verified).
     pairs: tuple[tuple[str, str, int, int], ...] = ()
 
+    @property
+    def per_frame_predicted(self) -> dict[str, int]:
+        """Per frame SIFT left short: the corners the model's cameras and depth put inside the other frame of the
+        pairs it was tracked in (both directions): what the tracking tried."""
+        out = dict.fromkeys(self.frames, 0)
+        for a, b, predicted, _ in self.pairs:
+            for name in {a, b} & out.keys():
+                out[name] += predicted
+        return out
+
     def merged(self, other: DenseStats) -> DenseStats:
         """Two passes as one (the second for frames the first bundle adjustment still left out)."""
-        per_frame, predicted = dict(self.per_frame), dict(self.per_frame_predicted)
+        per_frame = dict(self.per_frame)
         for name, count in other.per_frame.items():
             per_frame[name] = per_frame.get(name, 0) + count
-        for name, count in other.per_frame_predicted.items():
-            predicted[name] = predicted.get(name, 0) + count
         frames = self.frames + tuple(f for f in other.frames if f not in self.frames)
         return DenseStats(
             frames,
@@ -107,7 +112,6 @@ class DenseStats:
             self.num_verified + other.num_verified,
             per_frame,
             self.seconds + other.seconds,
-            predicted,
             self.pairs + other.pairs,
         )
 
@@ -298,17 +302,12 @@ def add_dense_evidence(
         db.close()
     seconds = time.perf_counter() - start_s
     per_frame = dict.fromkeys((names[k] for k in frames), 0)
-    predicted = dict.fromkeys(per_frame, 0)
-    for (i, j), (tried, _, kept) in zip(pairs, counts):
-        for name in (names[i], names[j]):
-            if name in per_frame:
-                per_frame[name] += kept
-                predicted[name] += tried
+    for (i, j), (_, _, kept) in zip(pairs, counts):
+        for name in {names[i], names[j]} & per_frame.keys():
+            per_frame[name] += kept
     tracked, verified = sum(c[1] for c in counts), sum(c[2] for c in counts)
     pair_counts = tuple((names[i], names[j], c[0], c[2]) for (i, j), c in zip(pairs, counts))
-    stats = DenseStats(
-        tuple(names[k] for k in frames), len(pairs), tracked, verified, per_frame, seconds, predicted, pair_counts
-    )
+    stats = DenseStats(tuple(names[k] for k in frames), len(pairs), tracked, verified, per_frame, seconds, pair_counts)
     logger.info(
         "dense evidence for %d frames SIFT left short: %d pairs tracked, %d of %d correspondences verified (%.1f s)",
         len(frames),

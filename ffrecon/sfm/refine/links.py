@@ -38,7 +38,7 @@ added, the captures whose frames SIFT leaves short.
 from __future__ import annotations
 
 from collections import Counter
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -63,6 +63,26 @@ class LinkOptions:
         check_number("LinkOptions.main_group_ratio", self.main_group_ratio, low=1, low_open=True)
         for name in ("max_disagreement_deg", "corrected_deg"):
             check_number(f"LinkOptions.{name}", getattr(self, name), low=0, low_open=True, high=180)
+
+
+def group_labels(count: int, joined: Iterable[tuple[int, int]]) -> list[int]:
+    """A label for each of ``count`` nodes, equal for the nodes that ``joined`` pairs connect (union-find).
+
+    >>> label = group_labels(5, [(0, 1), (3, 4), (1, 0)])
+    >>> label[0] == label[1], label[3] == label[4], len(set(label))
+    (True, True, 3)
+    """
+    parent = list(range(count))
+
+    def root(k: int) -> int:
+        while parent[k] != k:
+            parent[k] = parent[parent[k]]
+            k = parent[k]
+        return k
+
+    for a, b in joined:
+        parent[root(a)] = root(b)
+    return [root(k) for k in range(count)]
 
 
 def shared_points(rec: pycolmap.Reconstruction, image_ids: Sequence[int], chunk: int = 4096) -> np.ndarray:
@@ -108,19 +128,17 @@ def detached_frames(
         np.stack([rotation[i] for i in registered]), np.stack([model[i] for i in registered])
     )
     corrected = {i for i, c in zip(registered, change) if c > options.corrected_deg}
-    parent = {i: i for i in registered}
-
-    def root(i: int) -> int:
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
-    for a, b in np.argwhere(np.triu(shared >= options.min_shared_points, 1)):
-        a, b = registered[a], registered[b]
+    trusted = []
+    for ka, kb in np.argwhere(np.triu(shared >= options.min_shared_points, 1)):
+        a, b = registered[ka], registered[kb]
         refined, predicted = rotation[a] @ rotation[b].T, model[a] @ model[b].T
         if {a, b} & corrected or rotation_angle_deg(refined @ predicted.T) <= options.max_disagreement_deg:
-            parent[root(a)] = root(b)
+            trusted.append((int(ka), int(kb)))
+    label = group_labels(len(registered), trusted)
+
+    def root(i: int) -> int:
+        return label[position[i]]
+
     groups = Counter(root(i) for i in registered)
     observations = Counter()
     for i in registered:

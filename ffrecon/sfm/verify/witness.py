@@ -24,7 +24,7 @@ def _lookalike(refine: RefineResult) -> bool:
     return refine.guidance is not None and refine.guidance.lookalike
 
 
-def _distrusted(refine: RefineResult, colmap: ColmapResult | None, witness: GatesResult, options=None) -> str:
+def _distrusted(refine: RefineResult, colmap: ColmapResult | None, witness: GatesResult, options) -> str:
     """Why COLMAP's model is no witness ("" when it is): on look-alike surfaces, it failed its own gates, or it
     disagrees with the refined cameras on most of the frames both hold.
 
@@ -48,7 +48,7 @@ def _distrusted(refine: RefineResult, colmap: ColmapResult | None, witness: Gate
             "ones: it is not a witness"
         )
     common = refine.registered & colmap.registered
-    if options is None or common.sum() < options.min_common_images:
+    if common.sum() < options.min_common_images:
         return ""
     comp = compare_poses(
         refine.cam_from_world,
