@@ -12,8 +12,9 @@ import pycolmap
 
 from ffrecon.geometry.metrics import aligned_rotation_errors_deg
 from ffrecon.sfm.features import colmap_log_level, feature_stats
+from ffrecon.sfm.refine.components import hold_apart
 from ffrecon.sfm.refine.dense import add_dense_evidence, short_frames
-from ffrecon.sfm.refine.links import LinkOptions, detached_frames
+from ffrecon.sfm.refine.links import LinkOptions, judge_links
 from ffrecon.sfm.refine.matching import _initial_model, _weak_by_features
 from ffrecon.sfm.refine.options import RefineOptions, WeakFrame, WeakReason
 from ffrecon.sfm.refine.passes import refine_tracks
@@ -49,8 +50,10 @@ def _adjust_with_dense(image_dir, prediction, graph, image_ids, camera_sets, db_
         return flagged, rec, summary, dense, found, stats
     dense = more if dense is None else dense.merged(more)
     stats = feature_stats(db_path, names)
+    # The links are judged against the model's cameras, not the relocalised ones: a frame relocalised onto a
+    # wrong link agrees with it (room seed 216: frame 4 placed by the 11-deg-wrong link 3-4 it then confirmed)
     flagged, rec, summary = _adjust(
-        start, image_ids, cameras, colmap_cameras, db_path, stats, dense, options, timer, fixed
+        start, image_ids, cameras, colmap_cameras, db_path, stats, dense, options, timer, fixed, model=prediction
     )
     return flagged, rec, summary, dense, found, stats
 
@@ -92,10 +95,21 @@ def _model_poses_kept(rec: pycolmap.Reconstruction, prediction: Prediction, max_
 
 
 def _adjust(
-    prediction, image_ids, cameras, colmap_cameras, db_path, stats, dense, options: RefineOptions, timer, fixed=()
+    prediction,
+    image_ids,
+    cameras,
+    colmap_cameras,
+    db_path,
+    stats,
+    dense,
+    options: RefineOptions,
+    timer,
+    fixed=(),
+    model: Prediction | None = None,
 ):
     """Triangulate and bundle-adjust the feed-forward cameras on the database's matches: ``(flagged, rec, summary)``
-    (summary None when fewer than two frames were usable)."""
+    (summary None when fewer than two frames were usable). ``model``: the cameras the links are judged against
+    (default: ``prediction``'s)."""
     flagged = _weak_by_features(stats, options)
     shared = len({c.camera_id for c in colmap_cameras.values()}) == 1
     rec = _initial_model(prediction, image_ids, cameras, colmap_cameras, shared)
@@ -112,16 +126,25 @@ def _adjust(
             rec, summary, weak = refine_tracks(rec, db_path, usable, bundle, min_observations=obs, fixed=fixed)
             flagged += [WeakFrame(n, WeakReason.FEW_OBSERVATIONS, k, options.min_observations) for n, k in weak]
             # Links are checked where dense evidence made the model a chain of two-view links; given poses are the truth
-            flagged += _detach(rec, prediction, options.links) if dense is not None and not fixed else []
+            flagged += _detach(rec, model or prediction, options.links) if dense is not None and not fixed else []
     return flagged, rec, summary
 
 
 def _detach(rec: pycolmap.Reconstruction, prediction: Prediction, options: LinkOptions) -> list[WeakFrame]:
-    """Deregister the frames outside the largest group of trusted links (:func:`detached_frames`)."""
-    detached = detached_frames(rec, prediction.names, prediction.cam_from_world, options)
-    for name, _ in detached:
+    """Deregister the frames outside the largest group of trusted links, or hold apart groups none of which is
+    the largest by far (:func:`~ffrecon.sfm.refine.links.judge_links`)."""
+    verdict = judge_links(rec, prediction.names, prediction.cam_from_world, options)
+    for name, _ in verdict.detached:
         rec.deregister_frame(rec.find_image_with_name(name).frame_id)
-    if detached:
-        names = [n for n, _ in detached]
+    if verdict.detached:
+        names = [n for n, _ in verdict.detached]
         logger.warning("frames held by weak links or links the model contradicts, left out: %s", names)
-    return [WeakFrame(n, WeakReason.WEAK_LINK, k, options.min_shared_points) for n, k in detached]
+    if verdict.split:
+        deleted = hold_apart(rec, verdict.split)
+        logger.warning(
+            "groups of frames joined only by weak links or links the model contradicts, each placed by the model "
+            "(%d shared points dropped): %s",
+            deleted,
+            "; ".join(", ".join(g) for g in verdict.split),
+        )
+    return [WeakFrame(n, WeakReason.WEAK_LINK, k, options.min_shared_points) for n, k in verdict.detached]

@@ -85,6 +85,20 @@ def place_parts(rec: pycolmap.Reconstruction, names: Sequence[str], ff_cam_from_
     return sims
 
 
+def hold_apart(rec: pycolmap.Reconstruction, groups: Sequence[Sequence[str]]) -> int:
+    """Delete the 3D points of ``rec`` that frames of two of ``groups`` (of names) both see, so that the groups
+    become parts that :func:`place_parts` places each on its own; returns how many points were deleted."""
+    group_of = {rec.find_image_with_name(n).image_id: g for g, names in enumerate(groups) for n in names}
+    straddling = [
+        point_id
+        for point_id, point in rec.points3D.items()
+        if len({group_of[e.image_id] for e in point.track.elements if e.image_id in group_of}) > 1
+    ]
+    for point_id in straddling:
+        rec.delete_point3D(point_id)
+    return len(straddling)
+
+
 def _move(rec: pycolmap.Reconstruction, image_ids: Sequence[int], point_ids: Sequence[int], sim: Sim3) -> None:
     """Apply ``ff_from_refined`` ``sim`` to some images' poses and some points of ``rec``.
 

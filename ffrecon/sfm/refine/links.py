@@ -37,7 +37,6 @@ added, the captures whose frames SIFT leaves short.
 
 from __future__ import annotations
 
-from collections import Counter
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
@@ -57,6 +56,8 @@ class LinkOptions:
     corrected_deg: float = 15.0  # a frame refined this far from its model rotation: its links are not tested
     # The largest group is taken as right when it has at least this many times the frames of any other
     main_group_ratio: float = 1.5
+    # With no such group, groups of two or more frames are held apart, each placed by the model (judge_links)
+    split_groups: bool = True
 
     def __post_init__(self) -> None:
         check_number("LinkOptions.min_shared_points", self.min_shared_points, low=1, integer=True)
@@ -102,26 +103,87 @@ def shared_points(rec: pycolmap.Reconstruction, image_ids: Sequence[int], chunk:
     return out
 
 
+@dataclass(frozen=True)
+class LinkVerdict:
+    """What the trusted links say about the refined frames.
+
+    ``detached``: frames outside the largest group, ``[(name, points it shares with that group over its best
+    link, trusted or not)]``; ``split``: groups (of names) that no trusted link joins when no group is large
+    enough against the others, each to be placed on the model by its own similarity.
+    """
+
+    detached: tuple[tuple[str, int], ...] = ()
+    split: tuple[tuple[str, ...], ...] = ()
+
+
 def detached_frames(
     rec: pycolmap.Reconstruction,
     names: Sequence[str],
     model_cam_from_world: np.ndarray,
     options: LinkOptions = LinkOptions(),
 ) -> list[tuple[str, int]]:
-    """The registered frames outside the largest group joined by trusted links: ``[(name, points it shares
-    with that group over its best link, trusted or not)]``.
+    """The registered frames outside the largest group joined by trusted links (:func:`judge_links`)."""
+    return list(judge_links(rec, names, model_cam_from_world, options).detached)
+
+
+def judge_links(
+    rec: pycolmap.Reconstruction,
+    names: Sequence[str],
+    model_cam_from_world: np.ndarray,
+    options: LinkOptions = LinkOptions(),
+) -> LinkVerdict:
+    """Group the registered frames by trusted links; the frames outside the largest group, or the groups to
+    hold apart where none is large enough.
+
+    When no group has ``main_group_ratio`` times the frames of any other, nothing says which group is right,
+    and the links between them are weak or contradicted by the model: each group of two or more frames is
+    held apart and placed by the model (``split``), and a frame alone in its group is detached.
 
     Args:
         rec: the refined model; names: the frames' names in the order of ``model_cam_from_world`` ``[N, 3, 4]``.
     """
     registered = sorted(rec.reg_image_ids())
     if not options.enabled or len(registered) < 3:
-        return []
+        return LinkVerdict()
+    shared = shared_points(rec, registered)
+    label = _trusted_labels(rec, registered, shared, names, model_cam_from_world, options)
+    groups: dict[int, list[int]] = {}
+    for k, i in enumerate(registered):
+        groups.setdefault(label[k], []).append(i)
+    observations = {g: sum(rec.image(i).num_points3D for i in members) for g, members in groups.items()}
+    main = max(groups, key=lambda g: (len(groups[g]), observations[g]))
+    members = groups[main]
+    largest_other = max((len(m) for g, m in groups.items() if g != main), default=0)
+    position = {i: k for k, i in enumerate(registered)}
+
+    def detach(frames: Iterable[int], to: Sequence[int]) -> tuple[tuple[str, int], ...]:
+        best = {i: max(int(shared[position[i], position[j]]) for j in to if j != i) for i in frames}
+        return tuple((rec.image(i).name, best[i]) for i in frames)
+
+    if len(members) >= options.main_group_ratio * largest_other:
+        return LinkVerdict(detached=detach([i for i in registered if label[position[i]] != main], members))
+    held = [m for m in groups.values() if len(m) >= 2]
+    if not options.split_groups or len(held) < 2:
+        return LinkVerdict()  # no group large enough against the others: nothing says which one is right
+    alone = [m[0] for m in groups.values() if len(m) == 1]
+    return LinkVerdict(
+        detached=detach(alone, registered),
+        split=tuple(tuple(rec.image(i).name for i in m) for m in sorted(held, key=lambda m: (-len(m), m[0]))),
+    )
+
+
+def _trusted_labels(
+    rec: pycolmap.Reconstruction,
+    registered: Sequence[int],
+    shared: np.ndarray,
+    names: Sequence[str],
+    model_cam_from_world: np.ndarray,
+    options: LinkOptions,
+) -> list[int]:
+    """A group label for each of ``registered``, equal for frames joined by trusted links."""
     index = {n: k for k, n in enumerate(names)}
     rotation = {i: rec.image(i).cam_from_world().rotation.matrix() for i in registered}
     model = {i: model_cam_from_world[index[rec.image(i).name], :, :3] for i in registered}
-    shared = shared_points(rec, registered)
-    position = {i: k for k, i in enumerate(registered)}
     # A frame the evidence moved further than the threshold from its model rotation (after the best common
     # world rotation) is a correction of the model's failure: its links cannot be checked against the model.
     change = aligned_rotation_errors_deg(
@@ -134,22 +196,4 @@ def detached_frames(
         refined, predicted = rotation[a] @ rotation[b].T, model[a] @ model[b].T
         if {a, b} & corrected or rotation_angle_deg(refined @ predicted.T) <= options.max_disagreement_deg:
             trusted.append((int(ka), int(kb)))
-    label = group_labels(len(registered), trusted)
-
-    def root(i: int) -> int:
-        return label[position[i]]
-
-    groups = Counter(root(i) for i in registered)
-    observations = Counter()
-    for i in registered:
-        observations[root(i)] += rec.image(i).num_points3D
-    main = max(groups, key=lambda g: (groups[g], observations[g]))
-    members = [i for i in registered if root(i) == main]
-    if len(members) < options.main_group_ratio * max((n for g, n in groups.items() if g != main), default=0):
-        return []  # no group large enough against the others: nothing says which one is right
-    out = []
-    for i in registered:
-        if root(i) != main:
-            best = max(shared[position[i], position[j]] for j in members)
-            out.append((rec.image(i).name, int(best)))
-    return out
+    return group_labels(len(registered), trusted)
