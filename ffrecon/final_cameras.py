@@ -70,11 +70,12 @@ def select_final_cameras(
     refine: RefineResult | Skipped,
     evidence: EvidenceResult | Skipped,
 ) -> FinalCameras | None:
-    """Refined cameras when refinement kept two frames or more; else the model's; else COLMAP's registered
-    ones (also when the model was found unsuited)."""
+    """Refined cameras when refinement kept two frames or more; else the model's (also when the evidence set the
+    refined cameras aside); else COLMAP's registered ones (also when the model was found unsuited)."""
     every = tuple(range(len(names)))
     unsuited = isinstance(evidence, EvidenceResult) and evidence.model_unsuited
-    if not unsuited and isinstance(refine, RefineResult) and refine.registered.sum() >= 2:
+    set_aside = isinstance(evidence, EvidenceResult) and bool(evidence.refinement_set_aside)
+    if not (unsuited or set_aside) and isinstance(refine, RefineResult) and refine.registered.sum() >= 2:
         return _refined_final_cameras(names, colmap, refine, evidence)
     if not unsuited and isinstance(ff, FeedForwardResult):
         pred = ff.prediction
@@ -215,7 +216,7 @@ def require_checked(evidence: EvidenceResult, colmap: ColmapResult | Skipped, re
     kept = [e for e in evidence.per_image if e.status.kept]
     # a frame refined on guided matches (look-alike surfaces) is unchecked, but adjusted on matches that fit
     held = any(e.verdict is not FrameVerdict.UNCHECKED or e.status is CameraStatus.GUIDED for e in kept)
-    if evidence.model_unsuited or not kept or held:
+    if evidence.model_unsuited or evidence.refinement_set_aside or not kept or held:
         return evidence
     colmap_text = (
         f"COLMAP registered {colmap.num_registered} of {len(colmap.names)} images and "

@@ -69,6 +69,7 @@ def _evidence(evidence: EvidenceResult) -> dict:
         "per_image": [e.to_report() for e in evidence.per_image],
         "model_unsuited": evidence.model_unsuited,
         "unsuited_reason": evidence.unsuited_reason,
+        "refinement_set_aside": evidence.refinement_set_aside,
         "counts": {s.value: evidence.count(s) for s in CameraStatus},
         "verdicts": {v.value: list(evidence.of(v)) for v in FrameVerdict},
     }

@@ -191,4 +191,6 @@ def evidence_section(report: dict, run_dir: Path) -> tuple[list[dict], str]:
     body = f"<p>Per image ({html.escape(counts)}):</p>" + table(per_image)
     if data["model_unsuited"]:
         body = f"<div class='banner warn'>{html.escape(data['unsuited_reason'])}</div>" + body
+    if data.get("refinement_set_aside"):
+        body = f"<div class='banner warn'>{html.escape(data['refinement_set_aside'])}</div>" + body
     return rows, body

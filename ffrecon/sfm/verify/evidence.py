@@ -31,6 +31,7 @@ unsuited: the run goes on from COLMAP's cameras instead of failing.
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable, Sequence
 
 import numpy as np
@@ -38,10 +39,12 @@ import numpy as np
 from ffrecon.sfm.crosscheck.gate_types import GatesResult, GateStatus, GateVerdict
 from ffrecon.sfm.crosscheck.run import ColmapResult
 from ffrecon.sfm.refine.options import RefineResult
-from ffrecon.sfm.verify.frames import _dense_misfits, _per_image, _photometric
+from ffrecon.sfm.verify.frames import _dense_misfits, _per_image, _period_off, _photometric
 from ffrecon.sfm.verify.verdicts import CameraStatus, EvidenceOptions, EvidenceResult, FrameVerdict
 from ffrecon.sfm.verify.witness import _distrusted, _healthy, _unsuited
 from ffrecon.types import Prediction, Skipped
+
+logger = logging.getLogger("ffrecon.sfm")
 
 
 def _verdict(name: str, ok: bool, value: float, threshold: float, reason: str, fix: str) -> GateVerdict:
@@ -87,6 +90,7 @@ def judge_final_cameras(
     healthy = _healthy(colmap, witness)
     per_image, comparison = _per_image(names, ff_cam_from_world, refine, colmap, options, healthy)
     per_image = _dense_misfits(per_image, refine, options)
+    per_image, set_aside = _period_off(per_image, refine, options)
     if photos is not None and depth is not None:
         limit = options.max_correction_deg
         per_image = _photometric(per_image, ff_cam_from_world, refine, photos, depth, options.photometric, limit)
@@ -95,11 +99,27 @@ def judge_final_cameras(
         why = f"COLMAP cross-check not run: {colmap_skipped}" if colmap_skipped else "COLMAP cross-check not run"
         threshold = options.min_colmap_agreement
         verdicts.append(GateVerdict("colmap_agreement", GateStatus.SKIPPED, None, threshold, why))
+    if set_aside:  # reported, not blocking: the run goes on from the model's cameras
+        logger.warning("%s", set_aside)
+        refined = [e for e, held in zip(per_image, refine.registered) if held]
+        share = sum(e.correction_deg > options.max_correction_deg for e in refined) / max(len(refined), 1)
+        fix = "photos of less repetitive surfaces, or closer together, let the matches tell the periods apart"
+        verdicts.append(
+            GateVerdict(
+                "lookalike_refinement",
+                GateStatus.FAIL,
+                share,
+                options.max_period_off_share,
+                set_aside,
+                fix,
+                blocking=False,
+            )
+        )
     if unsuited:  # reported, not blocking: the run goes on from COLMAP's cameras
         verdicts = [
             GateVerdict("model_suited", GateStatus.FAIL, None, options.unsuited_share, unsuited, blocking=False)
         ]
-    return EvidenceResult(GatesResult(tuple(verdicts), force), per_image, bool(unsuited), unsuited)
+    return EvidenceResult(GatesResult(tuple(verdicts), force), per_image, bool(unsuited), unsuited, set_aside)
 
 
 def _verdicts(

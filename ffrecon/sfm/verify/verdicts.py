@@ -80,11 +80,20 @@ class EvidenceOptions:
     # if the pair's matches are planar it is unchecked, not confirmed (sfm/verify/support.py)
     min_independent_observations: int = 40
     max_contradicted_share: float = 0.5  # more frames contradicted: the model fails on this capture (blocks)
+    # On look-alike surfaces, more of the refined frames than this moved beyond max_correction_deg: the refinement
+    # sits a pattern's period off as a whole and every frame keeps the model's camera (frames.period_off)
+    max_period_off_share: float = 0.25
     disagreement: DisagreementOptions = DisagreementOptions()
     photometric: PhotometricOptions = PhotometricOptions()  # frames no match checks, against the photos
 
     def __post_init__(self) -> None:
-        for name in ("min_refined_ratio", "min_colmap_agreement", "unsuited_share", "max_contradicted_share"):
+        for name in (
+            "min_refined_ratio",
+            "min_colmap_agreement",
+            "unsuited_share",
+            "max_contradicted_share",
+            "max_period_off_share",
+        ):
             check_number(f"EvidenceOptions.{name}", getattr(self, name), low=0, high=1)
         check_number("EvidenceOptions.max_reprojection_px", self.max_reprojection_px, low=0, low_open=True)
         check_number("EvidenceOptions.min_track_length", self.min_track_length, low=0)
@@ -129,6 +138,7 @@ class EvidenceResult:
     per_image: tuple[CameraEvidence, ...]
     model_unsuited: bool  # True: COLMAP's cameras are final, the model's were set aside
     unsuited_reason: str = ""
+    refinement_set_aside: str = ""  # why the refined cameras were set aside for the model's ("": they were not)
 
     def count(self, status: CameraStatus | FrameVerdict) -> int:
         if isinstance(status, FrameVerdict):
