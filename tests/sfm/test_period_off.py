@@ -25,7 +25,8 @@ def _case(changes, lookalike=True):
 
 def test_many_frames_a_period_off_set_the_refinement_aside():
     per_image, refine = _case([20.3, 18.4, 1.0, 2.0, 1.5, 20.6, 19.2, 2.2])
-    judged, why = _period_off(per_image, refine, EvidenceOptions())
+    judged, why, share = _period_off(per_image, refine, EvidenceOptions())
+    assert share == 0.5
     assert "4 of its 8 frames" in why and "keeps the model's camera" in why
     assert all(e.status is CameraStatus.UNCHECKED for e in judged)
 
@@ -33,9 +34,9 @@ def test_many_frames_a_period_off_set_the_refinement_aside():
 def test_a_corrected_frame_and_one_more_do_not():
     """Room seed 221, frame 1 25 deg off: it and one more frame moved, the others ended within 0.1 deg."""
     per_image, refine = _case([24.0, 12.0, 1.0, 2.0, 1.5, 2.6, 1.2, 2.2])
-    assert _period_off(per_image, refine, EvidenceOptions()) == (per_image, "")
+    assert _period_off(per_image, refine, EvidenceOptions())[:2] == (per_image, "")
 
 
 def test_off_lookalike_surfaces_nothing_is_set_aside():
     per_image, refine = _case([20.3, 18.4, 1.0, 2.0, 1.5, 20.6, 19.2, 2.2], lookalike=False)
-    assert _period_off(per_image, refine, EvidenceOptions()) == (per_image, "")
+    assert _period_off(per_image, refine, EvidenceOptions())[:2] == (per_image, "")

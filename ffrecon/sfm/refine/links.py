@@ -116,16 +116,6 @@ class LinkVerdict:
     split: tuple[tuple[str, ...], ...] = ()
 
 
-def detached_frames(
-    rec: pycolmap.Reconstruction,
-    names: Sequence[str],
-    model_cam_from_world: np.ndarray,
-    options: LinkOptions = LinkOptions(),
-) -> list[tuple[str, int]]:
-    """The registered frames outside the largest group joined by trusted links (:func:`judge_links`)."""
-    return list(judge_links(rec, names, model_cam_from_world, options).detached)
-
-
 def judge_links(
     rec: pycolmap.Reconstruction,
     names: Sequence[str],

@@ -90,7 +90,7 @@ def judge_final_cameras(
     healthy = _healthy(colmap, witness)
     per_image, comparison = _per_image(names, ff_cam_from_world, refine, colmap, options, healthy)
     per_image = _dense_misfits(per_image, refine, options)
-    per_image, set_aside = _period_off(per_image, refine, options)
+    per_image, set_aside, moved_share = _period_off(per_image, refine, options)
     if photos is not None and depth is not None:
         limit = options.max_correction_deg
         per_image = _photometric(per_image, ff_cam_from_world, refine, photos, depth, options.photometric, limit)
@@ -101,14 +101,12 @@ def judge_final_cameras(
         verdicts.append(GateVerdict("colmap_agreement", GateStatus.SKIPPED, None, threshold, why))
     if set_aside:  # reported, not blocking: the run goes on from the model's cameras
         logger.warning("%s", set_aside)
-        refined = [e for e, held in zip(per_image, refine.registered) if held]
-        share = sum(e.correction_deg > options.max_correction_deg for e in refined) / max(len(refined), 1)
         fix = "photos of less repetitive surfaces, or closer together, let the matches tell the periods apart"
         verdicts.append(
             GateVerdict(
                 "lookalike_refinement",
                 GateStatus.FAIL,
-                share,
+                moved_share,
                 options.max_period_off_share,
                 set_aside,
                 fix,

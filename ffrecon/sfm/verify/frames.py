@@ -257,10 +257,13 @@ def _dense_on_lookalikes(refine: RefineResult, name: str) -> bool:
     return _lookalike(refine) and refine.dense is not None and name in refine.dense.frames
 
 
-def _period_off(per_image, refine: RefineResult, options: EvidenceOptions) -> tuple[tuple[CameraEvidence, ...], str]:
+def _period_off(
+    per_image, refine: RefineResult, options: EvidenceOptions
+) -> tuple[tuple[CameraEvidence, ...], str, float]:
     """On look-alike surfaces, when more than ``options.max_period_off_share`` of the refined frames moved further
     than ``options.max_correction_deg`` from the model, the refinement as a whole is set aside: ``(every frame
-    unchecked, keeping the model's camera, why)``; else ``(per_image, "")``.
+    unchecked, keeping the model's camera, why, share of the refined frames moved)``; else ``(per_image, "",
+    share)``.
 
     Those frames are left out one by one (a period of the pattern fits as well as the truth), but the frames
     adjusted with them sat in the same wrong solution. On the repeated-tile object (held-out seed 219, drift,
@@ -270,18 +273,19 @@ def _period_off(per_image, refine: RefineResult, options: EvidenceOptions) -> tu
     25 deg off: the others within 0.1 deg), so a quarter of the frames is allowed.
     """
     if not _lookalike(refine):
-        return tuple(per_image), ""
+        return tuple(per_image), "", 0.0
     refined = [k for k in range(len(per_image)) if refine.registered[k]]
     limit = options.max_correction_deg
     moved = [per_image[k].name for k in refined if per_image[k].correction_deg > limit]  # nan compares False
-    if len(moved) <= options.max_period_off_share * len(refined):
-        return tuple(per_image), ""
+    share = len(moved) / max(len(refined), 1)
+    if share <= options.max_period_off_share:
+        return tuple(per_image), "", share
     why = (
         f"on look-alike surfaces the refinement moved {len(moved)} of its {len(refined)} frames more than {limit:g} "
         f"deg from the model ({', '.join(moved)}): it sits a pattern's period off as a whole, its cameras are set "
         "aside and every frame keeps the model's camera"
     )
-    return tuple(CameraEvidence(e.name, CameraStatus.UNCHECKED, why, e.correction_deg) for e in per_image), why
+    return tuple(CameraEvidence(e.name, CameraStatus.UNCHECKED, why, e.correction_deg) for e in per_image), why, share
 
 
 def _dense_moved(name: str, change: float, options: EvidenceOptions) -> CameraEvidence:
