@@ -53,6 +53,10 @@ class LinkOptions:
     enabled: bool = True
     min_shared_points: int = 30  # 3D points two refined frames share for their link to count
     max_disagreement_deg: float = 10.0  # refined relative rotation this far from the model's: the link is not trusted
+    # ... nor this many times the median disagreement of the links (at least 3) tested, where that is lower and
+    # above min_disagreement_deg: the model's own error, which the median measures, cannot explain it
+    disagreement_ratio: float = 2.5
+    min_disagreement_deg: float = 3.0
     corrected_deg: float = 15.0  # a frame refined this far from its model rotation: its links are not tested
     # The largest group is taken as right when it has at least this many times the frames of any other
     main_group_ratio: float = 1.5
@@ -62,8 +66,9 @@ class LinkOptions:
     def __post_init__(self) -> None:
         check_number("LinkOptions.min_shared_points", self.min_shared_points, low=1, integer=True)
         check_number("LinkOptions.main_group_ratio", self.main_group_ratio, low=1, low_open=True)
-        for name in ("max_disagreement_deg", "corrected_deg"):
+        for name in ("max_disagreement_deg", "min_disagreement_deg", "corrected_deg"):
             check_number(f"LinkOptions.{name}", getattr(self, name), low=0, low_open=True, high=180)
+        check_number("LinkOptions.disagreement_ratio", self.disagreement_ratio, low=1)
 
 
 def group_labels(count: int, joined: Iterable[tuple[int, int]]) -> list[int]:
@@ -180,10 +185,32 @@ def _trusted_labels(
         np.stack([rotation[i] for i in registered]), np.stack([model[i] for i in registered])
     )
     corrected = {i for i, c in zip(registered, change) if c > options.corrected_deg}
-    trusted = []
+    tested, trusted = {}, []
     for ka, kb in np.argwhere(np.triu(shared >= options.min_shared_points, 1)):
         a, b = registered[ka], registered[kb]
-        refined, predicted = rotation[a] @ rotation[b].T, model[a] @ model[b].T
-        if {a, b} & corrected or rotation_angle_deg(refined @ predicted.T) <= options.max_disagreement_deg:
+        if {a, b} & corrected:
             trusted.append((int(ka), int(kb)))
+        else:
+            refined, predicted = rotation[a] @ rotation[b].T, model[a] @ model[b].T
+            tested[int(ka), int(kb)] = rotation_angle_deg(refined @ predicted.T)
+    limit = disagreement_limit(list(tested.values()), options)
+    trusted += [pair for pair, disagreement in tested.items() if disagreement <= limit]
     return group_labels(len(registered), trusted)
+
+
+def disagreement_limit(disagreements: Sequence[float], options: LinkOptions) -> float:
+    """The largest disagreement (deg) with the model's relative rotation that a link may have and be trusted.
+
+    A link's disagreement is the model's relative error where the link is right: their median, over three links
+    or more, measures the model's error on this capture, and a link ``disagreement_ratio`` times that is more
+    likely wrong than the model. Never above ``max_disagreement_deg``, never below ``min_disagreement_deg``.
+
+    >>> disagreement_limit([4.5, 1.3, 1.3, 2.4, 9.1, 3.0, 4.3], LinkOptions())  # room seed 223: 2.5 x 3.0
+    7.5
+    >>> disagreement_limit([9.1, 3.0], LinkOptions())  # too few links for a median
+    10.0
+    """
+    if len(disagreements) < 3:
+        return options.max_disagreement_deg
+    scaled = options.disagreement_ratio * float(np.median(disagreements))
+    return min(options.max_disagreement_deg, max(options.min_disagreement_deg, scaled))

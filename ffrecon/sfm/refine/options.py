@@ -47,7 +47,7 @@ class WeakReason(enum.Enum):
 class WeakFrame:
     name: str
     reason: WeakReason
-    value: int  # keypoints, verified matches or observations
+    value: int  # keypoints, verified matches, observations or shared points
     threshold: int
 
     def describe(self) -> str:
@@ -56,11 +56,16 @@ class WeakFrame:
                 f"{self.name}: its refined centre ended {self.value} % of the cameras' extent from the model's "
                 f"(> {self.threshold} %): the adjustment lost its position; kept out of the refinement"
             )
+        if self.reason is WeakReason.WEAK_LINK:
+            return (
+                f"{self.name}: held to the other refined frames only by links of under {self.threshold} shared 3D "
+                "points or links whose relative rotation the model's contradicts (its strongest such link: "
+                f"{self.value} points); kept out of the refinement"
+            )
         what = {
             WeakReason.FEW_FEATURES: "SIFT keypoints",
             WeakReason.FEW_MATCHES: "verified matches",
             WeakReason.FEW_OBSERVATIONS: "triangulated observations",
-            WeakReason.WEAK_LINK: "3D points shared over a link the model agrees with",
         }[self.reason]
         return f"{self.name}: {self.value} {what} (< {self.threshold}); kept out of the refinement"
 
