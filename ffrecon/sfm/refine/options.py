@@ -181,6 +181,9 @@ class RefineResult:
     # [N] each frame's largest overlap with another frame, as the model's cameras and depth predict it (the larger
     # direction, OverlapGraph.reach); empty where the refinement did not build the graph
     overlap_reach: tuple[float, ...] = ()
+    # The refined frames grouped into parts that share no 3D point, largest first, where there are two or more:
+    # each part was placed by the model's cameras of its frames (refine/components.py); empty: one part
+    parts: tuple[tuple[str, ...], ...] = ()
 
     def to_report(self) -> dict:
         err = self.mean_reprojection_error_px
@@ -213,6 +216,7 @@ class RefineResult:
             "cpu_s": self.timings.cpu_report(),
             "features": self.features.to_report(),
             "overlap_reach": {n: round(float(r), 3) for n, r in zip(self.names, self.overlap_reach)},
+            "parts": [list(p) for p in self.parts],
         }
 
 

@@ -35,7 +35,7 @@ from ffrecon.sfm.features import (
     feature_stats,
 )
 from ffrecon.sfm.refine.adjust import _adjust_with_dense
-from ffrecon.sfm.refine.components import lost_frames, place_parts
+from ffrecon.sfm.refine.components import lost_frames, parts, place_parts
 from ffrecon.sfm.refine.matching import (
     _check_inputs,
     _guide,
@@ -137,6 +137,8 @@ def run_refine(inputs: RefineInputs, prediction: Prediction, options: RefineOpti
             )
             return _unrefined_result(prediction, timings=timer.freeze(), **provenance)
         _write_model(rec, image_dir, model_dir)
+        held = parts(rec)
+        provenance["parts"] = tuple(tuple(rec.image(i).name for i in p) for p in held) if len(held) > 1 else ()
     result = _refined_result(rec, prediction, ff_from_refined, model_dir, timings=timer.freeze(), **provenance)
     _log_refined(result)
     return result
@@ -157,8 +159,8 @@ def _to_ff_frame(rec: pycolmap.Reconstruction, prediction: Prediction) -> Sim3:
     """Move ``rec`` into the prediction's world frame; returns ``ff_from_refined``, the similarity that moved it
     (the largest part's, when parts that share no point are placed each by its own:
     :mod:`ffrecon.sfm.refine.components`)."""
-    parts = place_parts(rec, prediction.names, prediction.cam_from_world)
-    return parts[0] if parts else sim3_to_ff_frame(rec, prediction.names, prediction.cam_from_world)
+    placed = place_parts(rec, prediction.names, prediction.cam_from_world)
+    return placed[0] if placed else sim3_to_ff_frame(rec, prediction.names, prediction.cam_from_world)
 
 
 def _write_model(rec: pycolmap.Reconstruction, image_dir: Path, model_dir: Path) -> None:

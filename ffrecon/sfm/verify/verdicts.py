@@ -32,12 +32,13 @@ class CameraStatus(enum.Enum):
     PLANAR_PAIR = "refined on one planar pair"  # placed by one pair whose matches lie on a plane: ambiguous
     GUIDED = "refined on guided matches"  # look-alike surfaces: its matches were chosen by the model's cameras
     PHOTO_MISFIT = "contradicted by the photos"  # the confirmed frames, seen from its camera, do not look like it
+    PART = "refined in a part placed by the model"  # its part shares no point with the rest: placed by the model
 
     @property
     def verdict(self) -> FrameVerdict:
         if self in (CameraStatus.CONFIRMED, CameraStatus.REFINED, CameraStatus.COLMAP_ONLY):
             return FrameVerdict.CONFIRMED
-        unchecked = self in (CameraStatus.UNCHECKED, CameraStatus.PLANAR_PAIR, CameraStatus.GUIDED)
+        unchecked = self in (CameraStatus.UNCHECKED, CameraStatus.PLANAR_PAIR, CameraStatus.GUIDED, CameraStatus.PART)
         return FrameVerdict.UNCHECKED if unchecked else FrameVerdict.CONTRADICTED
 
     @property
