@@ -125,19 +125,15 @@ def _adjust(
             obs = options.min_observations
             rec, summary, weak = refine_tracks(rec, db_path, usable, bundle, min_observations=obs, fixed=fixed)
             flagged += [WeakFrame(n, WeakReason.FEW_OBSERVATIONS, k, options.min_observations) for n, k in weak]
-            # Links are checked where dense evidence made the model a chain of two-view links; given poses are the
-            # truth. The adjustment after the second chance (``model`` given) is the last: smaller groups held apart
-            if dense is not None and not fixed:
-                flagged += _detach(rec, model or prediction, options.links, last=model is not None)
+            # Links are checked where dense evidence made the model a chain of two-view links; given poses are the truth
+            flagged += _detach(rec, model or prediction, options.links) if dense is not None and not fixed else []
     return flagged, rec, summary
 
 
-def _detach(
-    rec: pycolmap.Reconstruction, prediction: Prediction, options: LinkOptions, *, last: bool
-) -> list[WeakFrame]:
+def _detach(rec: pycolmap.Reconstruction, prediction: Prediction, options: LinkOptions) -> list[WeakFrame]:
     """Deregister the frames outside the largest group of trusted links, or hold apart groups none of which is
-    the largest by far, or (``last``) the smaller groups beside it (:func:`~ffrecon.sfm.refine.links.judge_links`)."""
-    verdict = judge_links(rec, prediction.names, prediction.cam_from_world, options, last=last)
+    the largest by far (:func:`~ffrecon.sfm.refine.links.judge_links`)."""
+    verdict = judge_links(rec, prediction.names, prediction.cam_from_world, options)
     for name, _ in verdict.detached:
         rec.deregister_frame(rec.find_image_with_name(name).frame_id)
     if verdict.detached:

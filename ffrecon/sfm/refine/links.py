@@ -133,18 +133,9 @@ def judge_links(
     names: Sequence[str],
     model_cam_from_world: np.ndarray,
     options: LinkOptions = LinkOptions(),
-    *,
-    last: bool = False,
 ) -> LinkVerdict:
     """Group the registered frames by trusted links; the frames outside the largest group, or the groups to
     hold apart where none is large enough.
-
-    ``last``: no second chance (relocalisation, dense evidence) follows. The smaller groups of two or more frames
-    are then held apart beside the largest and placed by the model, not left out, unless a frame of theirs was
-    moved more than ``corrected_deg`` from its model rotation (a correction: the model's cameras of such a group
-    would misplace it). Room seed 213 (repeated tile, frame 1 25 deg off): frames 0 and 7, joined by 620 points
-    (0.1 deg from the truth) and to the rest by a link 5.6 deg wrong, were left out at the model's cameras; frame 1,
-    with no match, then had no refined neighbour for the photometric check and was exported 24.5 deg off.
 
     When no group has ``main_group_ratio`` times the frames of any other, nothing says which group is right,
     and the links between them are weak or contradicted by the model: each group of two or more frames is
@@ -157,7 +148,7 @@ def judge_links(
     if not options.enabled or len(registered) < 3:
         return LinkVerdict()
     shared = shared_points(rec, registered)
-    label, corrected = _trusted_labels(rec, registered, shared, names, model_cam_from_world, options)
+    label = _trusted_labels(rec, registered, shared, names, model_cam_from_world, options)
     groups: dict[int, list[int]] = {}
     for k, i in enumerate(registered):
         groups.setdefault(label[k], []).append(i)
@@ -172,12 +163,7 @@ def judge_links(
         return tuple((rec.image(i).name, best[i]) for i in frames)
 
     if len(members) >= options.main_group_ratio * largest_other:
-        others = [m for g, m in groups.items() if g != main]
-        held = [m for m in others if len(m) >= 2 and not set(m) & corrected] if last and options.split_groups else []
-        left = [i for m in others if m not in held for i in m]
-        split = [members, *sorted(held, key=lambda m: (-len(m), m[0]))] if held else []
-        named = tuple(tuple(rec.image(i).name for i in m) for m in split)
-        return LinkVerdict(detached=detach(left, members), split=named)
+        return LinkVerdict(detached=detach([i for i in registered if label[position[i]] != main], members))
     held = [m for m in groups.values() if len(m) >= 2]
     if not options.split_groups or len(held) < 2:
         return LinkVerdict()  # no group large enough against the others: nothing says which one is right
@@ -195,9 +181,8 @@ def _trusted_labels(
     names: Sequence[str],
     model_cam_from_world: np.ndarray,
     options: LinkOptions,
-) -> tuple[list[int], set[int]]:
-    """A group label for each of ``registered``, equal for frames joined by trusted links; and the frames the
-    refinement moved more than ``corrected_deg`` from their model rotation."""
+) -> list[int]:
+    """A group label for each of ``registered``, equal for frames joined by trusted links."""
     index = {n: k for k, n in enumerate(names)}
     rotation = {i: rec.image(i).cam_from_world().rotation.matrix() for i in registered}
     model = {i: model_cam_from_world[index[rec.image(i).name], :, :3] for i in registered}
@@ -217,7 +202,7 @@ def _trusted_labels(
             tested[int(ka), int(kb)] = rotation_angle_deg(refined @ predicted.T)
     limit = disagreement_limit(list(tested.values()), options)
     trusted += [pair for pair, disagreement in tested.items() if disagreement <= limit]
-    return group_labels(len(registered), trusted), corrected
+    return group_labels(len(registered), trusted)
 
 
 def disagreement_limit(disagreements: Sequence[float], options: LinkOptions) -> float:
