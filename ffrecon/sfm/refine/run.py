@@ -129,7 +129,7 @@ def run_refine(inputs: RefineInputs, prediction: Prediction, options: RefineOpti
         return _unrefined_result(prediction, timings=timer.freeze(), **provenance)
     model_dir = out_dir / "refine" / "model"
     with timer.stage("export"):
-        ff_from_refined = _to_ff_frame(rec, prediction)
+        ff_from_refined, several = _to_ff_frame(rec, prediction)
         provenance["flagged"] += tuple(lost_frames(rec, prediction.names, prediction.cam_from_world))
         if rec.num_reg_images() < 2:
             logger.warning(
@@ -137,7 +137,8 @@ def run_refine(inputs: RefineInputs, prediction: Prediction, options: RefineOpti
             )
             return _unrefined_result(prediction, timings=timer.freeze(), **provenance)
         _write_model(rec, image_dir, model_dir)
-        held = parts(rec)
+        # the parts placed each by the model, without the frames lost since (a one-part model was placed as one)
+        held = parts(rec) if several else []
         provenance["parts"] = tuple(tuple(rec.image(i).name for i in p) for p in held) if len(held) > 1 else ()
     result = _refined_result(rec, prediction, ff_from_refined, model_dir, timings=timer.freeze(), **provenance)
     _log_refined(result)
@@ -155,12 +156,14 @@ def _log_refined(result: RefineResult) -> None:
     )
 
 
-def _to_ff_frame(rec: pycolmap.Reconstruction, prediction: Prediction) -> Sim3:
+def _to_ff_frame(rec: pycolmap.Reconstruction, prediction: Prediction) -> tuple[Sim3, bool]:
     """Move ``rec`` into the prediction's world frame; returns ``ff_from_refined``, the similarity that moved it
     (the largest part's, when parts that share no point are placed each by its own:
-    :mod:`ffrecon.sfm.refine.components`)."""
+    :mod:`ffrecon.sfm.refine.components`), and whether there were several parts."""
     placed = place_parts(rec, prediction.names, prediction.cam_from_world)
-    return placed[0] if placed else sim3_to_ff_frame(rec, prediction.names, prediction.cam_from_world)
+    if placed:
+        return placed[0], True
+    return sim3_to_ff_frame(rec, prediction.names, prediction.cam_from_world), False
 
 
 def _write_model(rec: pycolmap.Reconstruction, image_dir: Path, model_dir: Path) -> None:
