@@ -110,7 +110,10 @@ def retire(old: Path, new: Path | None) -> None:
     if not old.exists():
         return
     if read_output_record(old) is None:
-        log.warning("left %s in place: it is not an ffrecon output", old)
+        if old.is_dir() and not old.is_symlink() and not any(old.iterdir()):
+            old.rmdir()  # all that a run killed at the last step of deleting it left
+        else:
+            log.warning("left %s in place: it is not an ffrecon output", old)
         return
     ours = listed_files(read_output_record(old))
     if ours is not None and new is not None:
@@ -118,7 +121,7 @@ def retire(old: Path, new: Path | None) -> None:
             if rel in ours or rel.startswith(f"{MARKER}/"):
                 continue
             keep_file(old / rel, new / rel)
-    shutil.rmtree(old)
+    remove_output(old)
 
 
 def commit_by_rename(out_dir: Path, stage: Path, old: Path) -> None:
@@ -201,5 +204,14 @@ def keep_file(src: Path, target: Path) -> None:
 
 
 def clear(folder: Path) -> None:
-    for entry in list(folder.iterdir()):
+    """Delete everything in ``folder``, ffrecon's marker last: a kill part-way leaves a folder that is still
+    recognisably ffrecon's (so the next run finishes the job) rather than one it must refuse to touch."""
+    entries = sorted(folder.iterdir(), key=lambda entry: entry.name == MARKER)
+    for entry in entries:
         shutil.rmtree(entry) if entry.is_dir() and not entry.is_symlink() else entry.unlink()
+
+
+def remove_output(folder: Path) -> None:
+    """Delete the ffrecon output ``folder``, its marker last (see :func:`clear`)."""
+    clear(folder)
+    folder.rmdir()

@@ -56,6 +56,7 @@ from ffrecon.folders import (
     listed_files,
     lock_dir,
     read_output_record,
+    remove_output,
     retire,
     visible_entries,
 )
@@ -242,7 +243,10 @@ class Staging:
     def discard(self) -> None:
         """Remove the staging folder and the parent folders this run made (they hold nothing of value)."""
         if self.path.exists():
-            shutil.rmtree(self.path, ignore_errors=True)
+            try:
+                remove_output(self.path)  # the marker last: a kill part-way leaves a folder the next run reuses
+            except OSError:
+                shutil.rmtree(self.path, ignore_errors=True)
         for parent in self.created_parents:
             try:
                 parent.rmdir()
@@ -316,6 +320,7 @@ def _recover(staging: Staging) -> None:
             commit_in_place(out_dir, staging.path, keep_staging=True)
         elif (out_dir / IN_PLACE_OLD).exists():
             retire(out_dir / IN_PLACE_OLD, out_dir)
+        _refuse_if_in_the_way(out_dir / IN_PLACE_OLD)
         return
     old = retired_path(out_dir)
     _peek_lock(out_dir, out_dir)
@@ -325,11 +330,23 @@ def _recover(staging: Staging) -> None:
             old.rename(out_dir)  # killed between the two renames of a swap: the earlier results come back
         else:
             retire(old, out_dir if out_dir.is_dir() else None)
+    _refuse_if_in_the_way(old)
     if record.get("state") == "complete":
         # Killed just before or after the swap: this folder is a complete result that is not OUT (the
         # earlier one after an exchange, or a new one whose swap never happened); OUT is whole either way.
         log.info("removing a complete result left beside %s by a run killed while swapping", out_dir)
         empty_into(staging.path, out_dir if is_ffrecon_output(out_dir) else None)
+
+
+def _refuse_if_in_the_way(old: Path) -> None:
+    """Exit 4 up front when the folder a swap moves the earlier results to holds files ffrecon did not
+    write (``retire`` leaves those): the swap at the end of the run would fail there, after all the work."""
+    if old.exists() or old.is_symlink():
+        raise OutputExistsError(
+            f"{old} is in the way: ffrecon moves the earlier results there when it replaces them, and it holds "
+            "files ffrecon did not write",
+            f"move {old} away (or delete it), or choose another folder with -o",
+        )
 
 
 def _check_owner(out_dir: Path, *, overwrite: bool, resume: bool) -> None:

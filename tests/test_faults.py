@@ -17,8 +17,10 @@ from pathlib import Path
 
 import pytest
 
+import ffrecon.folders as folders
 import ffrecon.workspace as workspace
 from ffrecon.cli import main
+from ffrecon.errors import OutputExistsError
 from ffrecon.workspace import MARKER, retired_path, staging_path
 
 FAST = ["--no-colmap", "--no-refine", "--no-splat", "-q"]  # the model's cameras alone: seconds
@@ -248,6 +250,58 @@ def test_a_kill_between_two_renames_brings_the_earlier_results_back(tmp_path, ph
     with workspace.staged_output(out, photos, overwrite=False, resume=True) as staging:
         staging.keep_earlier = True
     assert (out / "report.json").read_text() == "old" and not retired_path(out).exists()
+
+
+class _Killed(BaseException):
+    """Stands for SIGKILL: nothing after it runs (not an Exception, so no handler catches it)."""
+
+
+def test_a_kill_while_deleting_replaced_results_is_finished_by_the_next_run(tmp_path, photos, monkeypatch):
+    """Killed part-way through deleting the replaced results (``.OUT.old``; the soak test met this once, and the
+    next run's swap failed with a traceback), after each number of deletions: the next run finishes deleting
+    them and swaps its results in, and the person's file in the old results reaches OUT."""
+    names = ("report.json", "report.html", "transforms.json", "points.ply", "splat.ply", "sparse/0/cameras.bin")
+    files = {name: name for name in names}
+    deletions = len(names) + 2 + 2 + 1  # the files, sparse/0 and sparse, the marker's record and folder, the folder
+    real_unlink, real_rmdir = os.unlink, os.rmdir
+    for allowed in range(deletions):
+        out = tmp_path / f"out{allowed}"
+        _fake_output(out, {"report.json": "older"}, listed=["report.json"])
+        _fake_output(retired_path(out), files | {"mine.txt": "user"}, listed=sorted(files))
+        count = [0]
+
+        def dying(real, count=count, allowed=allowed):
+            def call(*args, **kwargs):
+                if count[0] >= allowed:
+                    raise _Killed
+                count[0] += 1
+                return real(*args, **kwargs)
+
+            return call
+
+        with monkeypatch.context() as patch:
+            patch.setattr(os, "unlink", dying(real_unlink))
+            patch.setattr(os, "rmdir", dying(real_rmdir))
+            with pytest.raises(_Killed):
+                folders.retire(retired_path(out), out)
+        left = retired_path(out)
+        assert (left / MARKER).is_dir() or not any(left.iterdir()), f"after {allowed}: the marker must go last"
+        with workspace.staged_output(out, photos, overwrite=True) as staging:
+            _fake_output(staging.path, {"report.json": "new"}, listed=[])
+        assert (out / "report.json").read_text() == "new" and (out / "mine.txt").read_text() == "user", allowed
+        assert not retired_path(out).exists() and not staging_path(out).exists(), allowed
+
+
+def test_a_folder_of_someone_else_where_old_results_go_is_refused_up_front(tmp_path, photos, capsys):
+    out = tmp_path / "out"
+    _fake_output(out, {"report.json": "older"}, listed=["report.json"])
+    (retired_path(out) / "sub").mkdir(parents=True)
+    (retired_path(out) / "sub" / "theirs.txt").write_text("not ffrecon's")
+    with pytest.raises(OutputExistsError, match="is in the way"):
+        with workspace.staged_output(out, photos, overwrite=True):
+            pytest.fail("the run must be refused before it starts")
+    assert (retired_path(out) / "sub" / "theirs.txt").read_text() == "not ffrecon's"
+    assert (out / "report.json").read_text() == "older" and not staging_path(out).exists()
 
 
 # --- filesystem faults --------------------------------------------------------------------------------
