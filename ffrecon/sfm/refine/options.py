@@ -184,6 +184,10 @@ class RefineResult:
     # The refined frames grouped into parts that share no 3D point, largest first, where there are two or more:
     # each part was placed by the model's cameras of its frames (refine/components.py); empty: one part
     parts: tuple[tuple[str, ...], ...] = ()
+    # [N] how firmly the matches fix each frame's rotation against the other refined frames: the median standard
+    # deviation (deg) of its relative rotations at one pixel per observation (refine/rigidity.py); nan where not
+    # refined; empty where not estimated
+    rotation_spread_deg: tuple[float, ...] = ()
 
     def to_report(self) -> dict:
         err = self.mean_reprojection_error_px
@@ -217,6 +221,9 @@ class RefineResult:
             "features": self.features.to_report(),
             "overlap_reach": {n: round(float(r), 3) for n, r in zip(self.names, self.overlap_reach)},
             "parts": [list(p) for p in self.parts],
+            "rotation_spread_deg": {
+                n: round(s, 3) for n, s in zip(self.names, self.rotation_spread_deg) if np.isfinite(s)
+            },
         }
 
 

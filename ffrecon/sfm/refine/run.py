@@ -48,6 +48,7 @@ from ffrecon.sfm.refine.matching import (
 from ffrecon.sfm.refine.options import RefineInputs, RefineOptions, RefineResult, RefineStatus
 from ffrecon.sfm.refine.passes import sim3_to_ff_frame
 from ffrecon.sfm.refine.screen import reseeded
+from ffrecon.sfm.refine.rigidity import rotation_spread_deg
 from ffrecon.timing import StageTimer
 from ffrecon.types import Prediction, RunMode, Skipped
 
@@ -140,6 +141,8 @@ def run_refine(inputs: RefineInputs, prediction: Prediction, options: RefineOpti
         # the parts placed each by the model, without the frames lost since (a one-part model was placed as one)
         held = parts(rec) if several else []
         provenance["parts"] = tuple(tuple(rec.image(i).name for i in p) for p in held) if len(held) > 1 else ()
+    with timer.stage("rigidity"):
+        provenance["rotation_spread_deg"] = rotation_spread_deg(rec, names)
     result = _refined_result(rec, prediction, ff_from_refined, model_dir, timings=timer.freeze(), **provenance)
     _log_refined(result)
     return result

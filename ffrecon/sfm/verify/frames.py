@@ -124,6 +124,13 @@ def _refined_frame(
         return CameraEvidence(name, CameraStatus.PART, _part_why(n_obs, part, refine), change)
     if _lookalike(refine):
         return CameraEvidence(name, CameraStatus.GUIDED, _guided_why(n_obs), change)
+    if (spread := _spread(refine, k)) > options.max_rotation_spread_deg:
+        why = (
+            f"bundle-adjusted on {n_obs} observations, but they fix its rotation against the other refined frames "
+            f"only to {spread:.1f} deg (median standard deviation at 1 px per observation, > "
+            f"{options.max_rotation_spread_deg:g}): its refined pose is kept, not confirmed"
+        )
+        return CameraEvidence(name, CameraStatus.LOOSE, why, change)
     why = f"bundle-adjusted on {n_obs} observations; " + (
         "no COLMAP model to compare with"
         if colmap is None
@@ -132,6 +139,13 @@ def _refined_frame(
         else "too few images shared with COLMAP to compare"
     )
     return CameraEvidence(name, CameraStatus.REFINED, why, change)
+
+
+def _spread(refine: RefineResult, k: int) -> float:
+    """How firmly the matches fix frame k's rotation against the other refined frames (deg,
+    :mod:`ffrecon.sfm.refine.rigidity`); 0 where not estimated (a result of an earlier ffrecon, too few frames)."""
+    spread = refine.rotation_spread_deg
+    return float(spread[k]) if len(spread) == len(refine.names) and np.isfinite(spread[k]) else 0.0
 
 
 def _minor_part(refine: RefineResult, name: str) -> tuple[str, ...] | None:
@@ -169,7 +183,7 @@ def _guided_why(observations: int) -> str:
 
 # Refined frames that are not confirmed but judge others: held by guided matches or by one planar pair, a few
 # degrees off at worst (the frame judged is compared with itself turned, so a reference's small error only blurs)
-_PHOTO_REFERENCE = (CameraStatus.GUIDED, CameraStatus.PLANAR_PAIR, CameraStatus.PART)
+_PHOTO_REFERENCE = (CameraStatus.GUIDED, CameraStatus.PLANAR_PAIR, CameraStatus.PART, CameraStatus.LOOSE)
 
 
 def _photometric(per_image, ff_cam_from_world, refine: RefineResult, photos, depth: Prediction, options, limit):

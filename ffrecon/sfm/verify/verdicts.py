@@ -33,12 +33,19 @@ class CameraStatus(enum.Enum):
     GUIDED = "refined on guided matches"  # look-alike surfaces: its matches were chosen by the model's cameras
     PHOTO_MISFIT = "contradicted by the photos"  # the confirmed frames, seen from its camera, do not look like it
     PART = "refined in a part placed by the model"  # its part shares no point with the rest: placed by the model
+    LOOSE = "refined, loosely held"  # its matches let it turn against the other frames at almost no cost
 
     @property
     def verdict(self) -> FrameVerdict:
         if self in (CameraStatus.CONFIRMED, CameraStatus.REFINED, CameraStatus.COLMAP_ONLY):
             return FrameVerdict.CONFIRMED
-        unchecked = self in (CameraStatus.UNCHECKED, CameraStatus.PLANAR_PAIR, CameraStatus.GUIDED, CameraStatus.PART)
+        unchecked = self in (
+            CameraStatus.UNCHECKED,
+            CameraStatus.PLANAR_PAIR,
+            CameraStatus.GUIDED,
+            CameraStatus.PART,
+            CameraStatus.LOOSE,
+        )
         return FrameVerdict.UNCHECKED if unchecked else FrameVerdict.CONTRADICTED
 
     @property
@@ -80,6 +87,10 @@ class EvidenceOptions:
     # A refined frame with fewer observations in tracks beyond its main partner hangs on that one pair;
     # if the pair's matches are planar it is unchecked, not confirmed (sfm/verify/support.py)
     min_independent_observations: int = 40
+    # A refined frame whose rotation against the other refined frames the matches fix only to more than this (the
+    # median standard deviation of its relative rotations at one pixel per observation, sfm/refine/rigidity.py)
+    # is unchecked, not confirmed: the adjustment could turn it that far at almost no cost.
+    max_rotation_spread_deg: float = 0.6
     max_contradicted_share: float = 0.5  # more frames contradicted: the model fails on this capture (blocks)
     # On look-alike surfaces, more of the refined frames than this moved beyond max_correction_deg: the refinement
     # sits a pattern's period off as a whole and every frame keeps the model's camera (frames.period_off)
@@ -104,6 +115,7 @@ class EvidenceOptions:
         check_number("EvidenceOptions.min_dense_predicted", self.min_dense_predicted, low=1, integer=True)
         check_number("EvidenceOptions.dense_misfit_ratio", self.dense_misfit_ratio, low=0, high=1)
         check_number("EvidenceOptions.decisive_pair_inliers", self.decisive_pair_inliers, low=1, integer=True)
+        check_number("EvidenceOptions.max_rotation_spread_deg", self.max_rotation_spread_deg, low=0, low_open=True)
         for name in ("max_correction_deg", "max_lookalike_dense_change_deg"):
             check_number(f"EvidenceOptions.{name}", getattr(self, name), low=0, low_open=True, high=180)
 
