@@ -62,6 +62,8 @@ class PhotometricOptions:
     # A frame whose verified pairs disagree with its camera (too weakly to contradict it alone) is contradicted
     # when it also fits at its camera this many times worse (1 - ncc) than the confirmed frames at theirs.
     poor_factor: float = 3.0
+    # ... or when the photos fit it best turned about as far as its pairs say (within agree_deg of their median gap)
+    agree_deg: float = 10.0
     min_reference: int = 2  # confirmed frames needed to judge anything
     max_neighbours: int = 8  # a frame is compared with this many confirmed frames, those with the nearest centres
 
@@ -70,7 +72,7 @@ class PhotometricOptions:
         check_number("PhotometricOptions.blur_px", self.blur_px, low=0)
         check_number("PhotometricOptions.min_overlap", self.min_overlap, low=0, low_open=True, high=1)
         check_number("PhotometricOptions.min_depth_conf", self.min_depth_conf, low=0)
-        for name in ("search_deg", "step_deg", "gain", "poor_factor"):
+        for name in ("search_deg", "step_deg", "gain", "poor_factor", "agree_deg"):
             check_number(f"PhotometricOptions.{name}", getattr(self, name), low=0, low_open=True)
         check_number("PhotometricOptions.search_deg", self.search_deg, high=90)
         check_number("PhotometricOptions.step_deg", self.step_deg, low=1)
@@ -110,6 +112,26 @@ class PhotometricCheck:
     def contradicts(self, name: str) -> bool:
         s = self.scores.get(name)
         return s is not None and s.far_fit(self.options)
+
+    def turned_like(self, name: str, gap_deg: float) -> bool:
+        """Whether the photos fit the frame best turned about as far as ``gap_deg`` (its verified pairs' median
+        rotation gap), beyond ``options.min_turn_deg`` and better than anywhere near its camera: a second,
+        independent sign that agrees with the pairs. Counted even where nothing covers it near its camera (alone,
+        such a far fit is no evidence: good frames fit 0.3-0.91 turned 20-34 deg there on tuning seeds 213-223)."""
+        s = self.scores.get(name)
+        if s is None or not np.isfinite(s.best) or not np.isfinite(gap_deg):
+            return False
+        better = not np.isfinite(s.near) or s.best > s.near
+        turned = s.best_turn_deg > self.options.min_turn_deg and s.best >= self.options.min_best
+        return bool(better and turned and abs(s.best_turn_deg - gap_deg) <= self.options.agree_deg)
+
+    def describe_turned(self, name: str, gap_deg: float) -> str:
+        s = self.scores[name]
+        return (
+            f"its verified pairs put it {gap_deg:.0f} deg from its camera, and the photos of the frames around it fit "
+            f"its photo best with its camera turned {s.best_turn_deg:.0f} deg ({s.best:.2f}; confirmed frames at "
+            f"theirs: {self.reference:.2f})"
+        )
 
     def poor(self, name: str) -> bool:
         """Whether the frame fits at its camera clearly worse than the confirmed frames do at theirs: what is left
