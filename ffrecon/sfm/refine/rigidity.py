@@ -29,7 +29,7 @@ from ffrecon.sfm.features import colmap_log_level
 logger = logging.getLogger(__name__)
 
 PIXEL_ERROR = 1.0  # the error given to each observation, pixels (the covariance scales with its square)
-MAX_OTHERS = 48  # a frame is compared with at most this many others (evenly spread), which bounds the cost
+MAX_OTHERS = 32  # a frame is compared with at most this many others (evenly spread), which bounds the cost
 
 
 def rotation_spread_deg(rec: pycolmap.Reconstruction, names: Sequence[str]) -> tuple[float, ...]:
@@ -79,7 +79,9 @@ def _covariance(rec: pycolmap.Reconstruction, ids: list[int]):
     try:
         with colmap_log_level():
             adjuster = pycolmap.create_default_ceres_bundle_adjuster(options, config, rec)
-            return pycolmap.estimate_ba_covariance(pycolmap.BACovarianceOptions(), rec, adjuster)
+            wanted = pycolmap.BACovarianceOptions()
+            wanted.params = pycolmap.BACovarianceOptionsParams.POSES  # the points' covariances are not needed
+            return pycolmap.estimate_ba_covariance(wanted, rec, adjuster)
     except (RuntimeError, ValueError) as err:  # a singular problem, say: nothing is said either way
         logger.debug("no covariance of the refined model: %s", err)
         return None
