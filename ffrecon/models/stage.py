@@ -287,8 +287,10 @@ def run_feedforward(
         sparse_dir = write_reconstruction(rec, ff_dir / "sparse")
     with timer.stage("write_depth"):
         write_depth_maps(ff_dir / "depth", prediction)
-    timer.close()
     info = (model.providers, _assumptions(model.info(), capture), model_cameras, model_poses, model_pass.chunks)
+    with timer.stage("release"):  # onnxruntime's session and the photos read, freed here rather than on return
+        del model, images, model_pass
+    timer.close()
     result = FeedForwardResult(prediction, xyz, rgb, sparse_dir, *info, timings=timer.freeze())
     if clouds is not None and clouds.nbytes <= KEEP_FRAME_CLOUDS_BYTES:
         object.__setattr__(result, "frame_clouds", clouds)  # frozen: set once, here
