@@ -104,6 +104,7 @@ COLMAP = Stage(
         prediction=s.prediction if s.declares("feedforward") else None,  # the model's pairs (see ``after``)
     ),
     lambda o: o.colmap,
+    files=lambda s, o: (o.colmap.vocab_tree_path,),  # a tree replaced at the same path re-runs the matching
     label="colmap cross-check",
     skip=lambda s, o: (
         (QUICK_NO_CROSSCHECK if o.mode is RunMode.QUICK and s.views >= 2 else None)

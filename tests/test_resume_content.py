@@ -84,3 +84,20 @@ def test_a_sparse_file_hashes_without_reading_its_holes(tmp_path):
     dense.write_bytes(b"\0" * 11)
     assert content_hash(small) != content_hash(dense)  # the size is part of the hash
     assert content_hash(tmp_path) is None and content_hash(Path("/dev/zero")) is None
+
+
+def test_every_file_a_stage_is_given_is_in_its_key(tmp_path):
+    """The user files the options name are keyed by content through the stage that reads them: a vocabulary tree
+    replaced at the same path re-runs COLMAP's matching (it was keyed by its path alone)."""
+    import dataclasses
+
+    from ffrecon.options import RunOptions
+    from ffrecon.stages import COLMAP
+
+    tree = tmp_path / "vocab_tree.bin"
+    tree.write_bytes(b"one tree")
+    options = dataclasses.replace(RunOptions(), colmap=dataclasses.replace(RunOptions().colmap, vocab_tree_path=tree))
+    assert tree in COLMAP.files(None, options)
+    first = file_key(tree)
+    tree.write_bytes(b"another!")
+    assert file_key(tree) != first
