@@ -138,14 +138,22 @@ def run_refine(inputs: RefineInputs, prediction: Prediction, options: RefineOpti
             )
             return _unrefined_result(prediction, timings=timer.freeze(), **provenance)
         _write_model(rec, image_dir, model_dir)
-        # the parts placed each by the model, without the frames lost since (a one-part model was placed as one)
-        held = parts(rec) if several else []
-        provenance["parts"] = tuple(tuple(rec.image(i).name for i in p) for p in held) if len(held) > 1 else ()
-    with timer.stage("rigidity"):
-        provenance["rotation_spread_deg"] = rotation_spread_deg(rec, names)
+    provenance.update(_shape(rec, names, several, timer))
     result = _refined_result(rec, prediction, ff_from_refined, model_dir, timings=timer.freeze(), **provenance)
     _log_refined(result)
     return result
+
+
+def _shape(rec: pycolmap.Reconstruction, names: tuple[str, ...], several: bool, timer: StageTimer) -> dict:
+    """The refined model's parts placed each by the model, without the frames lost since (a one-part model was
+    placed as one), and how firmly its matches hold each frame's rotation (:mod:`ffrecon.sfm.refine.rigidity`)."""
+    held = parts(rec) if several else []
+    with timer.stage("rigidity"):
+        spread = rotation_spread_deg(rec, names)
+    return {
+        "parts": tuple(tuple(rec.image(i).name for i in p) for p in held) if len(held) > 1 else (),
+        "rotation_spread_deg": spread,
+    }
 
 
 def _log_refined(result: RefineResult) -> None:
