@@ -47,8 +47,8 @@ from ffrecon.sfm.refine.matching import (
 )
 from ffrecon.sfm.refine.options import RefineInputs, RefineOptions, RefineResult, RefineStatus
 from ffrecon.sfm.refine.passes import sim3_to_ff_frame
-from ffrecon.sfm.refine.screen import reseeded
 from ffrecon.sfm.refine.rigidity import rotation_spread_deg
+from ffrecon.sfm.refine.screen import reseeded
 from ffrecon.timing import StageTimer
 from ffrecon.types import Prediction, RunMode, Skipped
 
