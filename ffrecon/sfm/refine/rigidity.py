@@ -52,8 +52,7 @@ def rotation_spread_deg(rec: pycolmap.Reconstruction, names: Sequence[str]) -> t
         key = (min(a, b), max(a, b))
         if key not in std:
             c = covariance.get_cam2_cov_from_cam1(key[0], poses[key[0]], key[1], poses[key[1]])
-            top = float(np.linalg.eigvalsh(c[:3, :3]).max()) if c is not None else np.inf
-            std[key] = float(np.degrees(np.sqrt(max(top, 0.0)))) * PIXEL_ERROR if np.isfinite(top) else np.inf
+            std[key] = _largest_std_deg(None if c is None else c[:3, :3])
         return std[key]
 
     spread = {}
@@ -62,6 +61,22 @@ def rotation_spread_deg(rec: pycolmap.Reconstruction, names: Sequence[str]) -> t
         others = [others[t] for t in np.linspace(0, len(others) - 1, min(len(others), MAX_OTHERS)).astype(int)]
         spread[i] = float(np.median([relative(i, j) for j in others]))
     return tuple(spread[by_name[n]] if n in by_name else float("nan") for n in names)
+
+
+def _largest_std_deg(rotation_cov: np.ndarray | None) -> float:
+    """The standard deviation (deg) along the least certain axis of a rotation covariance (tangent space, rad²);
+    inf where there is none or it is not finite (a nearly singular problem: street seed 245 with a frame 25 deg
+    off gave NaNs there, and numpy's eigen solver raised on them).
+
+    >>> round(_largest_std_deg(np.diag([1e-6, 4e-6, 1e-6])), 4)
+    0.1146
+    >>> _largest_std_deg(np.full((3, 3), np.nan)), _largest_std_deg(None)
+    (inf, inf)
+    """
+    if rotation_cov is None or not np.all(np.isfinite(rotation_cov)):
+        return float("inf")
+    top = float(np.linalg.eigvalsh(rotation_cov).max())
+    return float(np.degrees(np.sqrt(max(top, 0.0)))) * PIXEL_ERROR
 
 
 def _covariance(rec: pycolmap.Reconstruction, ids: list[int]):
