@@ -60,6 +60,8 @@ def rotation_spread_deg(rec: pycolmap.Reconstruction, names: Sequence[str]) -> t
         others = [j for j in ids if j != i]
         others = [others[t] for t in np.linspace(0, len(others) - 1, min(len(others), MAX_OTHERS)).astype(int)]
         spread[i] = float(np.median([relative(i, j) for j in others]))
+    if not any(np.isfinite(v) for v in std.values()):  # the covariance failed as a whole: nothing is said
+        return ()
     return tuple(spread[by_name[n]] if n in by_name else float("nan") for n in names)
 
 
