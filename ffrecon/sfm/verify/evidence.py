@@ -84,7 +84,7 @@ def judge_final_cameras(
         photos, depth: frame index -> RGB photo, and the model's depth (a Prediction): the frames left
             unchecked are checked against the photos (:mod:`ffrecon.sfm.verify.photometric`); None: not.
     """
-    if distrust := _distrusted(refine, colmap, witness, options):
+    if distrust := _distrusted(refine, colmap, witness, options, ff_cam_from_world):
         colmap, colmap_skipped = None, distrust
     unsuited = _unsuited(names, ff_cam_from_world, colmap, witness, options)
     healthy = _healthy(colmap, witness)
