@@ -196,7 +196,11 @@ def _colmap_with_collapsed_centres(scene, frames=(1, 2, 3, 4)):
             rotation = scene.cam_from_world[k, :, :3]
             cam_from_world[k] = np.hstack([rotation, (-rotation @ mid)[:, None]])
             registered[k] = True
-    return SimpleNamespace(cam_from_world=cam_from_world, registered=registered, num_registered=int(registered.sum()))
+    # as many points as a model of these frames would hold (not far fewer than the refinement's: then, disagreeing,
+    # it would be the weaker evidence and no witness at all, sfm/verify/witness.py)
+    return SimpleNamespace(
+        cam_from_world=cam_from_world, registered=registered, num_registered=int(registered.sum()), num_points=2000
+    )
 
 
 def test_colmap_that_failed_its_gates_is_a_witness_of_rotations_only(wide, wide_dir, tmp_path):

@@ -68,7 +68,7 @@ def _distrusted(
             f"COLMAP's model failed its gates ({_failed(witness)}) on look-alike surfaces, where its matches are the "
             "suspect ones: it is not a witness"
         )
-    stronger = _stronger_refinement(refine, colmap, ff_cam_from_world, options)
+    stronger = _stronger_refinement(refine, colmap, ff_cam_from_world, options) if healthy and not lookalike else ""
     if healthy and not lookalike and not stronger:
         return ""
     common = refine.registered & colmap.registered
