@@ -15,6 +15,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 import ffrecon.folders as folders
@@ -366,3 +367,27 @@ def test_a_mount_point_as_output_is_written_into(photos, small_demo, mount, monk
     assert main(["run", str(photos), "-o", str(disk), "--model", str(small_demo.model), "--overwrite", *FAST]) == 0
     assert _complete(disk) and (disk / "keep.txt").exists() and not (disk / ".ffrecon-old").exists()
     assert os.path.ismount(disk)
+
+
+def test_a_bug_inside_a_stage_is_one_line_exit_1_and_leaves_out_as_it_was(
+    photos, small_demo, tmp_path, monkeypatch, capsys
+):
+    """An unexpected error (a bug: street seed 245 once met numpy's LinAlgError in the refinement) ends in one line
+    and its fix, exit 1, never a traceback unless -v asks; the earlier results stay."""
+    out = tmp_path / "out"
+    args = ["run", str(photos), "-o", str(out), "--model", str(small_demo.model), *FAST]
+    assert main(args) == 0
+    before = _tree(out)
+    capsys.readouterr()
+
+    def broken(*_args, **_kwargs):
+        raise np.linalg.LinAlgError("Eigenvalues did not converge")
+
+    monkeypatch.setattr("ffrecon.stages.run_feedforward_sharing", broken)
+    assert main([*args, "--overwrite"]) == 1
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and "internal error: LinAlgError: Eigenvalues did not converge" in err
+    assert "run again with -v" in err.lower() and _tree(out) == before
+    assert main([*args, "--overwrite", "-v"]) == 1
+    err = capsys.readouterr().err
+    assert "Traceback" in err and "broken" in err and _tree(out) == before

@@ -13,6 +13,7 @@ import argparse
 import contextlib
 import logging
 import sys
+import traceback
 import warnings
 from pathlib import Path
 
@@ -149,7 +150,32 @@ def _guarded(argv: list[str] | None, started: Clock):
         return _interrupted()  # the signal arrived inside a native library's initialisation
     except KeyboardInterrupt:
         return _interrupted()
+    except Exception as err:  # a bug in ffrecon: one line and exit 1 too, the traceback only with -v
+        return _internal_error(err, argv)
     return done if isinstance(done, int) else (args, done)
+
+
+INTERNAL_ERROR = 1  # README, "Exit codes"
+
+
+def _internal_error(err: Exception, argv: list[str] | None) -> int:
+    """Say an unexpected error in one line and its fix, the traceback only when asked (``-v``): exit 1. The output
+    folder is as the workspace leaves it on any error (``OUT`` untouched; finished stages kept for ``--resume``)."""
+    words = sys.argv[1:] if argv is None else argv
+    verbose = any(w == "--verbose" or (len(w) > 1 and w[0] == "-" and set(w[1:]) == {"v"}) for w in words)
+    if verbose:
+        traceback.print_exception(err, file=sys.stderr)
+    print(f"ffrecon: internal error: {type(err).__name__}: {err}", file=sys.stderr)
+    print(
+        "  fix: this is a bug in ffrecon, not a fault of the input; the output folder was not replaced. "
+        + (
+            "Please report it with the traceback above."
+            if verbose
+            else "Run again with -v to see where it happened, and report it with that output."
+        ),
+        file=sys.stderr,
+    )
+    return INTERNAL_ERROR
 
 
 def _interrupted() -> int:
