@@ -131,6 +131,7 @@ def main(argv: list[str] | None = None, *, started: Clock | None = None) -> int:
 def _guarded(argv: list[str] | None, started: Clock):
     """The command's exit code, or ``(args, results)`` of a run; an error or an interruption is one line said
     (and its fix) and its exit code, never a traceback."""
+    args = None
     try:
         args = _parse_with_imports(argv)
         args.started = started  # the run's report.json times its "startup" from here
@@ -151,18 +152,16 @@ def _guarded(argv: list[str] | None, started: Clock):
     except KeyboardInterrupt:
         return _interrupted()
     except Exception as err:  # a bug in ffrecon: one line and exit 1 too, the traceback only with -v
-        return _internal_error(err, argv)
+        return _internal_error(err, verbose=bool(getattr(args, "verbose", 0)))
     return done if isinstance(done, int) else (args, done)
 
 
 INTERNAL_ERROR = 1  # README, "Exit codes"
 
 
-def _internal_error(err: Exception, argv: list[str] | None) -> int:
+def _internal_error(err: Exception, *, verbose: bool) -> int:
     """Say an unexpected error in one line and its fix, the traceback only when asked (``-v``): exit 1. The output
     folder is as the workspace leaves it on any error (``OUT`` untouched; finished stages kept for ``--resume``)."""
-    words = sys.argv[1:] if argv is None else argv
-    verbose = any(w == "--verbose" or (len(w) > 1 and w[0] == "-" and set(w[1:]) == {"v"}) for w in words)
     if verbose:
         traceback.print_exception(err, file=sys.stderr)
     print(f"ffrecon: internal error: {type(err).__name__}: {err}", file=sys.stderr)

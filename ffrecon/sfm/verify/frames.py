@@ -213,19 +213,20 @@ def _photometric(per_image, ff_cam_from_world, refine: RefineResult, photos, dep
         disputed = np.isfinite(e.correction_deg) and e.correction_deg > limit
         # the pairs and the photos agreeing on where it turned (room seed 236, plain walls: a frame 26 deg off, one
         # 37-match pair 26.5 deg from it, nothing covering it near its camera, its photo fitting 0.83 turned 33 deg)
-        turned = disputed and not _lookalike(refine) and check.turned_like(e.name, e.correction_deg)
-        if check.contradicts(e.name) or (disputed and check.poor(e.name)) or turned:
+        said = (
+            check.describe(e.name)
+            if check.contradicts(e.name)
+            else check.describe_poor(e.name)
+            if disputed and check.poor(e.name)
+            else check.describe_turned(e.name, e.correction_deg)
+            if disputed and not _lookalike(refine) and check.turned_like(e.name, e.correction_deg)
+            else None
+        )
+        if said is not None:
             unmatched = e.why.removesuffix("the model's camera is kept").removesuffix(
                 "its refined pose is kept, unconfirmed"
             )
             unmatched = unmatched.rstrip(":; ")
-            said = (
-                check.describe(e.name)
-                if check.contradicts(e.name)
-                else check.describe_poor(e.name)
-                if check.poor(e.name) and disputed
-                else check.describe_turned(e.name, e.correction_deg)
-            )
             why = f"{unmatched}; but {said}: left out"
             out[k] = CameraEvidence(e.name, CameraStatus.PHOTO_MISFIT, why)
         elif np.isfinite(score := check.scores[e.name].score):

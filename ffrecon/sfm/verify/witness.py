@@ -68,8 +68,9 @@ def _distrusted(
             f"COLMAP's model failed its gates ({_failed(witness)}) on look-alike surfaces, where its matches are the "
             "suspect ones: it is not a witness"
         )
-    stronger = _stronger_refinement(refine, colmap, ff_cam_from_world, options) if healthy and not lookalike else ""
-    if healthy and not lookalike and not stronger:
+    witness_by_health = healthy and not lookalike  # a witness unless the refinement is clearly stronger
+    stronger = _stronger_refinement(refine, colmap, ff_cam_from_world, options) if witness_by_health else ""
+    if witness_by_health and not stronger:
         return ""
     common = refine.registered & colmap.registered
     if common.sum() < options.min_common_images:
@@ -86,7 +87,7 @@ def _distrusted(
     share = len(comp.disagreements) / int(common.sum())
     if share <= options.unsuited_share:
         return ""
-    if healthy and not lookalike:
+    if witness_by_health:
         return (
             f"COLMAP's model disagrees with the refined cameras on {share:.0%} of the {int(common.sum())} frames both "
             f"hold, and is the weaker evidence: {stronger}; it is not a witness"
@@ -111,8 +112,10 @@ def _stronger_refinement(refine: RefineResult, colmap: ColmapResult, ff_cam_from
     frame COLMAP holds, on ``STRONGER_POINTS`` times its 3D points, and its cameras stay within the correction limit
     of the model's on most frames (the model suits the photos by the refinement's own matches; a model wrong on most
     frames is moved far from, or fails to refine)."""
-    points = len(getattr(refine, "points_xyz", ()))
-    if ff_cam_from_world is None or points < STRONGER_POINTS * max(colmap.num_points, 1):
+    if ff_cam_from_world is None:
+        return ""
+    points = len(refine.points_xyz)
+    if points < STRONGER_POINTS * max(colmap.num_points, 1):
         return ""
     held = refine.registered
     if (colmap.registered & ~held).any() or held.sum() < options.min_common_images:
