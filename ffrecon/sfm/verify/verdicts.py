@@ -34,6 +34,9 @@ class CameraStatus(enum.Enum):
     PHOTO_MISFIT = "contradicted by the photos"  # the confirmed frames, seen from its camera, do not look like it
     PART = "refined in a part placed by the model"  # its part shares no point with the rest: placed by the model
     LOOSE = "refined, loosely held"  # its matches let it turn against the other frames at almost no cost
+    # look-alike surfaces: SIFT left it short and dense tracks moved it a few degrees beyond the model's noise;
+    # left out unless the photos fit it there (then GUIDED)
+    DENSE_MOVED = "moved by look-alike dense tracks"
 
     @property
     def verdict(self) -> FrameVerdict:
@@ -51,7 +54,8 @@ class CameraStatus(enum.Enum):
     @property
     def kept(self) -> bool:
         """Whether the frame is among the final cameras (the splat's, ``sparse/0``, ``transforms.json``)."""
-        return self not in (CameraStatus.DISAGREES, CameraStatus.CONTRADICTED, CameraStatus.PHOTO_MISFIT)
+        left_out = (CameraStatus.DISAGREES, CameraStatus.CONTRADICTED, CameraStatus.PHOTO_MISFIT, CameraStatus.DENSE_MOVED)
+        return self not in left_out
 
 
 @dataclass(frozen=True, kw_only=True)
