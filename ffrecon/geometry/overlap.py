@@ -9,6 +9,7 @@ refinement cheaper than exhaustive matching.
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -256,3 +257,32 @@ def overlap_graph(prediction: Prediction, options: OverlapOptions = OverlapOptio
     n = len(prediction)
     logger.info("feed-forward overlap: %d of %d image pairs to match", len(pairs), n * (n - 1) // 2)
     return OverlapGraph(overlap, pairs, options)
+
+
+def view_agreement(
+    prediction: Prediction, frames: Sequence[int], options: OverlapOptions = OverlapOptions()
+) -> np.ndarray:
+    """``[len(frames), 2]``: for each frame i of ``frames``, summed over every other frame j, the share of i's
+    confident depth points that land inside j's image in front of it, and the share that also agree with j's own
+    depth (within ``options.max_depth_ratio``: the overlap of i in j). How well the model's depth of a frame,
+    placed with its camera, agrees with the other frames' depth where they look at the same space: a camera
+    turned far from the truth puts its points where the other frames see something else."""
+    rng = np.random.default_rng(options.seed)
+    out = np.zeros((len(frames), 2))
+    for row, i in enumerate(frames):
+        points, _ = _sample_points(prediction, i, options, rng)
+        if len(points) == 0:
+            continue
+        for j in range(len(prediction)):
+            if j == i:
+                continue
+            cam = prediction.depth_camera(j)
+            h, w = prediction.depth[j].shape
+            uv, z = project_points(points, cam.K, prediction.cam_from_world[j])
+            inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+            col = np.clip(uv[inside, 0].astype(int), 0, w - 1)
+            line = np.clip(uv[inside, 1].astype(int), 0, h - 1)
+            z_j = prediction.depth[j][line, col].astype(np.float64)
+            agree = (z_j > 0) & (np.abs(z[inside] / np.maximum(z_j, 1e-12) - 1.0) <= options.max_depth_ratio)
+            out[row] += (inside.sum() / len(points), agree.sum() / len(points))
+    return out

@@ -39,7 +39,7 @@ import numpy as np
 from ffrecon.sfm.crosscheck.gate_types import GatesResult, GateStatus, GateVerdict
 from ffrecon.sfm.crosscheck.run import ColmapResult
 from ffrecon.sfm.refine.options import RefineResult
-from ffrecon.sfm.verify.frames import _dense_misfits, _per_image, _period_off, _photometric
+from ffrecon.sfm.verify.frames import _dense_misfits, _depth_misfits, _per_image, _period_off, _photometric
 from ffrecon.sfm.verify.verdicts import CameraStatus, EvidenceOptions, EvidenceResult, FrameVerdict
 from ffrecon.sfm.verify.witness import _distrusted, _healthy, _unsuited
 from ffrecon.types import Prediction, Skipped
@@ -91,8 +91,10 @@ def judge_final_cameras(
     per_image, comparison = _per_image(names, ff_cam_from_world, refine, colmap, options, healthy)
     per_image = _dense_misfits(per_image, refine, options)
     per_image, set_aside, moved_share = _period_off(per_image, refine, options)
+    limit = options.max_correction_deg
+    if depth is not None and not set_aside:
+        per_image = _depth_misfits(per_image, depth, options, limit)
     if photos is not None and depth is not None:
-        limit = options.max_correction_deg
         per_image = _photometric(per_image, ff_cam_from_world, refine, photos, depth, options.photometric, limit)
     verdicts = _verdicts(len(names), refine, colmap, per_image, comparison is not None, options, healthy)
     if colmap is None:

@@ -130,7 +130,9 @@ class PhotometricScore:
             return False
         if left <= near_left / options.gain:
             return True
-        return bool(left <= good and self.best - self.near >= options.min_margin and left <= near_left / options.weak_gain)
+        return bool(
+            left <= good and self.best - self.near >= options.min_margin and left <= near_left / options.weak_gain
+        )
 
 
 @dataclass(frozen=True)
