@@ -274,12 +274,16 @@ def _depth_misfits(per_image, depth: Prediction, options: EvidenceOptions, limit
     ]
     if not judged or depth.depth is None or len(per_image) < 3:
         return per_image
+    # the median frame from an even sample of at most 16 (the cost grows with the frames judged, not N^2)
     sample = np.unique(np.linspace(0, len(per_image) - 1, min(len(per_image), 16)).astype(int)).tolist()
-    agreement = view_agreement(depth, sorted(set(judged) | set(sample)))
-    order = sorted(set(judged) | set(sample))
-    share = {k: a[1] / a[0] if a[0] > 0 else np.nan for k, a in zip(order, agreement)}
-    seen = {k: a[0] for k, a in zip(order, agreement)}
-    typical = float(np.nanmedian([share[k] for k in sample])) if np.isfinite([share[k] for k in sample]).any() else 0
+    frames = sorted(set(judged) | set(sample))
+    seen, agreeing = view_agreement(depth, frames).T
+    share = dict(zip(frames, np.divide(agreeing, seen, out=np.full(len(frames), np.nan), where=seen > 0)))
+    seen = dict(zip(frames, seen))
+    typical = [share[k] for k in sample if np.isfinite(share[k])]
+    if not typical:
+        return per_image
+    typical = float(np.median(typical))
     out = list(per_image)
     for k in judged:
         if seen[k] < options.min_view_share or not share[k] <= options.depth_misfit_ratio * typical:
