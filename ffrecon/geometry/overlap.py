@@ -260,22 +260,24 @@ def overlap_graph(prediction: Prediction, options: OverlapOptions = OverlapOptio
 
 
 def view_agreement(
-    prediction: Prediction, frames: Sequence[int], options: OverlapOptions = OverlapOptions()
+    prediction: Prediction, frames: Sequence[int], options: OverlapOptions = OverlapOptions(), partners: int = 32
 ) -> np.ndarray:
-    """``[len(frames), 2]``: for each frame i of ``frames``, summed over every other frame j, the share of i's
+    """``[len(frames), 2]``: for each frame i of ``frames``, summed over the ``partners`` other frames whose model
+    centres are nearest its own (a bound on the cost of long captures), the share of i's
     confident depth points that land inside j's image in front of it, and the share that also agree with j's own
     depth (within ``options.max_depth_ratio``: the overlap of i in j). How well the model's depth of a frame,
     placed with its camera, agrees with the other frames' depth where they look at the same space: a camera
     turned far from the truth puts its points where the other frames see something else."""
     rng = np.random.default_rng(options.seed)
     out = np.zeros((len(frames), 2))
+    pose = prediction.cam_from_world
+    centres = np.einsum("nij,ni->nj", pose[:, :, :3], -pose[:, :, 3])
     for row, i in enumerate(frames):
         points, _ = _sample_points(prediction, i, options, rng)
         if len(points) == 0:
             continue
-        for j in range(len(prediction)):
-            if j == i:
-                continue
+        order = np.argsort(np.linalg.norm(centres - centres[i], axis=1), kind="stable")
+        for j in [int(j) for j in order if j != i][:partners]:
             cam = prediction.depth_camera(j)
             h, w = prediction.depth[j].shape
             uv, z = project_points(points, cam.K, prediction.cam_from_world[j])
