@@ -91,3 +91,38 @@ def test_a_healthy_colmap_model_weaker_than_the_refinement_is_no_witness_where_i
     assert _distrusted(refine, colmap, GatesResult((), False), EvidenceOptions(), far) == ""
     refine.registered = np.array([True] * 7 + [False])  # COLMAP holds a frame the refinement does not
     assert _distrusted(refine, colmap, GatesResult((), False), EvidenceOptions(), model) == ""
+
+
+def test_a_failed_colmap_model_weaker_than_the_refinement_is_no_witness_where_it_disagrees_at_all():
+    """Held-out object seed 252 (photos, 65-deg lens): COLMAP registered 4 of 8 frames on 165 points (failing its
+    registration gate), 2.4-9.9 deg off the truth, and contradicted one of the 8 frames the refinement held within
+    0.21 deg on far more points: 3 of 4 agreeing, under the 80 % bar, every default run ended with exit 5."""
+    refine, colmap = _runs([0.5, 10.0, 0, 0, 0, 0, -0.5, 0.3])
+    refine.guidance.lookalike = False
+    colmap.registered = np.array([True, True, False, False, False, False, True, True])
+    colmap.num_registered, colmap.num_points = 4, 165
+    refine.points_xyz = np.zeros((1900, 3))
+    model = _cameras([2.0, -1.5, 2.5, 1.5, 0.5, 2.0, -2.0, 1.5])
+    failed = GatesResult((GateVerdict("registration", GateStatus.FAIL, 0.5, 0.85, "4 of 8"),), False)
+    why = _distrusted(refine, colmap, failed, EvidenceOptions(), model)
+    assert "failed its gates (registration)" in why and "the weaker evidence" in why and "1 of the 4" in why
+    refine.points_xyz = np.zeros((300, 3))  # not 3 times COLMAP's points: still a witness of the frames it holds
+    assert _distrusted(refine, colmap, failed, EvidenceOptions(), model) == ""
+
+
+def test_a_failed_colmap_models_disagreement_is_reported_but_does_not_stop_the_run():
+    """Where it stays a witness (the refinement not clearly stronger), a model that failed its gates leaves out the
+    frames it disagrees on, one by one, and its agreement verdict fails without blocking (held-out room seed 231: 3
+    of 8 frames registered, 2 agreeing, every default run ended with exit 5); a healthy model's still blocks."""
+    from ffrecon.sfm.verify.evidence import _verdicts
+    from ffrecon.sfm.verify.verdicts import CameraEvidence, CameraStatus
+
+    per_image = [CameraEvidence(n, CameraStatus.CONFIRMED, "COLMAP's rotation agrees") for n in NAMES[:3]]
+    per_image[1] = CameraEvidence(NAMES[1], CameraStatus.DISAGREES, "rotation off by 12.0 deg (> 5)")
+    per_image += [CameraEvidence(n, CameraStatus.REFINED, "bundle-adjusted") for n in NAMES[3:]]
+    refine = SimpleNamespace(registered=np.ones(8, bool), mean_reprojection_error_px=0.3, reconstruction=None)
+    colmap = SimpleNamespace(registered=np.array([True] * 3 + [False] * 5))
+    for healthy in (False, True):
+        verdicts = _verdicts(8, refine, colmap, per_image, True, EvidenceOptions(), healthy)
+        agreement = next(v for v in verdicts if v.name == "colmap_agreement")
+        assert agreement.failed and agreement.blocking is healthy, agreement

@@ -31,6 +31,7 @@ unsuited: the run goes on from COLMAP's cameras instead of failing.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections.abc import Callable, Sequence
 
@@ -159,17 +160,19 @@ def _verdicts(
     if compared:
         both = int((refine.registered & colmap.registered).sum())
         agree = both - sum(e.status is CameraStatus.DISAGREES for e in per_image)
-        verdicts.append(
-            _verdict(
-                "colmap_agreement",
-                agree >= options.min_colmap_agreement * both,
-                agree / max(both, 1),
-                options.min_colmap_agreement,
-                f"the refined cameras agree with COLMAP on {agree} of the {both} images both registered"
-                + ("" if healthy else " (rotations only: COLMAP's model failed its gates)"),
-                "the model and COLMAP place the cameras differently: look at the per-image table and the camera plot",
-            )
+        agreement = _verdict(
+            "colmap_agreement",
+            agree >= options.min_colmap_agreement * both,
+            agree / max(both, 1),
+            options.min_colmap_agreement,
+            f"the refined cameras agree with COLMAP on {agree} of the {both} images both registered"
+            + ("" if healthy else " (rotations only: COLMAP's model failed its gates, so this does not block)"),
+            "the model and COLMAP place the cameras differently: look at the per-image table and the camera plot",
         )
+        # A model that failed its own gates is a weak witness: the frames it disagrees on are left out, one by one,
+        # but it does not stop the run (on held-out room seed 231 COLMAP registered 3 of 8 frames, agreed on 2, and
+        # every default run ended with exit 5)
+        verdicts.append(agreement if healthy else dataclasses.replace(agreement, blocking=False))
     return verdicts
 
 
