@@ -130,8 +130,8 @@ def test_a_failed_colmap_models_disagreement_is_reported_but_does_not_stop_the_r
 
 def test_a_healthy_colmap_model_weaker_than_the_refinement_is_no_witness_where_it_disagrees_on_a_few():
     """Held-out street seed 261 (repeated tile, drift): COLMAP passed its gates with 7 of 8 frames on 108 points,
-    1.3-4.5 deg off, against 8 refined on 9,923 points within 1.3 deg; it disagreed on 3 of 7 (under "most"; here 1) and the
-    run ended with exit 5. A model as strong as the refinement stays a witness of those frames."""
+    1.3-4.5 deg off, against 8 refined on 9,923 points within 1.3 deg; it disagreed on 3 of 7 (under "most"; here
+    1) and the run ended with exit 5. A model as strong as the refinement stays a witness of those frames."""
     refine, colmap = _runs([0, 0, 0, 0, 8, 7, 6, 0])
     refine.guidance.lookalike = True
     colmap.registered = np.array([True, True, False, True, True, True, True, True])
