@@ -201,9 +201,11 @@ def _guide(
     verified: list[tuple[str, str]],
     options: RefineOptions,
     pairs_path: Path,
+    unscreened: Prediction | None = None,
 ) -> GuidanceStats | None:
     """Check the ``verified`` matches against the prediction, or match ``pairs`` again guided by it, as
-    ``options.guidance.mode`` says."""
+    ``options.guidance.mode`` says. Matching again on look-alike surfaces, it is guided by ``unscreened`` (the
+    model's cameras, before any frame was reseeded from its pairs) where given."""
     mode = options.guidance.mode
     if mode is MatchGuidance.NONE:
         return None
@@ -217,6 +219,8 @@ def _guide(
             "texture?); matching again, guided by the feed-forward geometry",
             100 * stats.rejected_share,
         )
+    if mode is not MatchGuidance.GUIDED and unscreened is not None:
+        prediction = unscreened
     stats = guided_matches(db_path, prediction, pairs, options.guidance)
     verify_pairs(db_path, write_pairs(pairs_path, pairs), options.sift)
     dropped = drop_contradicting_pairs(db_path, prediction, options.guidance.max_pair_gap_deg, options.screen)
