@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from ffrecon.geometry.overlap import view_agreement
-from ffrecon.sfm.verify.frames import _depth_misfits
+from ffrecon.sfm.verify.frames import _depth_misfits, _depth_shares
 from ffrecon.sfm.verify.verdicts import CameraEvidence, CameraStatus, EvidenceOptions
 from ffrecon.synthetic import CameraPath, SceneOptions, Texture, make_scene
 from ffrecon.synthetic.layouts import Layout
@@ -49,7 +49,8 @@ def test_frames_25_deg_off_are_often_contradicted_by_the_models_depth_and_good_f
     for seed in range(11, 19):
         bad = [2, 5, 6, 1][seed % 4]
         scene, prediction = _object(seed, (bad,))
-        judged = _depth_misfits(_unchecked(scene.names), prediction, EvidenceOptions(), 10.0)
+        per_image = _unchecked(scene.names)
+        judged = _depth_misfits(per_image, _depth_shares(per_image, prediction, 10.0), EvidenceOptions())
         out = [k for k, e in enumerate(judged) if not e.status.kept]
         caught += [seed] if bad in out else []
         good_out += [(seed, k) for k in out if k != bad]
@@ -73,5 +74,6 @@ def test_frames_with_evidence_for_their_camera_are_not_judged():
     per_image = list(_unchecked(scene.names))
     per_image[2] = CameraEvidence(scene.names[2], CameraStatus.UNCHECKED, "2 verified pairs agree", 3.0)
     per_image[5] = CameraEvidence(scene.names[5], CameraStatus.REFINED, "bundle-adjusted", 1.0)
-    judged = _depth_misfits(tuple(per_image), prediction, EvidenceOptions(), 10.0)
+    per_image = tuple(per_image)
+    judged = _depth_misfits(per_image, _depth_shares(per_image, prediction, 10.0), EvidenceOptions())
     assert judged[2] == per_image[2] and judged[5] == per_image[5]

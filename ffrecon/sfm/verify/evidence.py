@@ -40,7 +40,16 @@ import numpy as np
 from ffrecon.sfm.crosscheck.gate_types import GatesResult, GateStatus, GateVerdict
 from ffrecon.sfm.crosscheck.run import ColmapResult
 from ffrecon.sfm.refine.options import RefineResult
-from ffrecon.sfm.verify.frames import _dense_misfits, _depth_misfits, _per_image, _period_off, _photometric
+from ffrecon.sfm.verify.frames import (
+    _dense_misfits,
+    _depth_doubted,
+    _depth_misfits,
+    _depth_shares,
+    _per_image,
+    _period_off,
+    _photometric,
+    _set_aside_misfits,
+)
 from ffrecon.sfm.verify.verdicts import CameraStatus, EvidenceOptions, EvidenceResult, FrameVerdict
 from ffrecon.sfm.verify.witness import _distrusted, _healthy, _unsuited
 from ffrecon.types import Prediction, Skipped
@@ -93,10 +102,17 @@ def judge_final_cameras(
     per_image = _dense_misfits(per_image, refine, options)
     per_image, set_aside, moved_share = _period_off(per_image, refine, options)
     limit = options.max_correction_deg
-    if depth is not None and not set_aside:
-        per_image = _depth_misfits(per_image, depth, options, limit)
+    # a refinement set aside checks no frame: every one is judged, whatever it moved there
+    shares = _depth_shares(per_image, depth, limit, every=bool(set_aside)) if depth is not None else None
+    per_image = _depth_misfits(per_image, shares, options)
+    doubted = _depth_doubted(shares, options)
     if photos is not None and depth is not None:
-        per_image = _photometric(per_image, ff_cam_from_world, refine, photos, depth, options.photometric, limit)
+        if set_aside:
+            per_image = _set_aside_misfits(per_image, ff_cam_from_world, photos, depth, options.photometric, doubted)
+        else:
+            per_image = _photometric(
+                per_image, ff_cam_from_world, refine, photos, depth, options.photometric, limit, doubted
+            )
     verdicts = _verdicts(len(names), refine, colmap, per_image, comparison is not None, options, healthy)
     if colmap is None:
         why = f"COLMAP cross-check not run: {colmap_skipped}" if colmap_skipped else "COLMAP cross-check not run"

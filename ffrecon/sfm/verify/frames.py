@@ -187,7 +187,16 @@ def _guided_why(observations: int) -> str:
 _PHOTO_REFERENCE = (CameraStatus.GUIDED, CameraStatus.PLANAR_PAIR, CameraStatus.PART, CameraStatus.LOOSE)
 
 
-def _photometric(per_image, ff_cam_from_world, refine: RefineResult, photos, depth: Prediction, options, limit):
+def _photometric(
+    per_image,
+    ff_cam_from_world,
+    refine: RefineResult,
+    photos,
+    depth: Prediction,
+    options,
+    limit,
+    doubted: frozenset[str] = frozenset(),
+):
     """``per_image`` with the unchecked frames that the photos contradict left out
     (:mod:`ffrecon.sfm.verify.photometric`).
 
@@ -196,7 +205,11 @@ def _photometric(per_image, ff_cam_from_world, refine: RefineResult, photos, dep
     are judged too: on the repeated-tile room (held-out seed 214, frame 6 25 deg off) the pair had moved it 5 deg
     and it was exported 30.8 deg off; its photo fits 0.22 near its camera, 0.93 turned 27 deg. With those frames
     as references, frame 1 of seed 213 (25 deg off, no verified match), which no other frame covered, fits 0.37
-    near its camera and 0.81 turned 29 deg."""
+    near its camera and 0.81 turned 29 deg.
+
+    A frame in ``doubted`` (its depth agrees with the others' less than most: :func:`_depth_doubted`) that also
+    fits its photo poorly (:meth:`PhotometricCheck.poor`) is left out: two weak signs agreeing (room seed 253,
+    repeated tile, ``--quick``: a frame 25 deg off, no verified match, fitting 0.19 against 0.89)."""
     held = [e.verdict is FrameVerdict.CONFIRMED or e.status in _PHOTO_REFERENCE for e in per_image]
     reference = [k for k, e in enumerate(per_image) if held[k] and refine.registered[k]]
     # A frame refined on one planar pair is unchecked too: on the repeated-tile room (held-out seed 214, frame 6
@@ -225,6 +238,8 @@ def _photometric(per_image, ff_cam_from_world, refine: RefineResult, photos, dep
             if disputed and check.poor(e.name)
             else check.describe_turned(e.name, e.correction_deg)
             if disputed and not _lookalike(refine) and check.turned_like(e.name, e.correction_deg)
+            else _doubt_text(check, e.name)
+            if e.name in doubted and check.poor(e.name)
             else None
         )
         if said is not None:
@@ -237,6 +252,31 @@ def _photometric(per_image, ff_cam_from_world, refine: RefineResult, photos, dep
         elif np.isfinite(score := check.scores[e.name].score):
             why = f"{e.why}; the photos do not contradict it ({score:.2f} against {check.reference:.2f})"
             out[k] = CameraEvidence(e.name, e.status, why, e.correction_deg)
+    return tuple(out)
+
+
+def _doubt_text(check: PhotometricCheck, name: str) -> str:
+    return check.describe_poor(name) + ", and the model's depth of it agrees with the others' less than most frames'"
+
+
+def _set_aside_misfits(per_image, ff_cam_from_world, photos, depth: Prediction, options, doubted: frozenset[str]):
+    """``per_image`` (the refinement set aside: every frame keeps the model's camera, none checked) with the frames
+    in ``doubted`` whose photo the others, at the model's cameras, fit poorly left out (as :func:`_photometric`'s
+    two weak signs). On the repeated-tile street (held-out seed 269, ``--quick``, frame 6 25 deg off) the refinement
+    sat a period off and was set aside; frame 6 fitted 0.83 against 0.99 and its depth agreed 0.49 times as often as
+    the median frame's, and it was exported unchecked."""
+    judged = [k for k, e in enumerate(per_image) if e.name in doubted]
+    if not judged:
+        return per_image
+    check = photometric_check(photos, depth, ff_cam_from_world, range(len(per_image)), judged, options, turns=False)
+    if check is None:
+        return per_image
+    out = list(per_image)
+    for k in judged:
+        e = out[k]
+        if check.poor(e.name):
+            why = f"{e.why}; but {_doubt_text(check, e.name)}: left out"
+            out[k] = CameraEvidence(e.name, CameraStatus.PHOTO_MISFIT, why, e.correction_deg)
     return tuple(out)
 
 
@@ -258,45 +298,85 @@ def _dense_moved_judged(e: CameraEvidence, check: PhotometricCheck) -> CameraEvi
     return CameraEvidence(e.name, CameraStatus.GUIDED, why, e.correction_deg)
 
 
-def _depth_misfits(per_image, depth: Prediction, options: EvidenceOptions, limit: float):
-    """``per_image`` with the frames nothing checks that the model's own depth contradicts left out
-    (:attr:`EvidenceOptions.depth_misfit_ratio`, :func:`ffrecon.geometry.overlap.view_agreement`).
+@dataclass(frozen=True)
+class DepthShares:
+    """The frames the model's depth judges (nothing else checks them) and how their depth agrees with the others':
+    ``seen[name]`` the share of its points landing in the other frames' views (summed), ``ratio[name]`` the share
+    of those agreeing with their depth over the median frame's (nan where none lands)."""
 
-    Judged: frames keeping the model's camera with no verified pair agreeing with it (none, or pairs disputing it).
-    On the repeated-tile object (held-out seeds 235-247) a frame 25 deg off had no verified match (the matches
-    guided by its camera found none) and no photometric verdict, and was exported unchecked; its depth, placed
-    with its camera, agreed with the other frames' depth on 1-9 % of the points landing in their views, the
-    median frame on 30-60 %."""
+    seen: dict[str, float]
+    ratio: dict[str, float]
+    typical: float  # the median frame's share
+
+
+def _depth_shares(per_image, depth: Prediction, limit: float, *, every: bool = False) -> DepthShares | None:
+    """:class:`DepthShares` of the frames keeping the model's camera with no verified pair agreeing with it (none,
+    or pairs disputing it); with ``every``, of each frame keeping the model's camera (the refinement set aside as a
+    whole, whatever it moved a frame). None where there is nothing to judge or no median frame."""
     judged = [
         k
         for k, e in enumerate(per_image)
-        if e.status is CameraStatus.UNCHECKED and not (np.isfinite(e.correction_deg) and e.correction_deg <= limit)
+        if e.status is CameraStatus.UNCHECKED
+        and (every or not (np.isfinite(e.correction_deg) and e.correction_deg <= limit))
     ]
     if not judged or depth.depth is None or len(per_image) < 3:
-        return per_image
+        return None
     # the median frame from an even sample of at most 16 (the cost grows with the frames judged, not N^2)
     sample = np.unique(np.linspace(0, len(per_image) - 1, min(len(per_image), 16)).astype(int)).tolist()
     frames = sorted(set(judged) | set(sample))
     seen, agreeing = view_agreement(depth, frames).T
     share = dict(zip(frames, np.divide(agreeing, seen, out=np.full(len(frames), np.nan), where=seen > 0)))
-    seen = dict(zip(frames, seen))
     typical = [share[k] for k in sample if np.isfinite(share[k])]
     if not typical:
-        return per_image
+        return None
     typical = float(np.median(typical))
+    names = [per_image[k].name for k in judged]
+    seen = dict(zip(frames, seen))
+    return DepthShares(
+        {n: float(seen[k]) for n, k in zip(names, judged)},
+        {n: float(share[k] / typical) if typical > 0 else np.nan for n, k in zip(names, judged)},
+        typical,
+    )
+
+
+def _depth_misfits(per_image, shares: DepthShares | None, options: EvidenceOptions):
+    """``per_image`` with the frames nothing checks that the model's own depth contradicts left out
+    (:attr:`EvidenceOptions.depth_misfit_ratio`, :func:`ffrecon.geometry.overlap.view_agreement`), the frames
+    judged and their shares in ``shares`` (:func:`_depth_shares`).
+
+    On the repeated-tile object (held-out seeds 235-247) a frame 25 deg off had no verified match (the matches
+    guided by its camera found none) and no photometric verdict, and was exported unchecked; its depth, placed
+    with its camera, agreed with the other frames' depth on 1-9 % of the points landing in their views, the
+    median frame on 30-60 %."""
+    if shares is None:
+        return per_image
     out = list(per_image)
-    for k in judged:
-        if seen[k] < options.min_view_share or not share[k] <= options.depth_misfit_ratio * typical:
+    for k, e in enumerate(out):
+        if e.name not in shares.ratio:
             continue
-        e = out[k]
+        ratio = shares.ratio[e.name]
+        if shares.seen[e.name] < options.min_view_share or not ratio <= options.depth_misfit_ratio:
+            continue
         unmatched = e.why.removesuffix("the model's camera is kept").rstrip(":; ")
         why = (
             f"{unmatched}; but the model's depth of it, placed with its camera, agrees with the other frames' depth "
-            f"on {share[k]:.0%} of its points in their views (the median frame: {typical:.0%}): its camera is "
-            "contradicted by the model's own geometry: left out"
+            f"on {ratio * shares.typical:.0%} of its points in their views (the median frame: {shares.typical:.0%}): "
+            "its camera is contradicted by the model's own geometry: left out"
         )
         out[k] = CameraEvidence(e.name, CameraStatus.DEPTH_MISFIT, why, e.correction_deg)
     return tuple(out)
+
+
+def _depth_doubted(shares: DepthShares | None, options: EvidenceOptions) -> frozenset[str]:
+    """The frames whose depth, placed with their camera, agrees with the others' at most
+    :attr:`EvidenceOptions.depth_doubt_ratio` times as often as the median frame's (points in their views)."""
+    if shares is None:
+        return frozenset()
+    return frozenset(
+        n
+        for n, r in shares.ratio.items()
+        if shares.seen[n] >= options.min_view_share and r <= options.depth_doubt_ratio
+    )
 
 
 def _dense_misfits(per_image, refine: RefineResult, options: EvidenceOptions):

@@ -308,8 +308,11 @@ def photometric_check(
     confirmed: Sequence[int],
     checked: Sequence[int],
     options: PhotometricOptions = PhotometricOptions(),
+    *,
+    turns: bool = True,
 ) -> PhotometricCheck | None:
-    """Score the frames ``checked`` against the ``confirmed`` ones (see the module docstring).
+    """Score the frames ``checked`` against the ``confirmed`` ones (see the module docstring); with ``turns``
+    False, at their cameras only (no search: :meth:`PhotometricCheck.poor` and :meth:`PhotometricCheck.fits`).
 
     Args:
         read: frame index -> ``[H, W, 3]`` uint8 RGB photo.
@@ -327,8 +330,8 @@ def photometric_check(
     reference = [r for r in reference if np.isfinite(r)]
     if len(reference) < options.min_reference:
         return None
-    turns = _turns(options)
-    scores = {prediction.names[k]: _best(small, cam_from_world, k, near(k), turns) for k in checked}
+    searched = _turns(options) if turns else None
+    scores = {prediction.names[k]: _best(small, cam_from_world, k, near(k), searched) for k in checked}
     return PhotometricCheck(float(np.median(reference)), scores, options)
 
 
