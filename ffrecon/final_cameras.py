@@ -79,8 +79,17 @@ def select_final_cameras(
         return _refined_final_cameras(names, colmap, refine, evidence)
     if not unsuited and isinstance(ff, FeedForwardResult):
         pred = ff.prediction
-        cams = tuple(pred.cameras)
-        return FinalCameras(every, names, pred.cam_from_world, cams, CameraSource.FEEDFORWARD, unconfirmed=every)
+        # the frames the evidence left out stay out here too (a refinement set aside as a whole still judges each
+        # frame at the model's camera: held-out street seed 269, frame 6 25 deg off, was exported though contradicted)
+        per_image = evidence.per_image if isinstance(evidence, EvidenceResult) else ()
+        kept = tuple(k for k in every if not per_image or per_image[k].status.kept)
+        if len(kept) < len(every):
+            log.info("frames left out, contradicted by the evidence: %s", [names[k] for k in every if k not in kept])
+        cams = tuple(pred.cameras[k] for k in kept)
+        poses = pred.cam_from_world[list(kept)]
+        unconfirmed = tuple(range(len(kept)))
+        kept_names = tuple(names[k] for k in kept)
+        return FinalCameras(kept, kept_names, poses, cams, CameraSource.FEEDFORWARD, unconfirmed=unconfirmed)
     if isinstance(colmap, ColmapResult) and colmap.num_registered >= 2:
         kept = tuple(int(i) for i in np.flatnonzero(colmap.registered))
         kept_names = tuple(names[i] for i in kept)
