@@ -1,11 +1,11 @@
 """An unchecked frame whose dense tracks from the model's prediction found almost nothing, where the other frames
-tracked found theirs, is left out (:func:`ffrecon.sfm.verify.frames._dense_misfits`, issue 39); a frame the dense
+tracked found theirs, is left out (:func:`ffrecon.sfm.verify.unmatched._dense_misfits`, issue 39); a frame the dense
 tracking barely tried, or a capture where no frame's tracks held, is not judged by it."""
 
 from types import SimpleNamespace
 
 from ffrecon.sfm.refine.dense import DenseStats
-from ffrecon.sfm.verify.frames import _dense_misfits
+from ffrecon.sfm.verify.unmatched import _dense_misfits
 from ffrecon.sfm.verify.verdicts import CameraEvidence, CameraStatus, EvidenceOptions
 
 NAMES = [f"frame_{k:03d}.png" for k in range(5)]

@@ -24,8 +24,8 @@ from ffrecon.sfm.refine.guided import MatchGuidance
 from ffrecon.sfm.refine.options import RefineInputs, RefineOptions
 from ffrecon.sfm.refine.run import run_refine
 from ffrecon.sfm.verify.evidence import judge_final_cameras
-from ffrecon.sfm.verify.frames import _photometric
 from ffrecon.sfm.verify.photometric import PhotometricOptions, photometric_check
+from ffrecon.sfm.verify.unmatched import _photometric
 from ffrecon.sfm.verify.verdicts import CameraEvidence, CameraStatus, FrameVerdict
 from ffrecon.synthetic import CameraPath, SceneOptions, Texture, make_scene, write_scene
 from ffrecon.synthetic.layouts import Layout

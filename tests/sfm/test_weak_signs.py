@@ -1,5 +1,5 @@
-"""Two weak signs agreeing contradict a frame nothing else checks (issue 39; ``sfm.verify.frames._set_aside_misfits``,
-``_depth_doubted``, the ``doubted`` clause of ``_photometric``).
+"""Two weak signs agreeing contradict a frame nothing else checks (issue 39; in ``sfm.verify.unmatched``:
+``_set_aside_misfits``, ``_depth_doubted``, the ``doubted`` clause of ``_photometric``).
 
 Neither a poor photometric fit (a good frame the neighbours cover in part fits poorly) nor depth agreeing less than
 most frames' (good frames down to 0.44 of the median) is enough alone; both together are. These scenes are the sweep's
@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ffrecon.sfm.verify.frames import _depth_doubted, _depth_shares, _set_aside_misfits
 from ffrecon.sfm.verify.photometric import PhotometricOptions
+from ffrecon.sfm.verify.unmatched import _depth_doubted, _depth_shares, _set_aside_misfits
 from ffrecon.sfm.verify.verdicts import CameraEvidence, CameraStatus, EvidenceOptions
 from ffrecon.synthetic import CameraPath, SceneOptions, Texture, make_scene
 from ffrecon.synthetic.layouts import Layout

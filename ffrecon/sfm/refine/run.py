@@ -36,6 +36,7 @@ from ffrecon.sfm.features import (
 )
 from ffrecon.sfm.refine.adjust import _adjust_with_dense
 from ffrecon.sfm.refine.components import lost_frames, parts, place_parts
+from ffrecon.sfm.refine.guided import GuidanceStats
 from ffrecon.sfm.refine.matching import (
     _check_inputs,
     _guide,
@@ -48,7 +49,7 @@ from ffrecon.sfm.refine.matching import (
 from ffrecon.sfm.refine.options import RefineInputs, RefineOptions, RefineResult, RefineStatus
 from ffrecon.sfm.refine.passes import sim3_to_ff_frame
 from ffrecon.sfm.refine.rigidity import rotation_spread_deg
-from ffrecon.sfm.refine.screen import reseeded
+from ffrecon.sfm.refine.screen import Suspect, reseeded
 from ffrecon.timing import StageTimer
 from ffrecon.types import Prediction, RunMode, Skipped
 
@@ -107,18 +108,7 @@ def run_refine(inputs: RefineInputs, prediction: Prediction, options: RefineOpti
         start = reseeded(prediction, screened)
     with timer.stage("matching"):
         guidance = _guide(db_path, start, pairs, verified, options, work / "pairs.txt", unscreened=prediction)
-    if screened and guidance is not None and guidance.lookalike:
-        # The screen's pairs are SIFT's, unfiltered, and on look-alike surfaces two of them agreeing on a pattern's
-        # period off is no evidence against the model: on the repeated-tile object (held-out seed 264, 50-90 deg
-        # apart) two of frame 3's seven pairs put it 86 deg from the model's rotation (1.1 deg from the truth, the
-        # others within 3), the adjustment started there, and the frame was left out in every run. The matches are
-        # guided by the model's cameras instead, and the screened frames start from them.
-        logger.warning(
-            "look-alike surfaces: the verified pairs that put %s far from the model's rotation are not trusted; "
-            "starting from the model's cameras",
-            ", ".join(names[s.index] for s in screened),
-        )
-        screened, start = (), prediction
+    screened, start = _screen_undone_on_lookalikes(screened, start, prediction, guidance)
     options = _on_lookalikes(options, guidance)
     stats = feature_stats(db_path, names)
     flagged, rec, summary, dense, relocalized, stats = _adjust_with_dense(
@@ -154,6 +144,26 @@ def run_refine(inputs: RefineInputs, prediction: Prediction, options: RefineOpti
     result = _refined_result(rec, prediction, ff_from_refined, model_dir, timings=timer.freeze(), **provenance)
     _log_refined(result)
     return result
+
+
+def _screen_undone_on_lookalikes(
+    screened: tuple[Suspect, ...], start: Prediction, prediction: Prediction, guidance: GuidanceStats | None
+) -> tuple[tuple[Suspect, ...], Prediction]:
+    """``(screened, start)``, or no suspect and the model's cameras on look-alike surfaces.
+
+    The screen's pairs are SIFT's, unfiltered, and on look-alike surfaces two of them agreeing on a pattern's period
+    off is no evidence against the model: on the repeated-tile object (held-out seed 264, 50-90 deg apart) two of
+    frame 3's seven pairs put it 86 deg from the model's rotation (1.1 deg from the truth, the others within 3), the
+    adjustment started there, and the frame was left out in every run. The matches are then guided by the model's
+    cameras (:func:`ffrecon.sfm.refine.matching._guide`'s ``unscreened``), and the screened frames start from them."""
+    if not (screened and guidance is not None and guidance.lookalike):
+        return screened, start
+    logger.warning(
+        "look-alike surfaces: the verified pairs that put %s far from the model's rotation are not trusted; starting "
+        "from the model's cameras",
+        ", ".join(prediction.names[s.index] for s in screened),
+    )
+    return (), prediction
 
 
 def _shape(rec: pycolmap.Reconstruction, names: tuple[str, ...], several: bool, timer: StageTimer) -> dict:

@@ -40,13 +40,12 @@ import numpy as np
 from ffrecon.sfm.crosscheck.gate_types import GatesResult, GateStatus, GateVerdict
 from ffrecon.sfm.crosscheck.run import ColmapResult
 from ffrecon.sfm.refine.options import RefineResult
-from ffrecon.sfm.verify.frames import (
+from ffrecon.sfm.verify.frames import _per_image, _period_off
+from ffrecon.sfm.verify.unmatched import (
     _dense_misfits,
     _depth_doubted,
     _depth_misfits,
     _depth_shares,
-    _per_image,
-    _period_off,
     _photometric,
     _set_aside_misfits,
 )
