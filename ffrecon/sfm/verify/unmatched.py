@@ -143,6 +143,11 @@ class DepthShares:
     ratio: dict[str, float]
     typical: float  # the median frame's share
 
+    def below(self, ratio: float, min_seen: float) -> frozenset[str]:
+        """The frames whose points land in the others' views (``min_seen`` at least) and agree with their depth at
+        most ``ratio`` times as often as the median frame's."""
+        return frozenset(n for n, r in self.ratio.items() if self.seen[n] >= min_seen and r <= ratio)
+
 
 def _depth_shares(per_image, depth: Prediction, limit: float, *, every: bool = False) -> DepthShares | None:
     """:class:`DepthShares` of the frames keeping the model's camera with no verified pair agreeing with it (none,
@@ -185,13 +190,12 @@ def _depth_misfits(per_image, shares: DepthShares | None, options: EvidenceOptio
     median frame on 30-60 %."""
     if shares is None:
         return per_image
+    misfits = shares.below(options.depth_misfit_ratio, options.min_view_share)
     out = list(per_image)
     for k, e in enumerate(out):
-        if e.name not in shares.ratio:
+        if e.name not in misfits:
             continue
         ratio = shares.ratio[e.name]
-        if shares.seen[e.name] < options.min_view_share or not ratio <= options.depth_misfit_ratio:
-            continue
         unmatched = e.why.removesuffix("the model's camera is kept").rstrip(":; ")
         why = (
             f"{unmatched}; but the model's depth of it, placed with its camera, agrees with the other frames' depth "
@@ -205,13 +209,7 @@ def _depth_misfits(per_image, shares: DepthShares | None, options: EvidenceOptio
 def _depth_doubted(shares: DepthShares | None, options: EvidenceOptions) -> frozenset[str]:
     """The frames whose depth, placed with their camera, agrees with the others' at most
     :attr:`EvidenceOptions.depth_doubt_ratio` times as often as the median frame's (points in their views)."""
-    if shares is None:
-        return frozenset()
-    return frozenset(
-        n
-        for n, r in shares.ratio.items()
-        if shares.seen[n] >= options.min_view_share and r <= options.depth_doubt_ratio
-    )
+    return frozenset() if shares is None else shares.below(options.depth_doubt_ratio, options.min_view_share)
 
 
 def _dense_misfits(per_image, refine: RefineResult, options: EvidenceOptions):
