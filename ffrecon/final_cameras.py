@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from ffrecon.colmap_io import add_posed_images, is_model_dir, write_reconstruction
+from ffrecon.colmap_io import add_posed_images, is_model_dir, pose_from_rigid, rigid_from_pose, write_reconstruction
 from ffrecon.errors import NonFiniteError
 from ffrecon.geometry.alignment import umeyama
 from ffrecon.geometry.poses import camera_centers
@@ -76,7 +76,8 @@ def select_final_cameras(
     unsuited = isinstance(evidence, EvidenceResult) and evidence.model_unsuited
     set_aside = isinstance(evidence, EvidenceResult) and bool(evidence.refinement_set_aside)
     if not (unsuited or set_aside) and isinstance(refine, RefineResult) and refine.registered.sum() >= 2:
-        return _refined_final_cameras(names, colmap, refine, evidence)
+        model = ff.prediction.cam_from_world if isinstance(ff, FeedForwardResult) else None
+        return _refined_final_cameras(names, colmap, refine, evidence, model)
     if not unsuited and isinstance(ff, FeedForwardResult):
         pred = ff.prediction
         # the frames the evidence left out stay out here too (a refinement set aside as a whole still judges each
@@ -101,10 +102,16 @@ def select_final_cameras(
 
 
 def _refined_final_cameras(
-    names: tuple[str, ...], colmap: ColmapResult | Skipped, refine: RefineResult, evidence: EvidenceResult | Skipped
+    names: tuple[str, ...],
+    colmap: ColmapResult | Skipped,
+    refine: RefineResult,
+    evidence: EvidenceResult | Skipped,
+    model: np.ndarray | None = None,
 ) -> FinalCameras:
     """The refined cameras; frames the refinement left out but COLMAP registered (evidence: COLMAP only)
-    take COLMAP's pose, moved into the refined frame by a Sim(3) fit over the frames both hold, and its lens."""
+    take COLMAP's pose, moved into the refined frame by a Sim(3) fit over the frames both hold, and its lens.
+    Frames the evidence kept at the model's camera (:attr:`CameraStatus.MODEL_FITS`) take ``model``'s pose
+    (``[N, 3, 4]``, the model's cameras: the refined ones are in its world)."""
     poses, cameras = refine.cam_from_world.copy(), list(refine.cameras)
     distortion = list(refine.distortion or [NO_DISTORTION] * len(poses))
     per_image = evidence.per_image if isinstance(evidence, EvidenceResult) else ()
@@ -125,6 +132,8 @@ def _refined_final_cameras(
             cameras[k] = colmap.cameras[k]
             distortion[k] = lens
         log.info("%d frames not refined take COLMAP's poses: %s", len(colmap_only), [names[k] for k in colmap_only])
+    at_model = [k for k, e in enumerate(per_image) if e.status is CameraStatus.MODEL_FITS and model is not None]
+    poses[at_model] = model[at_model] if at_model else poses[at_model]
     kept = [k for k in range(len(poses)) if not per_image or per_image[k].status.kept]
     if len(kept) < len(poses):
         left_out = [names[k] for k in range(len(poses)) if k not in kept]
@@ -181,6 +190,7 @@ def write_final_model(final: FinalCameras | None, folder: Path | None, work: Pat
         return None
     rec = pycolmap.Reconstruction(str(folder))
     dropped = _drop_frames_not_final(rec, set(final.names))
+    moved = _repose_frames(rec, final)
     added = add_posed_images(rec, final.names, final.cam_from_world, final.cameras, final.distortion)
     for target in targets:
         write_reconstruction(rec, target)
@@ -190,8 +200,28 @@ def write_final_model(final: FinalCameras | None, folder: Path | None, work: Pat
         folder,
         f", plus {len(added)} frame(s) it lacks, posed without points: {', '.join(added)}" if added else "",
         f", without {len(dropped)} frame(s) the evidence left out: {', '.join(dropped)}" if dropped else "",
+        f", {len(moved)} frame(s) at the model's camera, without points: {', '.join(moved)}" if moved else "",
     )
     return targets[0]
+
+
+def _repose_frames(rec: pycolmap.Reconstruction, final: FinalCameras, tol: float = 1e-6) -> list[str]:
+    """Give each frame ``rec`` holds at another pose than its final camera (one the evidence kept at the model's
+    camera, :attr:`CameraStatus.MODEL_FITS`) the final pose, without observations: its points were triangulated
+    with the pose set aside. Returns their names."""
+    moved = []
+    for name, pose in zip(final.names, final.cam_from_world):
+        image = rec.find_image_with_name(name)
+        if image is None or not image.has_pose:
+            continue
+        if np.abs(pose_from_rigid(image.cam_from_world()) - pose).max() <= tol:
+            continue
+        frame_id = image.frame_id
+        rec.deregister_frame(frame_id)
+        rec.frame(frame_id).rig_from_world = rigid_from_pose(pose)
+        rec.register_frame(frame_id)
+        moved.append(name)
+    return moved
 
 
 def _drop_frames_not_final(rec: pycolmap.Reconstruction, final: set[str]) -> list[str]:

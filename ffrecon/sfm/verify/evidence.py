@@ -46,6 +46,7 @@ from ffrecon.sfm.verify.unmatched import (
     _depth_doubted,
     _depth_misfits,
     _depth_shares,
+    _model_camera_kept,
     _photometric,
     _set_aside_misfits,
 )
@@ -111,6 +112,10 @@ def judge_final_cameras(
         else:
             per_image = _photometric(
                 per_image, ff_cam_from_world, refine, photos, depth, options.photometric, limit, doubted
+            )
+            misfits = shares.below(options.depth_misfit_ratio, options.min_view_share) if shares else frozenset()
+            per_image = _model_camera_kept(
+                per_image, ff_cam_from_world, refine, photos, depth, options.photometric, misfits
             )
     verdicts = _verdicts(len(names), refine, colmap, per_image, comparison is not None, options, healthy)
     if colmap is None:

@@ -191,7 +191,9 @@ def _relocalized_not_kept(names, refine: RefineResult, flagged: dict, out: list,
                 f"{r.change_deg:.1f} deg from the model (> {limit:g}, {r.num_inliers} inliers), but the adjustment "
                 "did not keep it there: left out"
             )
-            out[r.index] = CameraEvidence(names[r.index], CameraStatus.CONTRADICTED, why, r.change_deg)
+            out[r.index] = CameraEvidence(
+                names[r.index], CameraStatus.CONTRADICTED, why, r.change_deg, matches_only=True
+            )
 
 
 def _dense_on_lookalikes(refine: RefineResult, name: str) -> bool:
@@ -241,7 +243,7 @@ def _dense_moved(name: str, change: float, options: EvidenceOptions) -> CameraEv
         "the prediction: neither pose can be trusted, left out"
     )
     status = CameraStatus.DENSE_MOVED if change <= options.max_correction_deg else CameraStatus.CONTRADICTED
-    return CameraEvidence(name, status, why, change)
+    return CameraEvidence(name, status, why, change, matches_only=True)
 
 
 def _correction(refine: RefineResult, name: str, change: float, options: EvidenceOptions) -> CameraEvidence:
@@ -260,11 +262,11 @@ def _correction(refine: RefineResult, name: str, change: float, options: Evidenc
             f"refined on its matches {change:.1f} deg from the model (> {limit:g}), on look-alike surfaces, where a "
             "pattern's period is as good a fit: left out"
         )
-        return CameraEvidence(name, CameraStatus.CONTRADICTED, why, change)
+        return CameraEvidence(name, CameraStatus.CONTRADICTED, why, change, matches_only=True)
     if (single := _single_pair(refine, name, options)) is not None:
         held = single.describe() if is_planar(single) else _one_pair_text(single)
         why = f"refined on its matches {change:.1f} deg from the model (> {limit:g}), but " + held
-        return CameraEvidence(name, CameraStatus.CONTRADICTED, why + ": left out", change)
+        return CameraEvidence(name, CameraStatus.CONTRADICTED, why + ": left out", change, matches_only=True)
     if (spread := _spread(refine, refine.names.index(name))) > options.max_rotation_spread_deg:
         # a correction the matches hold loosely is no confirmed correction (held-out room seed 274, plain walls, frame
         # 6 25 deg off: moved 29 deg on matches fixing its rotation to about 1 deg, it ended 3.6 deg from the truth)
@@ -334,7 +336,7 @@ def _pair_verdict(name: str, flag: str, pairs: list, options: EvidenceOptions) -
     detail = f"{len(pairs)} verified pair(s) with refined frames, median rotation gap {gap:.1f} deg"
     if _pairs_contradict(over, [p for p in pairs if p[2] <= limit], options):
         why = f"{flag}; {detail}, {len(over)} over {limit:g} deg and outweighing the rest: left out"
-        return CameraEvidence(name, CameraStatus.CONTRADICTED, why, gap)
+        return CameraEvidence(name, CameraStatus.CONTRADICTED, why, gap, matches_only=True)
     if over:
         strongest = max(p[1] for p in over)
         why = (

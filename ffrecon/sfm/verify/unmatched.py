@@ -90,6 +90,47 @@ def _photometric(
     return tuple(out)
 
 
+def _model_camera_kept(per_image, ff_cam_from_world, refine: RefineResult, photos, depth: Prediction, options, misfits):
+    """``per_image`` with the refined frames left out on their image matches alone (:attr:`CameraEvidence.matches_only`:
+    dense tracks or guided matches moved them far on look-alike surfaces, or one pair did) kept at the model's camera
+    (:attr:`CameraStatus.MODEL_FITS`) where the photos choose it: the frames around it fit its photo better at the
+    model's camera than at the pose its matches gave, not much worse than they fit each other
+    (:attr:`PhotometricOptions.model_fit_factor`), no far turn fits clearly better, and its depth, placed with the
+    model's camera, is not among the ``misfits`` (:attr:`EvidenceOptions.depth_misfit_ratio`).
+
+    A choice between two poses of the frame itself, so texture and coverage, which make the fit of good frames vary
+    from 0.5 to 0.99, cancel. On the held-out seeds 279-290 (session 50) dense tracks on look-alike surfaces moved good
+    frames (the model 1.7-2.9 deg off) 5-12 deg and they were left out in 10 of 360 runs: the model's camera fitted
+    them better than the moved pose in 6 of 7 frames, 1.0-2.1 times worse than the references (a frame 25 deg off
+    moved 7-64 deg: better at the model's camera in 2 of 3, but 4-31 times worse)."""
+    judged = [k for k, e in enumerate(per_image) if e.matches_only and not e.status.kept and refine.registered[k]]
+    judged = [k for k in judged if per_image[k].name not in misfits]
+    held = [e.verdict is FrameVerdict.CONFIRMED or e.status in _PHOTO_REFERENCE for e in per_image]
+    reference = [k for k, e in enumerate(per_image) if held[k] and refine.registered[k]]
+    if not judged:
+        return per_image
+    poses = np.where(refine.registered[:, None, None], refine.cam_from_world, ff_cam_from_world)
+    at_model = poses.copy()
+    at_model[judged] = ff_cam_from_world[judged]
+    moved = photometric_check(photos, depth, poses, reference, judged, options, turns=False)
+    model = photometric_check(photos, depth, at_model, reference, judged, options)
+    if moved is None or model is None:
+        return per_image
+    out = list(per_image)
+    for k in judged:
+        e, here, there = out[k], model.scores[out[k].name].score, moved.scores[out[k].name].score
+        if not (here > there and model.fits(e.name, options.model_fit_factor)):
+            continue
+        said = e.why.removesuffix(": left out").removesuffix(": neither pose can be trusted, left out")
+        why = (
+            f"{said}; but the photos of the frames around it fit its photo better at the model's camera ({here:.2f}) "
+            f"than there ({there:.2f}; the references: {model.reference:.2f}), and its depth agrees with the others': "
+            "the model's camera is kept, unchecked"
+        )
+        out[k] = CameraEvidence(e.name, CameraStatus.MODEL_FITS, why, e.correction_deg)
+    return tuple(out)
+
+
 def _doubt_text(check: PhotometricCheck, name: str) -> str:
     return check.describe_poor(name) + ", and the model's depth of it agrees with the others' less than most frames'"
 
@@ -156,8 +197,11 @@ def _depth_shares(per_image, depth: Prediction, limit: float, *, every: bool = F
     judged = [
         k
         for k, e in enumerate(per_image)
-        if e.status is CameraStatus.UNCHECKED
-        and (every or not (np.isfinite(e.correction_deg) and e.correction_deg <= limit))
+        if (
+            e.status is CameraStatus.UNCHECKED
+            and (every or not (np.isfinite(e.correction_deg) and e.correction_deg <= limit))
+        )
+        or (e.matches_only and not e.status.kept)  # for _model_camera_kept
     ]
     if not judged or depth.depth is None or len(per_image) < 3:
         return None
@@ -193,7 +237,7 @@ def _depth_misfits(per_image, shares: DepthShares | None, options: EvidenceOptio
     misfits = shares.below(options.depth_misfit_ratio, options.min_view_share)
     out = list(per_image)
     for k, e in enumerate(out):
-        if e.name not in misfits:
+        if e.name not in misfits or e.status is not CameraStatus.UNCHECKED:
             continue
         ratio = shares.ratio[e.name]
         unmatched = e.why.removesuffix("the model's camera is kept").rstrip(":; ")

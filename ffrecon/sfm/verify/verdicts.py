@@ -38,6 +38,10 @@ class CameraStatus(enum.Enum):
     # left out unless the photos fit it there (then GUIDED)
     DENSE_MOVED = "moved by look-alike dense tracks"
     DEPTH_MISFIT = "contradicted by the model's depth"  # its depth, placed with its camera, disagrees with the others'
+    # its matches moved it or disputed the model's camera (look-alike surfaces, a relocalisation the adjustment did
+    # not keep, pairs far from it), but the photos fit the model's camera as the confirmed frames fit theirs and its
+    # depth agrees with the others': it keeps the model's camera (unrefined, without points in sparse/0)
+    MODEL_FITS = "the model's camera, which the photos fit"
 
     @property
     def verdict(self) -> FrameVerdict:
@@ -49,6 +53,7 @@ class CameraStatus(enum.Enum):
             CameraStatus.GUIDED,
             CameraStatus.PART,
             CameraStatus.LOOSE,
+            CameraStatus.MODEL_FITS,
         )
         return FrameVerdict.UNCHECKED if unchecked else FrameVerdict.CONTRADICTED
 
@@ -156,6 +161,9 @@ class CameraEvidence:
     status: CameraStatus
     why: str
     correction_deg: float = float("nan")  # how far the evidence's rotation is from the model's (nan: no pose)
+    # left out on its image matches alone (a pose they gave that is distrusted, or pairs disputing the model's
+    # camera), the model's camera not judged by itself: the photos and the depth may keep it (MODEL_FITS)
+    matches_only: bool = False
 
     @property
     def verdict(self) -> FrameVerdict:
