@@ -24,15 +24,13 @@ import numpy as np
 import pycolmap
 
 from ffrecon.colmap_io import add_posed_images, is_model_dir, pose_from_rigid, rigid_from_pose, write_reconstruction
-from ffrecon.errors import NonFiniteError
-from ffrecon.geometry.alignment import umeyama
-from ffrecon.geometry.poses import camera_centers
 from ffrecon.geometry.undistort import NO_DISTORTION, opencv_coefficients
 from ffrecon.models.stage import FeedForwardResult
 from ffrecon.sfm.crosscheck.gate_types import unchecked_verdict
 from ffrecon.sfm.crosscheck.run import ColmapResult
 from ffrecon.sfm.refine.options import RefineResult
 from ffrecon.sfm.verify.verdicts import CameraStatus, EvidenceResult, FrameVerdict
+from ffrecon.sfm.verify.witness import colmap_in_refined
 from ffrecon.types import PinholeCamera, Skipped
 
 log = logging.getLogger("ffrecon")
@@ -121,14 +119,10 @@ def _refined_final_cameras(
         if e.status in (CameraStatus.COLMAP_ONLY, CameraStatus.CORRECTED) and not refine.registered[k]
     ]
     if colmap_only:
-        both = refine.registered & colmap.registered
-        try:
-            sim = umeyama(camera_centers(colmap.cam_from_world[both]), camera_centers(refine.cam_from_world[both]))
-        except NonFiniteError as err:
-            raise err.with_fix("COLMAP's or the refinement's cameras are broken: run again with --fresh") from None
+        moved = colmap_in_refined(colmap, refine)
         lenses = _colmap_lens(colmap, [names[k] for k in colmap_only])
         for k, lens in zip(colmap_only, lenses):
-            poses[k] = sim.transform_cam_from_world(colmap.cam_from_world[k : k + 1])[0]
+            poses[k] = moved[k]
             cameras[k] = colmap.cameras[k]
             distortion[k] = lens
         log.info("%d frames not refined take COLMAP's poses: %s", len(colmap_only), [names[k] for k in colmap_only])

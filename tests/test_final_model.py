@@ -1,6 +1,7 @@
 """``sparse/0`` holds every final camera: the source model's, plus the final frames it lacks (posed, no points)."""
 
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pycolmap
@@ -10,7 +11,13 @@ from ffrecon.colmap_io import (
     reconstruction_from_cameras,
     write_reconstruction,
 )
-from ffrecon.final_cameras import CameraSource, FinalCameras, select_final_cameras, write_final_model
+from ffrecon.final_cameras import (
+    CameraSource,
+    FinalCameras,
+    _refined_final_cameras,
+    select_final_cameras,
+    write_final_model,
+)
 from ffrecon.models.stage import FeedForwardResult
 from ffrecon.sfm.crosscheck.gate_types import GatesResult
 from ffrecon.sfm.verify.verdicts import CameraEvidence, CameraStatus, EvidenceResult
@@ -104,3 +111,49 @@ def test_a_refinement_set_aside_keeps_the_models_cameras_without_the_frames_left
     assert final.source is CameraSource.FEEDFORWARD and final.indices == (0, 1, 3)
     assert final.names == tuple(scene.names[k] for k in (0, 1, 3)) and final.unconfirmed == (0, 1, 2)
     np.testing.assert_array_equal(final.cam_from_world, prediction.cam_from_world[[0, 1, 3]])
+
+
+def _seen_by_all(rec: pycolmap.Reconstruction, xyz: np.ndarray) -> None:
+    """Give ``rec`` points that every image observes (a track through all of them)."""
+    for image in rec.images.values():
+        image.points2D = pycolmap.Point2DList([pycolmap.Point2D(np.array([10.0 + j, 20.0])) for j in range(len(xyz))])
+    for j, point in enumerate(xyz):
+        track = pycolmap.Track()
+        for image_id in rec.images:
+            track.add_element(image_id, j)
+        rec.add_point3D(point, track)
+
+
+def test_a_frame_kept_at_the_models_camera_is_written_there_without_points(tmp_path: Path):
+    """A refined frame the evidence kept at the model's camera (``MODEL_FITS``: its matches moved it, the photos fit
+    the model's camera better) is a final camera at the model's pose, not the refined one; ``sparse/0`` holds it
+    there without observations (the points were triangulated with the pose set aside), and the other frames keep
+    theirs."""
+    rng = np.random.default_rng(4)
+    names = tuple(f"frame_{i:03d}.png" for i in range(4))
+    refined_poses = _poses(4, rng)
+    model = refined_poses.copy()
+    turn, _ = np.linalg.qr(np.eye(3) + 0.07 * rng.normal(size=(3, 3)))
+    model[2, :, :3] = turn * np.sign(np.linalg.det(turn)) @ model[2, :, :3]
+    cam = PinholeCamera(320, 240, 300.0, 301.0, 160.0, 120.0)
+    rec = reconstruction_from_cameras(names, refined_poses, [cam] * 4)
+    _seen_by_all(rec, rng.normal(size=(5, 3)))
+    refine_dir = write_reconstruction(rec, tmp_path / "refine" / "model")
+    refine = SimpleNamespace(
+        cam_from_world=refined_poses, cameras=(cam,) * 4, distortion=None, registered=np.ones(4, bool)
+    )
+    per_image = [CameraEvidence(n, CameraStatus.REFINED, "refined") for n in names]
+    per_image[2] = CameraEvidence(names[2], CameraStatus.MODEL_FITS, "the photos fit the model's camera")
+    evidence = EvidenceResult(GatesResult((), False), tuple(per_image), False)
+    final = _refined_final_cameras(names, Skipped("colmap", "off"), refine, evidence, model)
+    assert final.indices == (0, 1, 2, 3) and final.unconfirmed == (2,)
+    np.testing.assert_array_equal(final.cam_from_world[[0, 1, 3]], refined_poses[[0, 1, 3]])
+    np.testing.assert_array_equal(final.cam_from_world[2], model[2])
+    out = pycolmap.Reconstruction(str(write_final_model(final, refine_dir, tmp_path)))
+    got, registered = cam_from_world_by_name(out, names)
+    assert registered.all()
+    np.testing.assert_allclose(got, final.cam_from_world, atol=1e-9)
+    assert out.find_image_with_name(names[2]).num_points3D == 0
+    assert [out.find_image_with_name(names[k]).num_points3D for k in (0, 1, 3)] == [5, 5, 5]
+    assert out.num_points3D() == 5 and all(p.track.length() == 3 for p in out.points3D.values())
+    assert pycolmap.Reconstruction(str(refine_dir)).find_image_with_name(names[2]).num_points3D == 5  # unchanged

@@ -113,9 +113,8 @@ def judge_final_cameras(
             per_image = _photometric(
                 per_image, ff_cam_from_world, refine, photos, depth, options.photometric, limit, doubted
             )
-            misfits = shares.below(options.depth_misfit_ratio, options.min_view_share) if shares else frozenset()
             per_image = _model_camera_kept(
-                per_image, ff_cam_from_world, refine, photos, depth, options.photometric, misfits
+                per_image, ff_cam_from_world, refine, colmap, photos, depth, options.photometric, doubted
             )
     verdicts = _verdicts(len(names), refine, colmap, per_image, comparison is not None, options, healthy)
     if colmap is None:

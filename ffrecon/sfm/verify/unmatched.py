@@ -12,9 +12,9 @@ import numpy as np
 
 from ffrecon.geometry.overlap import view_agreement
 from ffrecon.sfm.refine.options import RefineResult
-from ffrecon.sfm.verify.photometric import PhotometricCheck, photometric_check
+from ffrecon.sfm.verify.photometric import PhotometricCheck, PhotometricOptions, PhotometricScore, photometric_check
 from ffrecon.sfm.verify.verdicts import CameraEvidence, CameraStatus, EvidenceOptions, FrameVerdict
-from ffrecon.sfm.verify.witness import _lookalike
+from ffrecon.sfm.verify.witness import _lookalike, colmap_in_refined
 from ffrecon.types import Prediction
 
 # Refined frames that are not confirmed but judge others: held by guided matches or by one planar pair, a few
@@ -90,26 +90,41 @@ def _photometric(
     return tuple(out)
 
 
-def _model_camera_kept(per_image, ff_cam_from_world, refine: RefineResult, photos, depth: Prediction, options, misfits):
-    """``per_image`` with the refined frames left out on their image matches alone (:attr:`CameraEvidence.matches_only`:
-    dense tracks or guided matches moved them far on look-alike surfaces, or one pair did) kept at the model's camera
-    (:attr:`CameraStatus.MODEL_FITS`) where the photos choose it: the frames around it fit its photo better at the
-    model's camera than at the pose its matches gave, not much worse than they fit each other
-    (:attr:`PhotometricOptions.model_fit_factor`), no far turn fits clearly better, and its depth, placed with the
-    model's camera, is not among the ``misfits`` (:attr:`EvidenceOptions.depth_misfit_ratio`).
+def _model_camera_kept(
+    per_image, ff_cam_from_world, refine: RefineResult, colmap, photos, depth: Prediction, options, doubted
+):
+    """``per_image`` with the photos choosing between the model's camera and the pose the matches gave, where the
+    matches moved a frame far from the model's camera: the refined frames left out on their matches alone
+    (:attr:`CameraEvidence.matches_only`: dense tracks or guided matches moved them far on look-alike surfaces, or one
+    pair did) and the frames corrected (refined, or registered by COLMAP (``colmap``, None: not), far from the
+    model). Frames whose depth, placed with the model's camera, agrees with the others' less than most frames' (in
+    ``doubted``: :func:`_depth_doubted`) are not judged: the model's own geometry is against its camera.
 
-    A choice between two poses of the frame itself, so texture and coverage, which make the fit of good frames vary
-    from 0.5 to 0.99, cancel. On the held-out seeds 279-290 (session 50) dense tracks on look-alike surfaces moved good
-    frames (the model 1.7-2.9 deg off) 5-12 deg and they were left out in 10 of 360 runs: the model's camera fitted
-    them better than the moved pose in 6 of 7 frames, 1.0-2.1 times worse than the references (a frame 25 deg off
-    moved 7-64 deg: better at the model's camera in 2 of 3, but 4-31 times worse)."""
-    judged = [k for k, e in enumerate(per_image) if e.matches_only and not e.status.kept and refine.registered[k]]
-    judged = [k for k in judged if per_image[k].name not in misfits]
+    A frame left out keeps the model's camera (:attr:`CameraStatus.MODEL_FITS`) where the photos choose it
+    (:func:`_chooses_model`). A correction stands where the photos fit the frame better there than near the model's
+    camera (or see it at neither); else the frame keeps the model's camera where the photos choose it, and is left
+    out where they do not. A choice between poses of the frame itself, so texture and coverage, which make the fit
+    of good frames vary from 0.5 to 0.99, cancel. On the held-out seeds 279-290 (session 50) dense tracks on
+    look-alike surfaces moved good frames (the model 1.7-2.9 deg off) 5-12 deg, and they were left out in 10 of 360
+    runs; on held-out room seed 293 (plain walls, frame 6 25 deg off) COLMAP registered two good frames 90-96 deg
+    from the model and they were called corrected (session 51)."""
+    poses = np.where(refine.registered[:, None, None], refine.cam_from_world, ff_cam_from_world)
+    by_colmap = [k for k, e in enumerate(per_image) if e.status is CameraStatus.CORRECTED and not refine.registered[k]]
+    if by_colmap and colmap is not None:
+        poses[by_colmap] = colmap_in_refined(colmap, refine)[by_colmap]
+    judged = [
+        k
+        for k, e in enumerate(per_image)
+        if e.name not in doubted
+        and (
+            (e.matches_only and not e.status.kept and refine.registered[k])
+            or (e.status is CameraStatus.CORRECTED and (refine.registered[k] or colmap is not None))
+        )
+    ]
     held = [e.verdict is FrameVerdict.CONFIRMED or e.status in _PHOTO_REFERENCE for e in per_image]
     reference = [k for k, e in enumerate(per_image) if held[k] and refine.registered[k]]
     if not judged:
         return per_image
-    poses = np.where(refine.registered[:, None, None], refine.cam_from_world, ff_cam_from_world)
     at_model = poses.copy()
     at_model[judged] = ff_cam_from_world[judged]
     moved = photometric_check(photos, depth, poses, reference, judged, options, turns=False)
@@ -118,17 +133,46 @@ def _model_camera_kept(per_image, ff_cam_from_world, refine: RefineResult, photo
         return per_image
     out = list(per_image)
     for k in judged:
-        e, here, there = out[k], model.scores[out[k].name].score, moved.scores[out[k].name].score
-        if not (here > there and model.fits(e.name, options.model_fit_factor)):
+        e, s, there = out[k], model.scores[out[k].name], moved.scores[out[k].name].score
+        corrected = e.status is CameraStatus.CORRECTED
+        if corrected and _correction_stands(s.near, there, moved.poor(e.name)):
             continue
         said = e.why.removesuffix(": left out").removesuffix(": neither pose can be trusted, left out")
-        why = (
-            f"{said}; but the photos of the frames around it fit its photo better at the model's camera ({here:.2f}) "
-            f"than there ({there:.2f}; the references: {model.reference:.2f}), and its depth agrees with the others': "
-            "the model's camera is kept, unchecked"
-        )
-        out[k] = CameraEvidence(e.name, CameraStatus.MODEL_FITS, why, e.correction_deg)
+        said = said.removesuffix(": the refined pose is used").removesuffix(": its pose is used")
+        fit = f"({s.near:.2f}) than there ({there:.2f})" if np.isfinite(there) else f"({s.near:.2f}), nothing there"
+        if _chooses_model(s, there, options) and (np.isfinite(there) or not corrected):
+            why = (
+                f"{said}; but the photos of the frames around it fit its photo better near the model's camera {fit}, "
+                f"no camera turned further fits clearly better ({s.best:.2f} turned {s.best_turn_deg:.0f} deg), and "
+                "its depth agrees with the others': the model's camera is kept, unchecked"
+            )
+            out[k] = CameraEvidence(e.name, CameraStatus.MODEL_FITS, why, e.correction_deg)
+        elif corrected:
+            why = (
+                f"{said}; but the photos of the frames around it fit its photo there at {there:.2f}, against "
+                f"{s.near:.2f} near the model's camera and {moved.reference:.2f} for the references at theirs: left out"
+            )
+            out[k] = CameraEvidence(e.name, CameraStatus.CONTRADICTED, why, e.correction_deg)
     return tuple(out)
+
+
+def _correction_stands(near: float, there: float, poor: bool) -> bool:
+    """Whether the photos leave a correction standing: they see the frame at neither pose (no evidence), or fit it at
+    the correction (``there``) better than near the model's camera (``near``; or only there), and not ``poor``ly
+    (:meth:`PhotometricCheck.poor`)."""
+    if not (np.isfinite(near) or np.isfinite(there)):
+        return True
+    return bool(np.isfinite(there) and (not np.isfinite(near) or there > near) and not poor)
+
+
+def _chooses_model(s: PhotometricScore, there: float, options: PhotometricOptions) -> bool:
+    """Whether the photos choose the model's camera (score ``s``, searched) over the pose the matches gave (score
+    ``there``): the best fit within ``near_deg`` of the model's camera is better than there (or nothing covers it
+    there), and no camera turned further leaves ``model_far_gain`` times less to correlate."""
+    if not np.isfinite(s.near):
+        return False
+    better = not np.isfinite(there) or s.near > there
+    return bool(better and (1 - s.near) <= options.model_far_gain * (1 - s.best))
 
 
 def _doubt_text(check: PhotometricCheck, name: str) -> str:
@@ -201,7 +245,8 @@ def _depth_shares(per_image, depth: Prediction, limit: float, *, every: bool = F
             e.status is CameraStatus.UNCHECKED
             and (every or not (np.isfinite(e.correction_deg) and e.correction_deg <= limit))
         )
-        or (e.matches_only and not e.status.kept)  # for _model_camera_kept
+        or (e.matches_only and not e.status.kept)
+        or e.status is CameraStatus.CORRECTED  # for _model_camera_kept
     ]
     if not judged or depth.depth is None or len(per_image) < 3:
         return None

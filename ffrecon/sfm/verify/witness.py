@@ -8,11 +8,26 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from ffrecon.errors import NonFiniteError
+from ffrecon.geometry.alignment import umeyama
+from ffrecon.geometry.poses import camera_centers
 from ffrecon.geometry.rotations import rotation_angle_deg
 from ffrecon.sfm.compare.poses import compare_poses
 from ffrecon.sfm.crosscheck.gate_types import GatesResult
 from ffrecon.sfm.crosscheck.run import ColmapResult
 from ffrecon.sfm.refine.options import RefineResult
+
+
+def colmap_in_refined(colmap: ColmapResult, refine: RefineResult) -> np.ndarray:
+    """COLMAP's cameras ``[N, 3, 4]`` moved into the refined cameras' world (the model's) by a Sim(3) fit of the
+    centres of the frames both hold (meaningful where COLMAP registered the frame). Raises NonFiniteError (with a
+    fix) when the fit fails."""
+    both = refine.registered & colmap.registered
+    try:
+        sim = umeyama(camera_centers(colmap.cam_from_world[both]), camera_centers(refine.cam_from_world[both]))
+    except NonFiniteError as err:
+        raise err.with_fix("COLMAP's or the refinement's cameras are broken: run again with --fresh") from None
+    return sim.transform_cam_from_world(colmap.cam_from_world)
 
 
 def _healthy(colmap: ColmapResult | None, witness: GatesResult) -> bool:

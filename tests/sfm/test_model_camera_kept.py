@@ -1,0 +1,90 @@
+"""A refined frame its matches alone left out keeps the model's camera where the photos choose it (issue 39;
+``sfm.verify.unmatched._model_camera_kept``, ``CameraStatus.MODEL_FITS``).
+
+On look-alike surfaces dense tracks lock onto the period of a pattern nearest the model's prediction and move good
+frames 5-12 deg; such a frame was left out though the model had it within 3 deg. Here the other frames are refined
+exactly (the truth) and the frame's refined pose is its true pose turned 8 deg (a period off); the model's camera is
+the stand-in's (about 2.5 deg off, or 25 deg off for a bad frame, whose refined pose is the model's turned 8 deg).
+Scenes are the sweep's families, on seeds the rule (``PhotometricOptions.model_far_gain``, the depth doubt) was not
+set on (it was set on 21-40)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+
+from ffrecon.geometry.rotations import axis_angle_to_matrix
+from ffrecon.sfm.verify.photometric import PhotometricOptions
+from ffrecon.sfm.verify.unmatched import _depth_doubted, _depth_shares, _model_camera_kept
+from ffrecon.sfm.verify.verdicts import CameraEvidence, CameraStatus, EvidenceOptions
+from ffrecon.synthetic import CameraPath, SceneOptions, Texture, make_scene
+from ffrecon.synthetic.layouts import Layout
+from ffrecon.synthetic.simulated_model import SimulationOptions, prediction_from_truth, simulate
+
+LUND = Path(__file__).resolve().parents[3] / "shared" / "data" / "lund"
+MOVED = "refined 8.0 deg from the model on dense correspondences: neither pose can be trusted, left out"
+
+
+def _turned(pose: np.ndarray, deg: float, rng) -> np.ndarray:
+    axis = rng.normal(size=3)
+    out = pose.copy()
+    out[:, :3] = axis_angle_to_matrix(np.radians(deg) * axis / np.linalg.norm(axis)) @ pose[:, :3]
+    return out
+
+
+def _judge(layout: Layout, texture: Texture, seed: int, frame: int) -> tuple[CameraStatus, CameraStatus]:
+    """The frame's status when the model has it about 2.5 deg off, and when 25 deg off."""
+    options = SceneOptions(
+        num_frames=8,
+        width=320,
+        height=240,
+        seed=seed,
+        path=CameraPath.WIDE,
+        layout=layout,
+        texture=texture,
+        step_deg=(30.0, 50.0),
+        fov_x_deg=70.0 if layout is Layout.ROOM else 65.0,
+        photo_dir=str(LUND),
+    )
+    scene = make_scene(options)
+    return tuple(_status(scene, seed, frame, bad) for bad in (False, True))
+
+
+def _status(scene, seed: int, frame: int, bad: bool) -> CameraStatus:
+    sim = SimulationOptions(seed=seed, bad_frames=(frame,) if bad else (), bad_rotation_deg=25.0)
+    truth, _ = simulate(scene, sim)
+    prediction = prediction_from_truth(scene, truth, sim)
+    rng = np.random.default_rng(seed)
+    refined = np.array(scene.cam_from_world, np.float64)
+    refined[frame] = _turned(prediction.cam_from_world[frame] if bad else refined[frame], 8.0, rng)
+    refine = SimpleNamespace(registered=np.ones(8, bool), cam_from_world=refined)
+    per_image = [CameraEvidence(n, CameraStatus.REFINED, "refined") for n in scene.names]
+    per_image[frame] = CameraEvidence(scene.names[frame], CameraStatus.DENSE_MOVED, MOVED, 8.0, matches_only=True)
+    photos = [np.asarray(im) for im in scene.images]
+    doubted = _depth_doubted(_depth_shares(tuple(per_image), prediction, 10.0), EvidenceOptions())
+    read, options = photos.__getitem__, PhotometricOptions()
+    out = _model_camera_kept(
+        tuple(per_image), prediction.cam_from_world, refine, None, read, prediction, options, doubted
+    )
+    assert all(e.status is CameraStatus.REFINED for k, e in enumerate(out) if k != frame)
+    return out[frame].status
+
+
+def test_the_model_camera_is_kept_for_good_frames_and_never_for_a_frame_25_deg_off():
+    """Three seeds per family (41-43), textures and the frame drawn by seed. Measured: the good frame kept at the
+    model's camera in 8 of 9 scenes, the frame 25 deg off in none. On seeds 21-40 (two textures each, 120 scenes):
+    108 of 120 good frames kept, no frame 25 deg off (two would have been without the depth doubt, both objects with
+    photo textures)."""
+    kept_good, kept_bad = [], []
+    for layout in (Layout.STREET, Layout.OBJECT, Layout.ROOM):
+        for seed in range(41, 44):
+            frame = [1, 6][seed % 2]
+            texture = [Texture.REPEATED, Texture.PHOTOS, Texture.PHOTOS_PLAIN_WALLS][seed % 3]
+            good, bad = _judge(layout, texture, seed, frame)
+            assert {good, bad} <= {CameraStatus.MODEL_FITS, CameraStatus.DENSE_MOVED}
+            kept_good += [(layout.value, seed)] if good is CameraStatus.MODEL_FITS else []
+            kept_bad += [(layout.value, seed)] if bad is CameraStatus.MODEL_FITS else []
+    assert kept_bad == []
+    assert len(kept_good) >= 7, kept_good
