@@ -128,7 +128,9 @@ def _refined_frame(
             f"only to {spread:.1f} deg (median standard deviation at 1 px per observation, > "
             f"{options.max_rotation_spread_deg:g}): its refined pose is kept, not confirmed"
         )
-        return CameraEvidence(name, CameraStatus.LOOSE, why, change)
+        return CameraEvidence(
+            name, CameraStatus.LOOSE, why, change, matches_only=change > options.max_lookalike_dense_change_deg
+        )
     why = f"bundle-adjusted on {n_obs} observations; " + (
         "no COLMAP model to compare with"
         if colmap is None
@@ -275,7 +277,7 @@ def _correction(refine: RefineResult, name: str, change: float, options: Evidenc
             f"the other refined frames only to {spread:.1f} deg (> {options.max_rotation_spread_deg:g}): its refined "
             "pose is kept, not confirmed"
         )
-        return CameraEvidence(name, CameraStatus.LOOSE, why, change)
+        return CameraEvidence(name, CameraStatus.LOOSE, why, change, matches_only=True)
     why = f"refined on its matches {change:.1f} deg from the model (> {limit:g}): the refined pose is used"
     return CameraEvidence(name, CameraStatus.CORRECTED, why, change)
 

@@ -94,20 +94,23 @@ def _model_camera_kept(
     per_image, ff_cam_from_world, refine: RefineResult, colmap, photos, depth: Prediction, options, doubted
 ):
     """``per_image`` with the photos choosing between the model's camera and the pose the matches gave, where the
-    matches moved a frame far from the model's camera: the refined frames left out on their matches alone
-    (:attr:`CameraEvidence.matches_only`: dense tracks or guided matches moved them far on look-alike surfaces, or one
-    pair did) and the frames corrected (refined, or registered by COLMAP (``colmap``, None: not), far from the
-    model). Frames whose depth, placed with the model's camera, agrees with the others' less than most frames' (in
-    ``doubted``: :func:`_depth_doubted`) are not judged: the model's own geometry is against its camera.
+    matches moved a frame far from the model's camera (:attr:`CameraEvidence.pose_in_doubt`): the refined frames left
+    out on their matches alone (dense tracks or guided matches moved them far on look-alike surfaces, or one pair
+    did), those the matches hold loosely that moved beyond 5 deg (``LOOSE``), and the frames corrected (refined, or
+    registered by COLMAP (``colmap``, None: not) far from the model). Frames whose depth, placed with the model's
+    camera, agrees with the others' less than most frames' (in ``doubted``: :func:`_depth_doubted`) are not judged:
+    the model's own geometry is against its camera.
 
-    A frame left out keeps the model's camera (:attr:`CameraStatus.MODEL_FITS`) where the photos choose it
-    (:func:`_chooses_model`). A correction stands where the photos fit the frame better there than near the model's
-    camera (or see it at neither); else the frame keeps the model's camera where the photos choose it, and is left
-    out where they do not. A choice between poses of the frame itself, so texture and coverage, which make the fit
-    of good frames vary from 0.5 to 0.99, cancel. On the held-out seeds 279-290 (session 50) dense tracks on
-    look-alike surfaces moved good frames (the model 1.7-2.9 deg off) 5-12 deg, and they were left out in 10 of 360
-    runs; on held-out room seed 293 (plain walls, frame 6 25 deg off) COLMAP registered two good frames 90-96 deg
-    from the model and they were called corrected (session 51)."""
+    A frame left out, or loosely held, keeps the model's camera (:attr:`CameraStatus.MODEL_FITS`) where the photos
+    choose it (:func:`_chooses_model`). A correction stands where the photos fit the frame better there than near the
+    model's camera, and not poorly (or see it at neither pose: :func:`_correction_stands`); else the frame keeps the
+    model's camera where the photos choose it, and is left out where they do not. A choice between poses of the
+    frame itself, so texture and coverage, which make the fit of good frames vary from 0.5 to 0.99, cancel. On the
+    held-out seeds 279-290 (session 50) dense tracks on look-alike surfaces moved good frames (the model 1.7-2.9 deg
+    off) 5-12 deg, and they were left out in 10 of 360 runs; on room seed 284 (plain walls) matches fixing two
+    frames' rotation only to 10 deg moved them 5.8 and 8.2 deg from the model (2.9 and 2.7 deg off) to about 7 deg
+    off; on held-out room seed 293 (photo walls, frame 6 25 deg off) COLMAP registered two good frames 90-96 deg from
+    the model and they were called corrected (session 51)."""
     poses = np.where(refine.registered[:, None, None], refine.cam_from_world, ff_cam_from_world)
     by_colmap = [k for k, e in enumerate(per_image) if e.status is CameraStatus.CORRECTED and not refine.registered[k]]
     if by_colmap and colmap is not None:
@@ -117,7 +120,7 @@ def _model_camera_kept(
         for k, e in enumerate(per_image)
         if e.name not in doubted
         and (
-            (e.matches_only and not e.status.kept and refine.registered[k])
+            (e.pose_in_doubt and refine.registered[k])
             or (e.status is CameraStatus.CORRECTED and (refine.registered[k] or colmap is not None))
         )
     ]
@@ -245,7 +248,7 @@ def _depth_shares(per_image, depth: Prediction, limit: float, *, every: bool = F
             e.status is CameraStatus.UNCHECKED
             and (every or not (np.isfinite(e.correction_deg) and e.correction_deg <= limit))
         )
-        or (e.matches_only and not e.status.kept)
+        or e.pose_in_doubt
         or e.status is CameraStatus.CORRECTED  # for _model_camera_kept
     ]
     if not judged or depth.depth is None or len(per_image) < 3:

@@ -162,8 +162,14 @@ class CameraEvidence:
     why: str
     correction_deg: float = float("nan")  # how far the evidence's rotation is from the model's (nan: no pose)
     # left out on its image matches alone (a pose they gave that is distrusted, or pairs disputing the model's
-    # camera), the model's camera not judged by itself: the photos and the depth may keep it (MODEL_FITS)
+    # camera), or held loosely by them far from the model (LOOSE), the model's camera not judged by itself: the photos
+    # and the depth may keep it (MODEL_FITS)
     matches_only: bool = False
+
+    @property
+    def pose_in_doubt(self) -> bool:
+        """Whether the photos choose between the model's camera and the pose the matches gave (:attr:`matches_only`)."""
+        return self.matches_only and (not self.status.kept or self.status is CameraStatus.LOOSE)
 
     @property
     def verdict(self) -> FrameVerdict:
