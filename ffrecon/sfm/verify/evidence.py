@@ -46,6 +46,7 @@ from ffrecon.sfm.verify.unmatched import (
     _depth_doubted,
     _depth_misfits,
     _depth_shares,
+    _guided_misfits,
     _model_camera_kept,
     _photometric,
     _set_aside_misfits,
@@ -113,6 +114,7 @@ def judge_final_cameras(
             per_image = _photometric(
                 per_image, ff_cam_from_world, refine, photos, depth, options.photometric, limit, doubted
             )
+            per_image = _guided_misfits(per_image, ff_cam_from_world, refine, photos, depth, options.photometric)
             per_image = _model_camera_kept(
                 per_image, ff_cam_from_world, refine, colmap, photos, depth, options.photometric, doubted
             )
