@@ -17,13 +17,14 @@ import numpy as np
 
 from ffrecon.geometry.rotations import axis_angle_to_matrix
 from ffrecon.sfm.verify.photometric import PhotometricOptions
-from ffrecon.sfm.verify.unmatched import _depth_doubted, _depth_shares, _model_camera_kept
+from ffrecon.sfm.verify.unmatched import _depth_doubted, _depth_shares, _guided_misfits, _model_camera_kept
 from ffrecon.sfm.verify.verdicts import CameraEvidence, CameraStatus, EvidenceOptions
 from ffrecon.synthetic import CameraPath, SceneOptions, Texture, make_scene
 from ffrecon.synthetic.layouts import Layout
 from ffrecon.synthetic.simulated_model import SimulationOptions, prediction_from_truth, simulate
 
 LUND = Path(__file__).resolve().parents[3] / "shared" / "data" / "lund"
+GUIDED = "bundle-adjusted on matches the model's cameras chose: its refined pose is kept, not confirmed"
 MOVED = "refined 8.0 deg from the model on dense correspondences: neither pose can be trusted, left out"
 
 
@@ -121,3 +122,41 @@ def test_a_correction_stands_where_the_photos_fit_it():
             wrong += [seed] if _status(scene, seed, frame, False, corrected=True) is CameraStatus.CORRECTED else []
     assert at_model == [] and wrong == []
     assert len(stands) >= 7, stands
+
+
+def test_a_frame_refined_on_guided_matches_far_off_is_left_out():
+    """A frame refined on guided matches (look-alike surfaces: not confirmed, but kept) that the photos contradict twice
+    (a far turn fits clearly better, and poorly where it is) is left out: a frame 25 deg off refined 5 deg toward the
+    truth, as on held-out streets 292 and 301; good frames refined within 1 deg of the truth (its two neighbours, also
+    refined on guided matches) stay. Seeds 41-43 (the rule was measured on runs of seeds 279-301). Measured: the frame
+    25 deg off left out in 5 of 9 scenes; 1 good frame of 18 (room 42, repeated tile: frame 0, whose only neighbour
+    covering enough of it is the bad frame, fits -0.05 at its pose and 0.93 turned 25 deg; a known weakness: a frame
+    is compared with its best-covering neighbours, and there the one far off)."""
+    left_bad, left_good = [], []
+    for layout in (Layout.STREET, Layout.OBJECT, Layout.ROOM):
+        for seed in range(41, 44):
+            frame = [1, 6][seed % 2]
+            scene = make_scene(
+                _options(layout, [Texture.REPEATED, Texture.PHOTOS, Texture.PHOTOS_PLAIN_WALLS][seed % 3], seed)
+            )
+            sim = SimulationOptions(seed=seed, bad_frames=(frame,), bad_rotation_deg=25.0)
+            prediction = prediction_from_truth(scene, simulate(scene, sim)[0], sim)
+            rng = np.random.default_rng(seed)
+            refined = np.array([_turned(p, 0.5, rng) for p in np.asarray(scene.cam_from_world, np.float64)])
+            toward = prediction.cam_from_world[frame]
+            refined[frame] = _turned(toward, 5.0, rng)
+            refine = SimpleNamespace(registered=np.ones(8, bool), cam_from_world=refined)
+            guided = (frame - 1, frame, frame + 1)  # the others are confirmed, the references
+            per_image = tuple(
+                CameraEvidence(n, CameraStatus.GUIDED if k in guided else CameraStatus.REFINED, GUIDED, 1.0)
+                for k, n in enumerate(scene.names)
+            )
+            photos = [np.asarray(im) for im in scene.images]
+            out = _guided_misfits(
+                per_image, prediction.cam_from_world, refine, photos.__getitem__, prediction, PhotometricOptions()
+            )
+            left = [k for k, e in enumerate(out) if e.status is CameraStatus.PHOTO_MISFIT]
+            left_bad += [(layout.value, seed)] if frame in left else []
+            left_good += [(layout.value, seed, k) for k in left if k != frame]
+    assert len(left_good) <= 1, left_good
+    assert len(left_bad) >= 5, left_bad

@@ -185,23 +185,30 @@ def _guided_misfits(per_image, ff_cam_from_world, refine: RefineResult, photos, 
     pattern nearest the model's camera, and a frame 25 deg off was refined there and exported unchecked (held-out
     street seeds 292 and 301, 19-22 deg off). Measured on 56 default runs with such frames (seeds 279-301, mostly the
     repeated tile): both signs on the 2 frames 25 deg off, on none of 400 good frames (a far fit alone on 1, a poor
-    fit alone on 34)."""
+    fit alone on 34). Frames are judged one at a time, the worst first (as :func:`_dense_misfits`)."""
     judged = [k for k, e in enumerate(per_image) if e.status is CameraStatus.GUIDED]
-    if not judged:
-        return per_image
     held = [e.verdict is FrameVerdict.CONFIRMED or e.status in _PHOTO_REFERENCE for e in per_image]
     reference = [k for k, e in enumerate(per_image) if held[k] and refine.registered[k]]
     poses = np.where(refine.registered[:, None, None], refine.cam_from_world, ff_cam_from_world)
-    check = photometric_check(photos, depth, poses, reference, judged, options)
-    if check is None:
-        return per_image
     out = list(per_image)
-    for k in judged:
+    # One frame at a time, the worst first, the others judged again without it among their references: a frame far
+    # off, a reference of its neighbours, makes them fit poorly too (bounded: each round leaves one frame out)
+    for _ in range(len(judged)):
+        check = photometric_check(photos, depth, poses, reference, judged, options) if judged else None
+        flagged = (
+            [] if check is None else [k for k in judged if check.contradicts(out[k].name) and check.poor(out[k].name)]
+        )
+        if not flagged:
+            break
+        k = min(flagged, key=lambda k: check.scores[out[k].name].score)
         e = out[k]
-        if check.contradicts(e.name) and check.poor(e.name):
-            said = e.why.removesuffix(": its refined pose is kept, not confirmed")
-            why = f"{said}; but {check.describe(e.name)}, and {check.describe_poor(e.name)}: left out"
-            out[k] = CameraEvidence(e.name, CameraStatus.PHOTO_MISFIT, why, e.correction_deg)
+        said = e.why.removesuffix(": its refined pose is kept, not confirmed")
+        why = f"{said}; but {check.describe(e.name)}, and {check.describe_poor(e.name)}: left out"
+        out[k] = CameraEvidence(e.name, CameraStatus.PHOTO_MISFIT, why, e.correction_deg)
+        if len(flagged) == 1:
+            break
+        judged = [j for j in flagged if j != k]
+        reference = [j for j in reference if j != k]
     return tuple(out)
 
 
