@@ -189,7 +189,7 @@ def write_final_model(final: FinalCameras | None, folder: Path | None, work: Pat
     for target in targets:
         write_reconstruction(rec, target)
     log.info(
-        "sparse/0 and colmap/sparse/0: the final cameras (%s, from %s)%s%s",
+        "sparse/0 and colmap/sparse/0: the final cameras (%s, from %s)%s%s%s",
         final.source,
         folder,
         f", plus {len(added)} frame(s) it lacks, posed without points: {', '.join(added)}" if added else "",
