@@ -22,6 +22,20 @@ from ffrecon.types import Prediction
 _PHOTO_REFERENCE = (CameraStatus.GUIDED, CameraStatus.PLANAR_PAIR, CameraStatus.PART, CameraStatus.LOOSE)
 
 
+def _photo_references(per_image, refine: RefineResult) -> list[int]:
+    """The frames the photometric checks compare with: refined, and confirmed or held as :data:`_PHOTO_REFERENCE`."""
+    return [
+        k
+        for k, e in enumerate(per_image)
+        if (e.verdict is FrameVerdict.CONFIRMED or e.status in _PHOTO_REFERENCE) and refine.registered[k]
+    ]
+
+
+def _judged_poses(refine: RefineResult, ff_cam_from_world: np.ndarray) -> np.ndarray:
+    """``[N, 3, 4]`` each frame's refined camera where the refinement holds it, else the model's (one world)."""
+    return np.where(refine.registered[:, None, None], refine.cam_from_world, ff_cam_from_world)
+
+
 def _photometric(
     per_image,
     ff_cam_from_world,
@@ -45,13 +59,12 @@ def _photometric(
     A frame in ``doubted`` (its depth agrees with the others' less than most: :func:`_depth_doubted`) that also
     fits its photo poorly (:meth:`PhotometricCheck.poor`) is left out: two weak signs agreeing (room seed 253,
     repeated tile, ``--quick``: a frame 25 deg off, no verified match, fitting 0.19 against 0.89)."""
-    held = [e.verdict is FrameVerdict.CONFIRMED or e.status in _PHOTO_REFERENCE for e in per_image]
-    reference = [k for k, e in enumerate(per_image) if held[k] and refine.registered[k]]
+    reference = _photo_references(per_image, refine)
     # A frame refined on one planar pair is unchecked too: on the repeated-tile room (held-out seed 214, frame 6
     # 25 deg off) the pair moved it 5 deg, and it was exported 30.8 deg off
     judged = (CameraStatus.UNCHECKED, CameraStatus.PLANAR_PAIR, CameraStatus.DENSE_MOVED)
     unchecked = [k for k, e in enumerate(per_image) if e.status in judged]
-    poses = np.where(refine.registered[:, None, None], refine.cam_from_world, ff_cam_from_world)
+    poses = _judged_poses(refine, ff_cam_from_world)
     check: PhotometricCheck | None = photometric_check(photos, depth, poses, reference, unchecked, options)
     if check is None:
         return per_image
@@ -111,7 +124,7 @@ def _model_camera_kept(
     frames' rotation only to 10 deg moved them 5.8 and 8.2 deg from the model (2.9 and 2.7 deg off) to about 7 deg
     off; on held-out room seed 293 (photo walls, frame 6 25 deg off) COLMAP registered two good frames 90-96 deg from
     the model and they were called corrected (session 51)."""
-    poses = np.where(refine.registered[:, None, None], refine.cam_from_world, ff_cam_from_world)
+    poses = _judged_poses(refine, ff_cam_from_world)
     by_colmap = [k for k, e in enumerate(per_image) if e.status is CameraStatus.CORRECTED and not refine.registered[k]]
     if by_colmap and colmap is not None:
         poses[by_colmap] = colmap_in_refined(colmap, refine)[by_colmap]
@@ -124,8 +137,7 @@ def _model_camera_kept(
             or (e.status is CameraStatus.CORRECTED and (refine.registered[k] or colmap is not None))
         )
     ]
-    held = [e.verdict is FrameVerdict.CONFIRMED or e.status in _PHOTO_REFERENCE for e in per_image]
-    reference = [k for k, e in enumerate(per_image) if held[k] and refine.registered[k]]
+    reference = _photo_references(per_image, refine)
     if not judged:
         return per_image
     at_model = poses.copy()
@@ -187,9 +199,8 @@ def _guided_misfits(per_image, ff_cam_from_world, refine: RefineResult, photos, 
     repeated tile): both signs on the 2 frames 25 deg off, on none of 400 good frames (a far fit alone on 1, a poor
     fit alone on 34). Frames are judged one at a time, the worst first (as :func:`_dense_misfits`)."""
     judged = [k for k, e in enumerate(per_image) if e.status is CameraStatus.GUIDED]
-    held = [e.verdict is FrameVerdict.CONFIRMED or e.status in _PHOTO_REFERENCE for e in per_image]
-    reference = [k for k, e in enumerate(per_image) if held[k] and refine.registered[k]]
-    poses = np.where(refine.registered[:, None, None], refine.cam_from_world, ff_cam_from_world)
+    reference = _photo_references(per_image, refine)
+    poses = _judged_poses(refine, ff_cam_from_world)
     out = list(per_image)
     # One frame at a time, the worst first, the others judged again without it among their references: a frame far
     # off, a reference of its neighbours, makes them fit poorly too (bounded: each round leaves one frame out)
