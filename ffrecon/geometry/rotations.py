@@ -91,6 +91,26 @@ def axis_angle_to_matrix(axis_angle: np.ndarray) -> np.ndarray:
     return quat_xyzw_to_matrix(quat_xyzw)
 
 
+def matrix_to_axis_angle(rot: np.ndarray) -> np.ndarray:
+    """``[..., 3]`` axis times angle (radians) of ``[..., 3, 3]`` rotations whose angle is below 180 deg (from the
+    skew-symmetric part; near 180 deg the axis loses precision). The inverse of :func:`axis_angle_to_matrix`.
+
+    >>> v = np.array([0.3, -0.2, 0.1])
+    >>> bool(np.allclose(matrix_to_axis_angle(axis_angle_to_matrix(v)), v))
+    True
+    """
+    rot = np.asarray(rot, dtype=np.float64)
+    vee = 0.5 * np.stack(
+        [rot[..., 2, 1] - rot[..., 1, 2], rot[..., 0, 2] - rot[..., 2, 0], rot[..., 1, 0] - rot[..., 0, 1]], -1
+    )
+    sin = np.linalg.norm(vee, axis=-1)  # sin(angle) times the unit axis: vee
+    cos = 0.5 * (np.trace(rot, axis1=-2, axis2=-1) - 1)
+    angle = np.arctan2(sin, cos)
+    # angle / sin(angle) with its limit 1 at the identity
+    ratio = np.where(sin > 1e-300, angle / np.maximum(sin, 1e-300), 1.0)
+    return vee * ratio[..., None]
+
+
 def rotation_angle_deg(rot: np.ndarray) -> np.ndarray:
     """Angle in degrees of rotation matrices ``[..., 3, 3]`` (robust near 0 and 180 degrees).
 
