@@ -5,10 +5,10 @@ import pickle
 import cv2
 import numpy as np
 import pytest
-from PIL import Image, ImageOps
+from PIL import Image, ImageOps, PngImagePlugin
 
 from ffrecon.capture import CaptureOptions, run_capture
-from ffrecon.capture.images import load_image
+from ffrecon.capture.images import load_image, read_exif
 from ffrecon.capture.quality import assess_capture, measure_frame
 from ffrecon.capture.video import extract_video_frames
 from ffrecon.errors import InputError
@@ -185,3 +185,38 @@ def test_bad_inputs_have_clear_messages(tmp_path):
         run_capture(mixed, CaptureOptions(), tmp_path / "o4")
     with pytest.raises(InputError, match="not found"):
         run_capture(tmp_path / "missing", CaptureOptions(), tmp_path / "o5")
+
+
+def _chunks(data: bytes) -> list[tuple[bytes, bytes]]:
+    """A PNG's chunks as (type, whole chunk with length and CRC)."""
+    out, at = [], 8
+    while at < len(data):
+        length = int.from_bytes(data[at : at + 4], "big")
+        out.append((data[at + 4 : at + 8], data[at : at + 12 + length]))
+        at += 12 + length
+    return out
+
+
+@pytest.mark.parametrize("late", [False, True])
+def test_png_exif_is_found_before_or_after_the_image_data(tmp_path, late, monkeypatch):
+    """The orientation of a PNG whose eXIf chunk comes before the image data or after it (PNG allows both; Pillow
+    finds the late one only by decoding the image), and a PNG without EXIF read without decoding it (issue 40:
+    Pillow's getexif decoded every PNG of a capture once more)."""
+    img = Image.fromarray(_pattern(40, 60, seed=2))
+    exif = img.getexif()
+    exif[0x0112] = 6
+    path = tmp_path / "rotated.png"
+    img.save(path, exif=exif)
+    chunks = _chunks(path.read_bytes())
+    assert b"eXIf" in [kind for kind, _ in chunks]
+    if late:  # move eXIf to just before IEND
+        moved = [c for c in chunks if c[0] == b"eXIf"]
+        rest = [c for c in chunks if c[0] != b"eXIf"]
+        chunks = rest[:-1] + moved + rest[-1:]
+        path.write_bytes(b"\x89PNG\r\n\x1a\n" + b"".join(c for _, c in chunks))
+    assert read_exif(path)[0] == 6
+    plain = tmp_path / "plain.png"
+    img.save(plain)
+    decoded = []
+    monkeypatch.setattr(PngImagePlugin.PngImageFile, "load", lambda self: decoded.append(1))
+    assert read_exif(plain)[0] == 1 and not decoded
