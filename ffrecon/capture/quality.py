@@ -110,7 +110,9 @@ class CaptureQuality:
     edge_sharpness: tuple[float, ...]  # see FrameMeasures
     mean_gradient: tuple[float, ...]  # see FrameMeasures
     brightness_stops: tuple[float, ...]  # log2(mean / median mean)
-    best_neighbour_matches: tuple[int, ...]  # ORB inliers with the best nearby frame (-1: single frame)
+    # ORB inliers with the best nearby frame matched (-1: single frame); at least min_overlap_matches where it is
+    # reached (farther neighbours are then not matched: _best_neighbour_matches)
+    best_neighbour_matches: tuple[int, ...]
     flags: tuple[FrameFlag, ...] = field(default=())
 
     def flagged(self, kind: str) -> list[str]:
@@ -139,17 +141,22 @@ def _orb_inliers(a: FrameMeasures, b: FrameMeasures, matcher: cv2.BFMatcher) -> 
     return int(mask.sum()) if mask is not None else 0
 
 
-def _best_neighbour_matches(measures: Sequence[FrameMeasures], neighbours: int) -> list[int]:
+def _best_neighbour_matches(measures: Sequence[FrameMeasures], neighbours: int, enough: int | None = None) -> list[int]:
     """ORB + fundamental-matrix RANSAC inliers of each frame with its best of ``neighbours`` each side.
 
     Each pair is matched once, its inliers counting for both frames: matching both ways doubled the work (96
     frames of 640x480 on the 2-core machine: 4.3-4.4 CPU s both ways, 2.2 once). OpenCV's matcher already uses
-    the cores: running the pairs in threads as well measured no faster (3.2-3.4 s wall either way, load 5)."""
+    the cores: running the pairs in threads as well measured no faster (3.2-3.4 s wall either way, load 5).
+    Nearest pairs first; with ``enough``, a pair whose two frames already share that many inliers with a nearer
+    neighbour is not matched (the check only asks whether a frame reaches the bar): a frame's count is then the
+    best of the pairs matched, at least ``enough``. On ordered captures that halves the work."""
     n = len(measures)
-    pairs = [(i, j) for i in range(n) for j in range(i + 1, min(n, i + neighbours + 1))]
+    pairs = [(i, i + gap) for gap in range(1, neighbours + 1) for i in range(n - gap)]
     matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
     best = [-1] * n
     for i, j in tqdm(pairs, desc="capture overlap check", unit="pair", disable=None if pairs else True):
+        if enough is not None and min(best[i], best[j]) >= enough:
+            continue
         count = _orb_inliers(measures[i], measures[j], matcher)
         best[i], best[j] = max(best[i], count), max(best[j], count)
     return best
@@ -193,7 +200,7 @@ def assess_capture(
     sharp = np.array([m.edge_sharpness for m in measures])
     bright = np.array([max(m.brightness, 1.0) for m in measures])
     stops = np.log2(bright / np.median(bright))
-    best = _best_neighbour_matches(measures, options.overlap_neighbours)
+    best = _best_neighbour_matches(measures, options.overlap_neighbours, options.min_overlap_matches)
     median_sharpness = float(np.median(sharp)) if n > 1 else 0.0
     flags = []
     for k, name in enumerate(names):

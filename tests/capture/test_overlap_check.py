@@ -56,3 +56,21 @@ def test_each_nearby_pair_is_matched_once(monkeypatch):
     assert len(seen) == 5 + 4  # pairs one and two frames apart, once each (both ways: 18)
     assert len({frozenset(p) for p in seen}) == len(seen)
     assert quality._best_neighbour_matches(measures[:1], 2) == [-1]  # a single frame: nothing to match
+
+
+def test_farther_pairs_are_matched_only_for_frames_short_of_the_bar(monkeypatch):
+    """With the bar given, a pair two frames apart is matched only where one of its frames shares fewer inliers
+    than the bar with its nearest neighbours (issue 40: half the ORB matching on ordered captures); the verdicts
+    are those of matching every pair."""
+    names, measures = _frames()
+    options = QualityOptions()
+    seen = []
+    real = quality._orb_inliers
+    monkeypatch.setattr(quality, "_orb_inliers", lambda a, b, m: seen.append((id(a), id(b))) or real(a, b, m))
+    best = quality._best_neighbour_matches(measures, 2, options.min_overlap_matches)
+    index = {id(m): k for k, m in enumerate(measures)}
+    far = sorted((index[a], index[b]) for a, b in seen if abs(index[a] - index[b]) == 2)
+    assert len(seen) - len(far) == 5 and far == [(1, 3), (3, 5)]  # only those of f3, which matches nothing
+    full = quality._best_neighbour_matches(measures, 2)
+    bar = options.min_overlap_matches
+    assert [b < bar for b in best] == [b < bar for b in full] and min(best) >= 0
