@@ -63,19 +63,21 @@ class ResizeTransform:
         # Centre of grid pixel k in original coordinates is (k + 0.5) * ow / w (COLMAP rule).
         xs = (np.arange(w) + 0.5) * (ow / w) * self.scale_x + self.offset_x - 0.5  # array index of the net sample
         ys = (np.arange(h) + 0.5) * (oh / h) * self.scale_y + self.offset_y - 0.5
-        map_x = np.broadcast_to(xs[None, :], (h, w)).astype(np.float32)
-        map_y = np.broadcast_to(ys[:, None], (h, w)).astype(np.float32)
-        out = cv2.remap(
+        # The sampling is affine per axis: warpAffine (the same bilinear taps, OpenCV's 1/32-pixel weights as remap's)
+        # without building the two maps of every pixel: 0.5 ms instead of 4.2 for 640x480 (issue 40)
+        step_x, step_y = (ow / w) * self.scale_x, (oh / h) * self.scale_y
+        src_from_dst = np.array([[step_x, 0.0, xs[0]], [0.0, step_y, ys[0]]])
+        out = cv2.warpAffine(
             np.ascontiguousarray(net_map, dtype=np.float32),
-            map_x,
-            map_y,
-            interpolation,
+            src_from_dst,
+            (w, h),
+            flags=interpolation | cv2.WARP_INVERSE_MAP,
             borderMode=cv2.BORDER_REPLICATE,
         )
         # Samples within half a pixel of the border take the edge value; anything beyond was cropped away.
         wn, hn = self.net_size_wh
-        outside = (map_x < -0.5) | (map_x > wn - 0.5) | (map_y < -0.5) | (map_y > hn - 0.5)
-        out[outside] = 0.0
+        out[:, (xs < -0.5) | (xs > wn - 0.5)] = 0.0
+        out[(ys < -0.5) | (ys > hn - 0.5), :] = 0.0
         return out
 
 
