@@ -100,18 +100,31 @@ class CaptureOptions:
 
 
 class FramesOnDemand(Sequence):
-    """``[H, W, 3]`` uint8 RGB upright images of frames, each read from disk when indexed (nothing is kept)."""
+    """``[H, W, 3]`` uint8 RGB upright images of frames, each read from disk when indexed. With ``keep_bytes``, the
+    first frames read are kept while they take at most that much, and served again from memory (a stage that goes
+    through its frames twice, as the feed-forward stage does for the network and then the fusion, reads those
+    once); without it nothing is kept."""
 
-    def __init__(self, frames: tuple[Frame, ...]) -> None:
+    def __init__(self, frames: tuple[Frame, ...], keep_bytes: int = 0) -> None:
         self._frames = frames
+        self._kept: dict[int, np.ndarray] = {}
+        self._room = keep_bytes
 
     def __len__(self) -> int:
         return len(self._frames)
 
     def __getitem__(self, index):  # an int gives an image, a slice a list of them
         if isinstance(index, slice):
-            return [frame.read_rgb() for frame in self._frames[index]]
-        return self._frames[index].read_rgb()
+            return [self[k] for k in range(*index.indices(len(self)))]
+        k = range(len(self))[index]
+        if k in self._kept:
+            return self._kept[k]
+        image = self._frames[k].read_rgb()
+        if image.nbytes <= self._room:
+            image.flags.writeable = False  # shared by every reader: none may change it
+            self._kept[k] = image
+            self._room -= image.nbytes
+        return image
 
 
 @dataclass(frozen=True)
@@ -160,11 +173,12 @@ class Capture:
         originals = self.original_sizes_wh or tuple(f.size_wh for f in self.frames)
         return tuple(max(f.size_wh) / max(o) for f, o in zip(self.frames, originals))
 
-    def frames_on_demand(self, indices: Sequence[int] | None = None) -> FramesOnDemand:
+    def frames_on_demand(self, indices: Sequence[int] | None = None, keep_bytes: int = 0) -> FramesOnDemand:
         """The frames at ``indices`` (all by default) as a sequence read from disk one at a time, when asked
         for: a stage that goes through them in order holds one, not all (1,000 frames of 640x480 are 0.9 GB;
-        of 1600x1200, 5.8 GB)."""
-        return FramesOnDemand(tuple(self.frames[i] for i in (range(len(self.frames)) if indices is None else indices)))
+        of 1600x1200, 5.8 GB), or those that fit in ``keep_bytes`` (:class:`FramesOnDemand`)."""
+        chosen = range(len(self.frames)) if indices is None else indices
+        return FramesOnDemand(tuple(self.frames[i] for i in chosen), keep_bytes)
 
     def read_images(self, indices: Sequence[int] | None = None) -> list[np.ndarray]:
         """``[H_i, W_i, 3]`` uint8 RGB upright images of the frames at ``indices`` (all by default), read from disk."""

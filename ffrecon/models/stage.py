@@ -45,6 +45,9 @@ log = logging.getLogger("ffrecon.models")
 # The fusion's frames (FeedForwardResult.frame_clouds) are kept for the exports up to this size (about 40 MB at 96
 # frames of 640x480); larger, the exports fuse the depth maps again.
 KEEP_FRAME_CLOUDS_BYTES = 512 * 2**20
+# The photos the network read are kept for the fusion up to this size (the first frames read; the rest are read
+# again): 250 frames of 640x480, or 7 of 12 MP
+KEEP_PHOTO_BYTES = 256 * 2**20
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -274,7 +277,9 @@ def run_feedforward(
         ", SIMULATED" if model.simulated else "",
         len(capture.frames),
     )
-    images = capture.frames_on_demand()  # each read when a model call or the fusion asks for it
+    # each read when a model call asks for it, and kept for the fusion (and the loop calls) while they fit in
+    # KEEP_PHOTO_BYTES: 96 frames of 640x480 (88 MB) were decoded 2.3 times each in --quick (0.9 CPU s, issue 40)
+    images = capture.frames_on_demand(keep_bytes=KEEP_PHOTO_BYTES)
     with timer.stage("predict"):  # reading and resizing the photos, the network's calls, merging its chunks
         model_pass = predict(model, capture, images, options)
     with timer.stage("given_and_masks"):

@@ -220,3 +220,26 @@ def test_png_exif_is_found_before_or_after_the_image_data(tmp_path, late, monkey
     decoded = []
     monkeypatch.setattr(PngImagePlugin.PngImageFile, "load", lambda self: decoded.append(1))
     assert read_exif(plain)[0] == 1 and not decoded
+
+
+def test_frames_on_demand_keep_the_first_frames_that_fit(tmp_path, monkeypatch):
+    """With a byte budget, the frames read first are kept (read-only) and served again without reading; those
+    beyond the budget are read each time (issue 40: the feed-forward stage read every photo twice)."""
+    src = tmp_path / "src"
+    src.mkdir()
+    for k in range(4):
+        Image.fromarray(_pattern(60, 80, seed=k)).save(src / f"f{k}.png")
+    capture = run_capture(src, CaptureOptions(), tmp_path / "out")
+    reads = []
+    real = type(capture.frames[0]).read_rgb
+    monkeypatch.setattr(type(capture.frames[0]), "read_rgb", lambda self: reads.append(self.name) or real(self))
+    frames = capture.frames_on_demand(keep_bytes=2 * 60 * 80 * 3)
+    first = [frames[k] for k in range(4)]
+    again = [frames[k] for k in range(4)] + frames[1:3]
+    assert reads == ["f0.png", "f1.png", "f2.png", "f3.png", "f2.png", "f3.png", "f2.png"]
+    assert again[0] is first[0] and not first[0].flags.writeable and first[2].flags.writeable
+    assert all(np.array_equal(a, b) for a, b in zip(first, again))
+    assert [f.name for f in capture.frames] == ["f0.png", "f1.png", "f2.png", "f3.png"]
+    unkept = capture.frames_on_demand()
+    unkept[0], unkept[0]
+    assert reads[-2:] == ["f0.png", "f0.png"]
