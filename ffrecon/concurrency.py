@@ -15,6 +15,7 @@ fails or is interrupted, the share is cancelled, and the next :meth:`CoreShare.s
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import ctypes
 import logging
@@ -22,7 +23,8 @@ import os
 import signal
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import TypeVar
 
@@ -95,6 +97,26 @@ def blas_threads(threads: int = 1) -> Iterator[None]:
         yield
     finally:
         set_threads(before)
+
+
+def map_in_order(fn: Callable[[A], B], items: Iterable[A], workers: int, window: int = 0) -> Iterator[B]:
+    """``fn(item)`` for each of ``items``, yielded in their order, computed on ``workers`` threads (in the calling
+    thread when ``workers`` <= 1). The items are drawn in the calling thread, at most ``window`` (default twice the
+    workers) ahead of the results yielded, so that what they hold (decoded photos) stays bounded. For work that
+    releases the GIL (OpenCV, numpy on large arrays, file writes). An error of ``fn`` is raised where its result
+    would have been yielded, once the items already drawn have finished."""
+    if workers <= 1:
+        yield from map(fn, items)
+        return
+    ahead = window or 2 * workers
+    with ThreadPoolExecutor(workers, thread_name_prefix="ffrecon-map") as pool:
+        pending: collections.deque[Future[B]] = collections.deque()
+        for item in items:
+            pending.append(pool.submit(fn, item))
+            if len(pending) >= ahead:
+                yield pending.popleft().result()
+        while pending:
+            yield pending.popleft().result()
 
 
 class Cancelled(Exception):

@@ -64,3 +64,44 @@ def test_a_run_holds_one_blas_thread_while_it_lasts(monkeypatch, tmp_path):
         assert seen == [1] and get_threads() == 2
     finally:
         set_threads(before)
+
+
+@pytest.mark.parametrize("workers", [1, 3])
+def test_map_in_order_keeps_the_order_bounds_what_is_drawn_ahead_and_raises_in_place(workers):
+    """Results in the items' order whatever order the threads finish in; the items drawn at most ``window`` ahead
+    of the results taken; an error raised where its result would have come (issue 40: the capture measures and
+    writes its frames on the cores while the next are decoded)."""
+    import threading
+    import time
+
+    from ffrecon.concurrency import map_in_order
+
+    drawn, threads = [], set()
+
+    def items():
+        for k in range(12):
+            drawn.append(k)
+            yield k
+
+    def slow(k):
+        threads.add(threading.current_thread().name)
+        time.sleep(0.02 * ((7 * k) % 5))  # finishing out of order
+        return k * k
+
+    out = []
+    for value in map_in_order(slow, items(), workers, window=4):
+        out.append(value)
+        assert len(drawn) - len(out) <= 4
+    assert out == [k * k for k in range(12)]
+    assert (len(threads) > 1) == (workers > 1)
+
+    def failing(k):
+        if k == 5:
+            raise ValueError("five")
+        return k
+
+    got = []
+    with pytest.raises(ValueError, match="five"):
+        for value in map_in_order(failing, range(10), workers):
+            got.append(value)
+    assert got == [0, 1, 2, 3, 4]

@@ -27,6 +27,7 @@ from ffrecon.capture.names import check_names
 from ffrecon.capture.quality import CaptureQuality, FrameMeasures, QualityOptions, assess_capture, measure_frame
 from ffrecon.capture.video import extract_video_frames
 from ffrecon.checks import check_number
+from ffrecon.concurrency import available_cores, map_in_order
 from ffrecon.errors import InputError, ResourceError
 from ffrecon.formats.intrinsics import KnownIntrinsics, read_intrinsics
 from ffrecon.formats.poses import read_poses
@@ -327,34 +328,39 @@ class _Loaded:
 
 def _load_folder(folder: Path, options: CaptureOptions, image_dir: Path) -> tuple[_Loaded, list[tuple[str, str]]]:
     """Every listed image decoded strictly. Without ``skip_bad_images`` the first bad file (or non-image)
-    stops the storing, not the checking: the rest are still decoded, so that one error names them all."""
+    stops the storing, not the checking: the rest are still decoded, so that one error names them all. The frames
+    are measured and written on the cores while the next are decoded."""
     paths, skipped, bad = _list_inputs(folder, options)
     if not paths and not bad:
         raise InputError(
             f"no images found in {folder}",
             f"put photos ({', '.join(IMAGE_EXTENSIONS)}) in the folder, or pass a video file",
         )
+
+    def decoded():  # in this thread (Pillow's strict mode is process-wide): each photo, or its problem noted
+        for path in tqdm(paths, desc="loading images", unit="img", disable=None):
+            try:
+                photo = load_photo(path, max_size=options.max_image_size)
+            except InputError as err:
+                bad.unusable.append((path.name, err.problem))
+                continue
+            if not bad or options.skip_bad_images:  # else the run stops below: only check the remaining files
+                yield path, photo
+
+    def stored(item: tuple[Path, Photo]):  # on the cores: measuring and writing (OpenCV releases the GIL)
+        path, photo = item
+        original = None if photo.converted else path  # its bytes are copied where they hold the pixels as they are
+        frame, measured = _store_frame(photo.rgb, image_dir / path.name, photo.focal_prior_px, original)
+        return frame, measured, photo.original_size_wh
+
     loaded = _Loaded()
-    for path in tqdm(paths, desc="loading images", unit="img", disable=None):
-        try:
-            photo = load_photo(path, max_size=options.max_image_size)
-        except InputError as err:
-            bad.unusable.append((path.name, err.problem))
-            continue
-        if bad and not options.skip_bad_images:
-            continue  # the run stops below: only check the remaining files
-        frame, measured = _store_frame(photo.rgb, image_dir / path.name, photo.focal_prior_px, _original(path, photo))
-        loaded.add(frame, measured, photo.original_size_wh)
+    for frame_measured_size in map_in_order(stored, decoded(), available_cores()):
+        loaded.add(*frame_measured_size)
     if bad and not options.skip_bad_images:
         raise bad.error()
     for name, why in bad.skipped():
         log.warning("skipping %s: %s", name, why)
     return loaded, skipped + bad.skipped()
-
-
-def _original(path: Path, photo: Photo) -> Path | None:
-    """The input file when its bytes hold the frame's pixels as they are (copied, not re-encoded)."""
-    return None if photo.converted else path
 
 
 def _load_video(source: Path, options: CaptureOptions, image_dir: Path) -> _Loaded:
