@@ -23,7 +23,7 @@ import numpy as np
 from ffrecon.errors import InputError
 from ffrecon.formats.mesh import MeshMethod, MeshOptions, poisson_mesh, remove_small_components, write_mesh_files
 from ffrecon.formats.pointcloud import FuseOptions
-from ffrecon.geometry.projection import pixel_centers, unproject_pixels
+from ffrecon.geometry.projection import flat_pixel_centers, unproject_pixels
 from ffrecon.types import Prediction, Skipped
 
 if TYPE_CHECKING:
@@ -79,7 +79,7 @@ def tsdf_grid(depth: DepthMaps, options: MeshOptions) -> tuple[float, float] | S
         if not len(idx):
             continue
         idx = idx[:: max(1, len(idx) // _EXTENT_SAMPLE)]
-        uv = pixel_centers(*d.shape).reshape(-1, 2)[idx]
+        uv = flat_pixel_centers(idx, d.shape[1])
         sample.append(unproject_pixels(uv, d.reshape(-1)[idx], pred.depth_camera(k).K, pred.cam_from_world[k]))
         far = max(far, float(d.max()))
     if not sample:

@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 
 from ffrecon.checks import check_number
-from ffrecon.geometry.projection import unproject_pixels
+from ffrecon.geometry.projection import flat_pixel_centers, unproject_pixels
 from ffrecon.types import Prediction
 
 log = logging.getLogger("ffrecon.export")
@@ -111,8 +111,7 @@ def _picked(prediction: Prediction, k: int, options: FuseOptions) -> np.ndarray:
 
 def _frame_xyz(prediction: Prediction, k: int, idx: np.ndarray) -> np.ndarray:
     """``[M, 3]`` world points of frame ``k``'s depth pixels ``idx``."""
-    w = prediction.depth[k].shape[1]
-    uv = np.stack([idx % w, idx // w], axis=-1) + 0.5  # the pixels' centres (geometry.projection.pixel_centers)
+    uv = flat_pixel_centers(idx, prediction.depth[k].shape[1])
     cam = prediction.depth_camera(k)
     return unproject_pixels(uv, prediction.depth[k].reshape(-1)[idx], cam.K, prediction.cam_from_world[k])
 

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ffrecon.checks import check_number
-from ffrecon.geometry.projection import pixel_centers, project_points
+from ffrecon.geometry.projection import flat_pixel_centers, project_points
 from ffrecon.types import Prediction
 
 logger = logging.getLogger("ffrecon.geometry")
@@ -101,7 +101,7 @@ def _sample_points(
     pick = pick[np.argsort(tile, kind="stable")]
     cam = prediction.depth_camera(i)
     depth = prediction.depth[i].ravel()[pick].astype(np.float64)
-    uv = pixel_centers(h, w).reshape(-1, 2)[pick]
+    uv = flat_pixel_centers(pick, w)
     rays = np.stack([(uv[:, 0] - cam.cx) / cam.fx, (uv[:, 1] - cam.cy) / cam.fy, np.ones(len(pick))], axis=1)
     pose = prediction.cam_from_world[i]
     return (rays * depth[:, None] - pose[:, 3]) @ pose[:, :3], np.sort(tile)

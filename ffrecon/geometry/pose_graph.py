@@ -102,8 +102,10 @@ class _Graph:
         )
         return res * self.sqrt_weight[:, None]
 
-    def jacobian(self, params: int, h: float) -> np.ndarray:
-        """``[E * 7, params]`` Jacobian of the flattened residuals at the current estimate (central differences)."""
+    def jacobian(self, h: float) -> np.ndarray:
+        """``[E * 7, (K - 1) * 7]`` Jacobian of the flattened residuals at the current estimate (central differences
+        of step ``h``)."""
+        params = (len(self.rot) - 1) * 7
         steps = np.concatenate([np.eye(params) * h, np.eye(params) * -h]).reshape(2 * params, -1, 7)
         res = self.residuals(steps).reshape(2 * params, -1)
         return ((res[:params] - res[params:]) / (2 * h)).T
@@ -145,7 +147,7 @@ def optimize_pose_graph(
     while nodes > 1 and edges and iterations < options.max_iterations:
         iterations += 1
         res = graph.residuals(zero).reshape(-1)
-        jac = graph.jacobian(zero.size, options.difference_step)
+        jac = graph.jacobian(options.difference_step)
         normal = jac.T @ jac
         normal = normal + options.damping * np.diag(np.maximum(np.diagonal(normal), 1e-12))
         try:

@@ -17,6 +17,16 @@ def pixel_centers(height: int, width: int) -> np.ndarray:
     return np.stack([xs, ys], axis=-1)
 
 
+def flat_pixel_centers(indices: np.ndarray, width: int) -> np.ndarray:
+    """``[M, 2]`` (x, y) centres of the pixels at flat (row-major) ``indices`` of an image ``width`` wide: the rows
+    of ``pixel_centers(h, width).reshape(-1, 2)[indices]`` without building the whole grid.
+
+    >>> flat_pixel_centers(np.array([0, 5]), 4).tolist()
+    [[0.5, 0.5], [1.5, 1.5]]
+    """
+    return np.stack([indices % width, indices // width], axis=-1) + 0.5
+
+
 def unproject_depth(depth: np.ndarray, K: np.ndarray, cam_from_world: np.ndarray | None = None) -> np.ndarray:
     """Back-project a z-depth map to 3D points.
 

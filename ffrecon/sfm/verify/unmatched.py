@@ -205,7 +205,7 @@ def _guided_misfits(per_image, ff_cam_from_world, refine: RefineResult, photos, 
     # One frame at a time, the worst first, the others judged again without it among their references: a frame far
     # off, a reference of its neighbours, makes them fit poorly too (bounded: each round leaves one frame out)
     for _ in range(len(judged)):
-        check = photometric_check(photos, depth, poses, reference, judged, options) if judged else None
+        check = photometric_check(photos, depth, poses, reference, judged, options)
         flagged = (
             [] if check is None else [k for k in judged if check.contradicts(out[k].name) and check.poor(out[k].name)]
         )
