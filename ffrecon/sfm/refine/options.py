@@ -15,6 +15,7 @@ from ffrecon.geometry.alignment import Sim3
 from ffrecon.geometry.overlap import OverlapGraph, OverlapOptions
 from ffrecon.sfm.features import FeatureStats, SiftOptions
 from ffrecon.sfm.refine.bundle import BundleOptions, BundleSummary
+from ffrecon.sfm.refine.carry import Carry
 from ffrecon.sfm.refine.dense import DenseOptions, DenseStats
 from ffrecon.sfm.refine.guided import GuidanceOptions, GuidanceStats
 from ffrecon.sfm.refine.links import LinkOptions
@@ -188,6 +189,9 @@ class RefineResult:
     # deviation (deg) of its relative rotations at one pixel per observation (refine/rigidity.py); nan where not
     # refined; empty where not estimated
     rotation_spread_deg: tuple[float, ...] = ()
+    # How the frames not refined were placed: carried along with their refined neighbours, or at the model's
+    # cameras (refine/carry.py); None where nothing was chosen (none left out, or too few refined)
+    carry: Carry | None = None
 
     def to_report(self) -> dict:
         err = self.mean_reprojection_error_px
@@ -224,6 +228,7 @@ class RefineResult:
             "rotation_spread_deg": {
                 n: round(s, 3) for n, s in zip(self.names, self.rotation_spread_deg) if np.isfinite(s)
             },
+            "carry": None if self.carry is None else self.carry.to_report(self.names),
         }
 
 

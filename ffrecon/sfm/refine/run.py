@@ -35,6 +35,7 @@ from ffrecon.sfm.features import (
     feature_stats,
 )
 from ffrecon.sfm.refine.adjust import _adjust_with_dense
+from ffrecon.sfm.refine.carry import carry_left_out
 from ffrecon.sfm.refine.components import lost_frames, parts, place_parts
 from ffrecon.sfm.refine.guided import GuidanceStats
 from ffrecon.sfm.refine.matching import (
@@ -233,11 +234,19 @@ def _refined_result(
 ) -> RefineResult:
     """The refined model ``rec`` (already in the prediction's world frame) read back by image name.
 
-    Frames that ``rec`` does not hold keep their feed-forward pose and camera.
+    Frames that ``rec`` does not hold keep their feed-forward camera, and the feed-forward pose carried along
+    with the refined frames near them where that predicts the refined frames better (:mod:`.carry`).
     """
     names = tuple(prediction.names)
     cam_from_world, registered = cam_from_world_by_name(rec, names)
-    cam_from_world[~registered] = prediction.cam_from_world[~registered]
+    cam_from_world, carry = carry_left_out(prediction.cam_from_world, cam_from_world, registered)
+    if carry is not None and carry.carried:
+        logger.info(
+            "%d frame(s) not refined carried along with their refined neighbours (%s correction): %s",
+            len(carry.carried),
+            carry.scheme,
+            ", ".join(names[k] for k in carry.carried),
+        )
     refined_cams = tuple(c if r else p for c, r, p in zip(cameras_by_name(rec, names), registered, prediction.cameras))
     by_name = {image.name: image for image in rec.images.values() if image.has_pose}
     coefficients = tuple(
@@ -263,6 +272,7 @@ def _refined_result(
         model_path=model_dir,
         observations=np.array([by_name[n].num_points3D if n in by_name else 0 for n in names], int),
         reconstruction=rec,
+        carry=carry,
         **provenance,
     )
 
