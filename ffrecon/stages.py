@@ -17,8 +17,9 @@ from ffrecon.models.stage import feedforward_skip_reason, run_feedforward_sharin
 from ffrecon.report import sections, stage_html
 from ffrecon.report.splat_html import seeds_section, splat_section
 from ffrecon.sfm.compare.comparisons import comparison_skip_reason, load_references, pose_estimates, run_comparisons
-from ffrecon.sfm.crosscheck.gates import MIN_MASK_USE, gate_poses
-from ffrecon.sfm.crosscheck.run import pairs_from_model, run_colmap_on
+from ffrecon.sfm.crosscheck.gates import MIN_MASK_USE, gate_before_refinement, gate_poses
+from ffrecon.sfm.crosscheck.matching import match_colmap_on, pairs_from_model
+from ffrecon.sfm.crosscheck.run import map_colmap_on
 from ffrecon.sfm.refine import run as refine
 from ffrecon.sfm.refine.options import key_options
 from ffrecon.sfm.verify.evidence import evidence_skip_reason, judge_refined_cameras
@@ -57,6 +58,13 @@ def splat_seed_reason(state: StateView) -> str | None:
     return no_seed_reason(state.prediction, final.indices)
 
 
+def colmap_skip_reason(state: StateView, options) -> str | None:
+    """Why the COLMAP cross-check (its matching and its mapping alike) does not run, or None."""
+    return (QUICK_NO_CROSSCHECK if options.mode is RunMode.QUICK and state.views >= 2 else None) or state.why_not(
+        enabled=options.colmap.enabled, flag="--no-colmap"
+    )
+
+
 def blocked(state: StateView) -> str | None:
     """The failed gate that stops the run (not forced), or None: after it nothing is exported."""
     return state.why_not(*state.verdicts) if state.views >= 2 else None
@@ -93,10 +101,10 @@ FEEDFORWARD = Stage(
     report=sections.feedforward_entries,
     page=(("Feed-forward cameras and depth", stage_html.feedforward_section),),
 )
-COLMAP = Stage(
-    "colmap",
+COLMAP_MATCHING = Stage(
+    "colmap_matching",
     ("capture",),
-    lambda s, o, c: run_colmap_on(
+    lambda s, o, c: match_colmap_on(
         s.capture,
         o.colmap,
         s.work / "crosscheck",
@@ -105,14 +113,21 @@ COLMAP = Stage(
     ),
     lambda o: o.colmap,
     files=lambda s, o: (o.colmap.vocab_tree_path,),  # a tree replaced at the same path re-runs the matching
-    label="colmap cross-check",
-    skip=lambda s, o: (
-        (QUICK_NO_CROSSCHECK if o.mode is RunMode.QUICK and s.views >= 2 else None)
-        or s.why_not(enabled=o.colmap.enabled, flag="--no-colmap")
-    ),
+    label="colmap cross-check: matching",
+    skip=lambda s, o: colmap_skip_reason(s, o),
     outputs=("crosscheck",),
     # with the model's pairs (--pairing model; long captures by default) it runs after the model, not beside it
     after=lambda s, o: ("feedforward",) if pairs_from_model(o.colmap, s.views, model=s.model is not None) else (),
+    listed_skipped=False,  # skipped with the cross-check, which lists it
+)
+COLMAP = Stage(  # the mapping, beside the refinement: both read the matches, neither the other
+    "colmap",
+    ("capture", "colmap_matching"),
+    lambda s, o, c: map_colmap_on(s.capture, s.colmap_matching, o.colmap, s.work / "crosscheck", step=c.step),
+    lambda o: o.colmap,
+    label="colmap cross-check",
+    skip=lambda s, o: colmap_skip_reason(s, o),
+    outputs=("crosscheck/sparse", "crosscheck/mapper"),
 )
 SIFT = Stage(  # quick mode: the refinement's SIFT, extracted beside the inference as COLMAP's is in the full run
     "sift",
@@ -145,16 +160,16 @@ GATES = Stage(
 )
 REFINE = Stage(
     "refine",
-    ("capture", "feedforward", "colmap", "sift"),
-    lambda s, o, c: refine.run_refine_reusing(s.capture, s.prediction, s.colmap, s.sift, o.refine, s.work),
+    ("capture", "feedforward", "colmap_matching", "sift"),
+    lambda s, o, c: refine.run_refine_reusing(s.capture, s.prediction, s.colmap_matching, s.sift, o.refine, s.work),
     lambda o: key_options(o.refine),
     label="refinement",
     skip=lambda s, o: (
-        s.why_not(s.gates, enabled=o.refine.enabled, flag="--no-refine")
+        s.why_not(enabled=o.refine.enabled, flag="--no-refine")
         or refine.refine_skip_reason(s.prediction)
         or no_depth_reason(s.prediction, masks=s.capture.mask_dir is not None)
+        or gate_before_refinement(s.prediction, o.gates, force=o.force, masked_out=masked_out(s.capture))
     ),
-    skip_reads=("gates",),
     outputs=("sparse", "refine"),
     page=(("Refinement", stage_html.refine_section),),
 )
@@ -243,5 +258,8 @@ EXPORTS = Stage(
     outputs=OUTPUTS,
     report=sections.exports_entries,
 )
-POSES = Beside((FEEDFORWARD, COLMAP, SIFT))  # each reads only the capture
-STAGES = (CAPTURE, POSES, GATES, REFINE, EVIDENCE, COMPARISONS, FINAL, SPLAT, SEED_COMPARISON, EXPORTS)
+POSES = Beside((FEEDFORWARD, COLMAP_MATCHING, SIFT))  # each reads only the capture
+# COLMAP's mapper (one thread) beside the refinement of the model's cameras on the same matches; the gates then
+# judge COLMAP's model, and the evidence the refined cameras
+MAPPING = Beside((COLMAP, REFINE))
+STAGES = (CAPTURE, POSES, MAPPING, GATES, EVIDENCE, COMPARISONS, FINAL, SPLAT, SEED_COMPARISON, EXPORTS)

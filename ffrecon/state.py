@@ -27,6 +27,7 @@ from ffrecon.options import RunOptions
 from ffrecon.resume import StageRunner, file_key, stage_key
 from ffrecon.sfm.compare.comparisons import ComparisonsResult
 from ffrecon.sfm.crosscheck.gate_types import GatesResult
+from ffrecon.sfm.crosscheck.matching import ColmapMatches
 from ffrecon.sfm.crosscheck.run import ColmapResult
 from ffrecon.sfm.refine.options import RefineResult
 from ffrecon.sfm.verify.verdicts import EvidenceResult
@@ -66,6 +67,10 @@ class StageResults:
     @property
     def colmap(self) -> ColmapResult | Skipped | None:
         return self.result("colmap")
+
+    @property
+    def colmap_matching(self) -> ColmapMatches | Skipped | None:  # the cross-check's SIFT and matches
+        return self.result("colmap_matching")
 
     @property
     def sift(self) -> Path | Skipped | None:  # quick mode's SIFT database, extracted beside the inference

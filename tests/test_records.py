@@ -129,7 +129,17 @@ def recorded(demo12, small_demo, tmp_path_factory):
 
 def test_every_stage_record_decodes_to_the_result_it_stored(recorded):
     stages = {stage for _, stage, _, _ in recorded}
-    every = {"capture", "feedforward", "colmap", "sift", "gates", "refine", "evidence", "comparisons"}
+    every = {
+        "capture",
+        "feedforward",
+        "colmap_matching",
+        "colmap",
+        "sift",
+        "gates",
+        "refine",
+        "evidence",
+        "comparisons",
+    }
     assert stages == every | {"splat", "seed_comparison", "exports"}
     for out, stage, key, result in recorded:
         folder = out / RECORDS

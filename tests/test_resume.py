@@ -14,7 +14,7 @@ import pycolmap
 import pytest
 from plyfile import PlyData
 
-import ffrecon.sfm.crosscheck.run as crosscheck
+import ffrecon.sfm.crosscheck.matching as crosscheck
 import ffrecon.splat.final as splat_final
 from ffrecon.cli import main
 from ffrecon.errors import Interrupted
@@ -28,7 +28,7 @@ from ffrecon.splat.stage import SplatOptions
 from ffrecon.workspace import staging_path
 
 FIXED_CHUNKS = FeedForwardOptions(multiview=MultiviewOptions(chunk_size=8))
-BEFORE_SPLAT = ["capture", "feedforward", "colmap", "gates", "refine", "evidence", "comparisons"]
+BEFORE_SPLAT = ["capture", "feedforward", "colmap_matching", "colmap", "refine", "gates", "evidence", "comparisons"]
 
 
 def _options(**kw) -> RunOptions:
@@ -122,20 +122,21 @@ def test_interrupted_cross_check_keeps_the_feedforward_stage_that_ran_beside_it(
         raise KeyboardInterrupt
 
     with monkeypatch.context() as patch:
-        patch.setattr(crosscheck, "run_colmap", interrupt)
+        patch.setattr(crosscheck, "match_colmap", interrupt)
         with pytest.raises(Interrupted) as caught:
             run(demo12.images, out, demo12.model, RunOptions(**no_splat, command="ffrecon run x"))
-    assert caught.value.stage == "colmap" and caught.value.kept == ["capture", "feedforward"]
+    assert caught.value.stage == "colmap_matching" and caught.value.kept == ["capture", "feedforward"]
     assert not out.exists()
 
     resumed = run(demo12.images, out, demo12.model, RunOptions(**no_splat, resume=True))
     assert [t.stage for t in resumed.timings if t.reused] == ["capture", "feedforward"]
     assert resumed.colmap.num_registered == 12 and resumed.refine.registered.all()
     report = json.loads((out / "report.json").read_text())
-    [pair] = report["concurrent_stages"]
-    assert pair["stages"] == ["feedforward", "colmap"] and pair["wall_seconds"] <= pair["sum_seconds"] + 0.05
-    assert report["timings"]["colmap"]["concurrent_with"] == "feedforward"
-    assert report["timings"]["refine"]["concurrent_with"] is None
+    pair, mapping = report["concurrent_stages"]
+    assert pair["stages"] == ["feedforward", "colmap_matching"] and pair["wall_seconds"] <= pair["sum_seconds"] + 0.05
+    assert report["timings"]["colmap_matching"]["concurrent_with"] == "feedforward"
+    # COLMAP's mapping and the refinement read the same matches, and run side by side too
+    assert mapping["stages"] == ["colmap", "refine"] and report["timings"]["refine"]["concurrent_with"] == "colmap"
 
 
 @pytest.mark.slow

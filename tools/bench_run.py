@@ -58,9 +58,9 @@ from pathlib import Path
 import numpy as np
 
 # Columns of the table: report.json timing names, and groups of the small ones.
-STAGES = ("capture", "feedforward", "colmap", "refine", "splat", "exports")
+STAGES = ("capture", "feedforward", "colmap_matching", "colmap", "refine", "splat", "exports")
 # with the checks between them (gates, dense evidence, comparisons): the cost of poses one can trust
-POSE_STAGES = ("feedforward", "colmap", "refine", "checks")
+POSE_STAGES = ("feedforward", "colmap_matching", "colmap", "refine", "checks")
 CHECKS = ("gates", "evidence", "comparisons", "seed_comparison")
 # Steps of COLMAP alone (its own timer).
 STEPS = {"colmap": ("feature_extraction", "matching", "mapping")}
@@ -677,7 +677,7 @@ def print_table(rows: list[dict]) -> None:
     extra = sorted(named - set(STAGES) - {"checks", "startup", "report"})
     # the run's own entries first and last: from the process's start to the first stage, after the last stage
     columns = [*({"startup"} & named), *STAGES, "checks", *extra, *({"report"} & named)]
-    short = {"feedforward": "ff", "exports": "export"}
+    short = {"feedforward": "ff", "exports": "export", "colmap_matching": "colmatch"}
     head = "".join(f"{short.get(c, c)[:8]:>9}" for c in columns)
     print(f"{'method':<24}{'wall s':>8}{'xCOLMAP':>8}{head}{'other':>8}{'cpu s':>8}{'xCPU':>6}{'peakGB':>7}", end="")
     print(f"{'exit':>5}{'reg':>7}{'AUC@5':>7}{'medrot':>8}{'PSNR':>6}")

@@ -11,8 +11,9 @@ from ffrecon.errors import InputError
 from ffrecon.geometry.metrics import pose_errors
 from ffrecon.sfm.compare.poses import compare_models
 from ffrecon.sfm.crosscheck.mapping import drop_weak_images
+from ffrecon.sfm.crosscheck.matching import resolve_camera_sharing, resolve_pairing
 from ffrecon.sfm.crosscheck.options import CameraSharing, ColmapOptions, MapperKind, PairingMode
-from ffrecon.sfm.crosscheck.run import ColmapStatus, resolve_camera_sharing, resolve_pairing, run_colmap
+from ffrecon.sfm.crosscheck.run import ColmapStatus, run_colmap
 
 
 def test_colmap_registers_the_orbit_accurately(orbit24, colmap24):

@@ -11,8 +11,8 @@ from ffrecon.geometry.overlap import overlap_graph
 from ffrecon.pipeline import RunOptions, run
 from ffrecon.sfm.crosscheck import mapping
 from ffrecon.sfm.crosscheck.mapping import MapperRun
+from ffrecon.sfm.crosscheck.matching import resolve_pairing
 from ffrecon.sfm.crosscheck.options import ColmapOptions, PairingMode
-from ffrecon.sfm.crosscheck.run import resolve_pairing
 from ffrecon.sfm.refine import run as refine
 from ffrecon.sfm.refine.options import RefineOptions
 from ffrecon.splat.stage import SplatOptions

@@ -219,6 +219,17 @@ def run_gates(
     return result
 
 
+def gate_before_refinement(
+    prediction: Prediction | None, options: GateOptions, *, force: bool, masked_out: MaskedOut | None = None
+) -> str | None:
+    """Why a failed gate stops a run with a model before its cameras are refined, or None: with a model COLMAP
+    is a witness (:func:`run_gates`), so only the gates that do not read COLMAP's model can stop it, the
+    model's depth coverage; the refinement then need not wait for COLMAP's mapping. :func:`gate_poses` reports
+    the same verdict, with COLMAP's."""
+    verdict = depth_coverage_gate(prediction, options, masked_out=masked_out)
+    return f"gate '{verdict.name}' failed: {verdict.reason}" if verdict.failed and not force else None
+
+
 def gate_poses(
     quality: CaptureQuality | None,
     prediction: Prediction | None,

@@ -25,7 +25,7 @@ from ffrecon.colmap_io import cam_from_world_by_name, cameras_by_name, write_rec
 from ffrecon.geometry.alignment import Sim3
 from ffrecon.geometry.overlap import overlap_graph
 from ffrecon.geometry.undistort import NO_DISTORTION, opencv_coefficients
-from ffrecon.sfm.crosscheck.run import ColmapResult
+from ffrecon.sfm.crosscheck.matching import ColmapMatches
 from ffrecon.sfm.features import (
     CameraModel,
     SiftOptions,
@@ -296,7 +296,7 @@ def refine_skip_reason(prediction: Prediction | None) -> str | None:
 def run_refine_reusing(
     capture: Capture,
     prediction: Prediction,
-    colmap: ColmapResult | Skipped,
+    colmap: ColmapMatches | Skipped,
     sift: Path | Skipped,
     options: RefineOptions,
     out_dir: Path,
@@ -314,12 +314,12 @@ def run_refine_reusing(
     if fixed_intrinsics:
         bundle = dataclasses.replace(options.bundle, refine_focal_length=False, refine_principal_point=False)
         options = dataclasses.replace(options, bundle=bundle, square_pixels=False)
-    reused = colmap.database_path if isinstance(colmap, ColmapResult) else sift if isinstance(sift, Path) else None
+    reused = colmap.database_path if isinstance(colmap, ColmapMatches) else sift if isinstance(sift, Path) else None
     inputs = RefineInputs(
         capture.image_dir,
         capture.mask_dir,
         reuse_features_from=reused,
         fixed=given if capture.poses_fixed else frozenset(),
-        graph=colmap.model_overlap if isinstance(colmap, ColmapResult) else None,  # the same prediction's
+        graph=colmap.model_overlap if isinstance(colmap, ColmapMatches) else None,  # the same prediction's
     )
     return run_refine(inputs, prediction, options, out_dir)
