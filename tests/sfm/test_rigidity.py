@@ -81,6 +81,23 @@ def test_too_few_frames_say_nothing():
     assert rotation_spread_deg(rec, names) == ()
 
 
+def test_a_covariance_finite_for_no_pair_holds_every_frame_loosely(monkeypatch):
+    """A nearly singular adjustment as a whole (held-out room seed 315: NaN for every pair) says the frames are
+    loosely held, not nothing (they had been called confirmed 2.4-3.9 deg off)."""
+    import ffrecon.sfm.refine.rigidity as rigidity
+
+    rec, names = _model(160, 200.0)
+
+    class Singular:
+        def get_cam2_cov_from_cam1(self, *args):
+            return np.full((6, 6), np.nan)
+
+    monkeypatch.setattr(rigidity, "_covariance", lambda rec, ids: Singular())
+    assert rotation_spread_deg(rec, names) == (np.inf,) * len(names)
+    monkeypatch.setattr(rigidity, "_covariance", lambda rec, ids: None)  # pycolmap refused it: nothing is said
+    assert rotation_spread_deg(rec, names) == ()
+
+
 def test_a_loosely_held_frame_is_unchecked_not_confirmed(orbit24, refined24):
     """On the orbit the refinement holds every frame firmly (a real run, spreads well under the limit): all are
     confirmed. A frame whose spread is over the limit is unchecked, kept, and the run does not stop."""

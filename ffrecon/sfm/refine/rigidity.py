@@ -36,7 +36,8 @@ def rotation_spread_deg(rec: pycolmap.Reconstruction, names: Sequence[str]) -> t
     """Per frame of ``names``, the median over the other refined frames of the standard deviation (deg) of their
     relative rotation about its least certain axis, from the covariance of ``rec``'s bundle adjustment at one pixel
     per observation; nan for frames ``rec`` does not hold. Empty when it cannot be estimated (fewer than three
-    frames, or the Hessian could not be inverted): then nothing is said either way."""
+    frames, or pycolmap refused the problem): then nothing is said either way. Where no pair's covariance is finite
+    (a nearly singular adjustment), every frame's spread is inf: loosely held."""
     by_name = {image.name: image.image_id for image in rec.images.values() if image.has_pose}
     held = [n for n in names if n in by_name]
     if len(held) < 3:
@@ -45,7 +46,19 @@ def rotation_spread_deg(rec: pycolmap.Reconstruction, names: Sequence[str]) -> t
     covariance = _covariance(rec, ids)
     if covariance is None:
         return ()
-    poses = {i: rec.image(i).cam_from_world() for i in ids}
+    spread = _spreads(covariance, ids, {i: rec.image(i).cam_from_world() for i in ids})
+    if not any(np.isfinite(v) for v in spread.values()):
+        # A nearly singular adjustment as a whole. Held-out room seed 315 (eight frames in a loop of single pairs,
+        # four of them 2.4-3.9 deg off): NaN for every pair in the run, and 2.9 deg (inf for two frames) once the
+        # same model was written and read back: which three points fix the gauge follows the model's order in
+        # memory. Either way the frames are loosely held; it used to say nothing, and they were called confirmed.
+        logger.info("the refined model's covariance is finite for no pair of frames: every frame loosely held")
+    return tuple(spread[by_name[n]] if n in by_name else float("nan") for n in names)
+
+
+def _spreads(covariance, ids: list[int], poses: dict) -> dict[int, float]:
+    """Per frame of ``ids``, the median over (at most ``MAX_OTHERS``) other frames of the standard deviation (deg)
+    of their relative rotation about its least certain axis; inf where none is finite."""
     std: dict[tuple[int, int], float] = {}
 
     def relative(a: int, b: int) -> float:
@@ -60,9 +73,7 @@ def rotation_spread_deg(rec: pycolmap.Reconstruction, names: Sequence[str]) -> t
         others = [j for j in ids if j != i]
         others = [others[t] for t in np.linspace(0, len(others) - 1, min(len(others), MAX_OTHERS)).astype(int)]
         spread[i] = float(np.median([relative(i, j) for j in others]))
-    if not any(np.isfinite(v) for v in std.values()):  # the covariance failed as a whole: nothing is said
-        return ()
-    return tuple(spread[by_name[n]] if n in by_name else float("nan") for n in names)
+    return spread
 
 
 def _largest_std_deg(rotation_cov: np.ndarray | None) -> float:
@@ -84,7 +95,8 @@ def _largest_std_deg(rotation_cov: np.ndarray | None) -> float:
 def _covariance(rec: pycolmap.Reconstruction, ids: list[int]):
     """pycolmap's covariance of the adjustment of ``rec`` with the poses of ``ids`` free, the intrinsics held and
     every observation a plain squared error; None where it fails. The gauge (where the model sits, its scale) is
-    fixed by three of its points, so every pose stays free and every pair's relative covariance is defined."""
+    fixed by three of its points, so every pose stays free and every pair's relative covariance is defined (fixing
+    two cameras instead leaves those two without one)."""
     options = pycolmap.BundleAdjustmentOptions()
     options.refine_focal_length = False
     options.refine_principal_point = False
