@@ -92,12 +92,12 @@ def test_every_file_a_stage_is_given_is_in_its_key(tmp_path):
     import dataclasses
 
     from ffrecon.options import RunOptions
-    from ffrecon.stages import COLMAP
+    from ffrecon.stages import COLMAP_MATCHING
 
     tree = tmp_path / "vocab_tree.bin"
     tree.write_bytes(b"one tree")
     options = dataclasses.replace(RunOptions(), colmap=dataclasses.replace(RunOptions().colmap, vocab_tree_path=tree))
-    assert tree in COLMAP.files(None, options)
+    assert tree in COLMAP_MATCHING.files(None, options)
     first = file_key(tree)
     tree.write_bytes(b"another!")
     assert file_key(tree) != first

@@ -48,7 +48,7 @@ def test_crosscheck_on_model_pairs_matches_fewer_pairs_and_registers_every_frame
     assert errors[1].auc[5] >= errors[0].auc[5] - 0.02 and errors[1].auc[5] > 0.95
     report = json.loads((tmp_path / "model" / "report.json").read_text())
     assert report["colmap"]["pairing"] == "model"
-    assert report["timings"]["colmap"]["concurrent_with"] is None, "it read the model's result: not beside it"
+    assert report["timings"]["colmap_matching"]["concurrent_with"] is None, "it read the model's result: not beside it"
     listed = (tmp_path / "model" / "crosscheck" / "model_pairs.txt").read_text().split("\n")
     assert len([line for line in listed if line]) == model.features.num_pairs_matched
     assert pycolmap.Reconstruction(tmp_path / "model" / "crosscheck" / "sparse" / "0").num_reg_images() == 12
