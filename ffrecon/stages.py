@@ -19,7 +19,7 @@ from ffrecon.report.splat_html import seeds_section, splat_section
 from ffrecon.sfm.compare.comparisons import comparison_skip_reason, load_references, pose_estimates, run_comparisons
 from ffrecon.sfm.crosscheck.gates import MIN_MASK_USE, gate_before_refinement, gate_poses
 from ffrecon.sfm.crosscheck.matching import match_colmap_on, pairs_from_model
-from ffrecon.sfm.crosscheck.run import map_colmap_on
+from ffrecon.sfm.crosscheck.run import map_colmap
 from ffrecon.sfm.refine import run as refine
 from ffrecon.sfm.refine.options import key_options
 from ffrecon.sfm.verify.evidence import evidence_skip_reason, judge_refined_cameras
@@ -123,7 +123,7 @@ COLMAP_MATCHING = Stage(
 COLMAP = Stage(  # the mapping, beside the refinement: both read the matches, neither the other
     "colmap",
     ("capture", "colmap_matching"),
-    lambda s, o, c: map_colmap_on(s.capture, s.colmap_matching, o.colmap, s.work / "crosscheck", step=c.step),
+    lambda s, o, c: map_colmap(s.colmap_matching, s.capture.image_dir, o.colmap, s.work / "crosscheck", step=c.step),
     lambda o: o.colmap,
     label="colmap cross-check",
     skip=lambda s, o: colmap_skip_reason(s, o),

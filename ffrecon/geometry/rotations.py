@@ -122,6 +122,17 @@ def rotation_angle_deg(rot: np.ndarray) -> np.ndarray:
     return np.degrees(2 * np.arctan2(vec, np.abs(q[..., 3])))
 
 
+def nearest_rotation(matrices: np.ndarray) -> np.ndarray:
+    """The rotations nearest (Frobenius) to ``[..., 3, 3]`` matrices, by SVD: a rotation, never a reflection.
+
+    >>> nearest_rotation(2.0 * np.eye(3)).tolist() == np.eye(3).tolist()
+    True
+    """
+    u, _, vt = np.linalg.svd(matrices)
+    u[..., :, 2] *= np.where(np.linalg.det(u @ vt) < 0, -1.0, 1.0)[..., None]
+    return u @ vt
+
+
 def chordal_mean(rotations: np.ndarray) -> np.ndarray:
     """The chordal L2 mean of ``[N, 3, 3]`` rotations: their sum projected onto SO(3) by SVD.
 
@@ -129,8 +140,7 @@ def chordal_mean(rotations: np.ndarray) -> np.ndarray:
     >>> round(float(rotation_angle_deg(chordal_mean(np.stack([turn, turn.T])))), 9)
     0.0
     """
-    u, _, vt = np.linalg.svd(np.sum(rotations, axis=0))
-    return u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt)) or 1.0]) @ vt
+    return nearest_rotation(np.sum(rotations, axis=0))
 
 
 def random_rotation(rng: np.random.Generator, size: int | None = None) -> np.ndarray:

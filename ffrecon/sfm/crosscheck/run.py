@@ -28,7 +28,6 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from ffrecon.capture import Capture
 from ffrecon.colmap_io import cam_from_world_by_name, cameras_by_name, write_reconstruction
 from ffrecon.geometry.overlap import OverlapGraph
 from ffrecon.sfm.crosscheck.mapping import MapperRun, map_images, two_view_run
@@ -191,18 +190,6 @@ def map_colmap(
         logger.warning("COLMAP built no model from %d images (%d verified pairs)", len(names), verified)
         return _no_model_result(names, **provenance)
     return _logged(_model_result(best, names, model_dir, **provenance))
-
-
-def map_colmap_on(
-    capture: Capture,
-    matches: ColmapMatches,
-    options: ColmapOptions,
-    out_dir: Path,
-    *,
-    step: Callable[[], int] | None = None,
-) -> ColmapResult:
-    """:func:`map_colmap` on a capture's photos."""
-    return map_colmap(matches, capture.image_dir, options, out_dir, step=step)
 
 
 def _logged(result: ColmapResult) -> ColmapResult:

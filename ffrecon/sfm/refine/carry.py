@@ -17,7 +17,7 @@ others with every choice, leave-one-out; the width with the smallest mean rotati
 out if it predicts them clearly better than no carry (by two standard errors of the paired differences). No
 threshold is tuned: drift makes the local choices predict best, independent noise none.
 
-Written here by hand: a kernel-weighted chordal mean of rotations (:func:`ffrecon.geometry.rotations.chordal_mean`)
+Written here by hand: a kernel-weighted chordal mean of rotations (:func:`ffrecon.geometry.rotations.nearest_rotation`)
 with leave-one-out selection of its width is a few lines of numpy; no library used by ffrecon offers it.
 """
 
@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ffrecon.geometry.poses import camera_centers
-from ffrecon.geometry.rotations import rotation_angle_deg
+from ffrecon.geometry.rotations import nearest_rotation, rotation_angle_deg
 
 WIDTHS = (1.0, 2.0, 4.0, np.inf)  # kernel widths, in the frames' median spacing of the model's centres
 MIN_REFINED = 3  # refined frames needed to choose by leave-one-out (with two, each predicts the other alone)
@@ -112,9 +112,12 @@ def _clearly_better(errors: np.ndarray, baseline: np.ndarray) -> bool:
 
 def _median_spacing(centres: np.ndarray) -> float:
     """The median over frames of the distance to the nearest other frame's centre (0 when they coincide)."""
-    d = np.linalg.norm(centres[:, None] - centres[None], axis=-1)
-    np.fill_diagonal(d, np.inf)
-    return float(np.median(d.min(axis=1)))
+    nearest = []
+    for rows in np.array_split(np.arange(len(centres)), max(1, len(centres) // _ROWS)):  # O(rows x frames) memory
+        d = np.linalg.norm(centres[rows, None] - centres[None], axis=-1)
+        d[np.arange(len(rows)), rows] = np.inf
+        nearest.append(d.min(axis=1))
+    return float(np.median(np.concatenate(nearest)))
 
 
 class _Corrections:
@@ -138,9 +141,7 @@ class _Corrections:
 
     def _mean_rotation(self, weights: np.ndarray) -> np.ndarray:
         """``[M, 3, 3]`` the weighted chordal mean of the corrections per row of ``weights``."""
-        u, _, vt = np.linalg.svd(np.einsum("mr,rij->mij", weights, self.rotation))
-        u[:, :, 2] *= np.where(np.linalg.det(u @ vt) < 0, -1.0, 1.0)[:, None]  # a rotation, not a reflection
-        return u @ vt
+        return nearest_rotation(np.einsum("mr,rij->mij", weights, self.rotation))
 
     def leave_one_out_deg(self, centres: np.ndarray, width: float) -> np.ndarray:
         """``[R]`` each refined frame's rotation error (deg) when predicted from the others' corrections."""
