@@ -13,6 +13,8 @@ images themselves:
    correspondence is kept when following the flow there and back returns to within
    ``max_fb_error_px`` of its start (the forward-backward check), it moved at most ``max_shift`` of
    the image diagonal and its windows correlate (normalised cross-correlation, ``min_ncc``);
+   where the model's cameras are a few degrees off, the map is first moved by the offset in frame j
+   that the photos agree on (``sfm/refine/prealign.py``) and the pass that keeps more corners is used;
 3. the kept positions are mapped back through the predicted map into frame j's pixels, and COLMAP
    verifies each pair's correspondences as it verifies SIFT matches (an essential matrix by RANSAC
    with the database cameras): only its inliers are written.
@@ -41,6 +43,7 @@ import pycolmap
 
 from ffrecon.checks import check_number
 from ffrecon.geometry.projection import pixel_centers
+from ffrecon.sfm.refine.prealign import offset_in_other_frame, shifted_map
 from ffrecon.types import Prediction
 
 logger = logging.getLogger("ffrecon.sfm")
@@ -64,14 +67,23 @@ class DenseOptions:
     min_depth_conf: float = 1.0
     ransac_px: float = 2.0  # COLMAP's verification of the correspondences (its max_error)
     min_inliers: int = 15  # fewer verified correspondences: the pair gets none
+    # The prediction's offset in the other frame, by consensus of patch searches (sfm/refine/prealign.py),
+    # tried before the flow where the model's cameras are a few degrees off; the pass tracking more is kept.
+    prealign: bool = True
+    prealign_samples: int = 96  # corners searched for the consensus
+    prealign_window_px: int = 15  # side of the searched patch
+    prealign_min_votes: int = 4  # agreeing offsets that make a consensus
+    prealign_tolerance: float = 0.0075  # offsets within this fraction of the image diagonal (at least 2 px) agree
 
     def __post_init__(self) -> None:
-        for name in ("min_sift_matches", "max_pairs_per_image", "max_corners", "corner_spacing_px", "min_inliers"):
+        integers = ("min_sift_matches", "max_pairs_per_image", "max_corners", "corner_spacing_px", "min_inliers")
+        for name in integers + ("prealign_samples", "prealign_min_votes"):
             check_number(f"DenseOptions.{name}", getattr(self, name), low=0, integer=True)
         check_number("DenseOptions.window_px", self.window_px, low=3, integer=True)
+        check_number("DenseOptions.prealign_window_px", self.prealign_window_px, low=3, integer=True)
         for name in ("min_pair_overlap", "min_ncc", "corner_quality"):
             check_number(f"DenseOptions.{name}", getattr(self, name), low=0, high=1)
-        for name in ("max_fb_error_px", "max_shift", "ransac_px"):
+        for name in ("max_fb_error_px", "max_shift", "ransac_px", "prealign_tolerance"):
             check_number(f"DenseOptions.{name}", getattr(self, name), low=0, low_open=True)
         check_number("DenseOptions.min_depth_conf", self.min_depth_conf, low=0)
 
@@ -221,11 +233,36 @@ def track_pair(
     Returns:
         ``(corner [K] int, xy_j [K, 2] float64)``: the corners that pass every check (indices into
         ``corners_i``) and their positions in frame j, COLMAP's pixel rule.
+
+    With ``options.prealign`` a second pass tracks on the map moved by the offset the photos agree on
+    (:mod:`ffrecon.sfm.refine.prealign`; searched within ``max_shift``), and the pass keeping more
+    corners is returned.
     """
+    index, xy_j, warped = _track(gray_i, gray_j, corners_i, xy_map, options)
+    if not options.prealign or warped is None:
+        return index, xy_j
+    h, w = gray_i.shape
+    diagonal = float(np.hypot(w, h))
+    pixel = np.rint(corners_i).astype(int)
+    inside = corners_i[xy_map[pixel[:, 1].clip(0, h - 1), pixel[:, 0].clip(0, w - 1), 0] >= 0]
+    offset = offset_in_other_frame(
+        gray_i, warped, xy_map, inside,
+        window_px=options.prealign_window_px, radius_px=int(options.max_shift * diagonal), min_ncc=options.min_ncc,
+        samples=options.prealign_samples, tolerance_px=max(2.0, options.prealign_tolerance * diagonal),
+        min_votes=options.prealign_min_votes,
+    )  # fmt: skip
+    if offset is None or float(np.linalg.norm(offset)) <= 1.0:
+        return index, xy_j
+    moved = _track(gray_i, gray_j, corners_i, shifted_map(xy_map, offset, gray_j.shape[::-1]), options)
+    return (moved[0], moved[1]) if len(moved[0]) > len(index) else (index, xy_j)
+
+
+def _track(gray_i, gray_j, corners_i, xy_map, options: DenseOptions):
+    """One pass of :func:`track_pair` on a given map; also returns the warped image (None when nothing to track)."""
     h, w = gray_i.shape
     valid = xy_map[..., 0] >= 0
     if len(corners_i) == 0 or valid.sum() < 16:
-        return np.zeros(0, int), np.zeros((0, 2))
+        return np.zeros(0, int), np.zeros((0, 2)), None
     map_x, map_y = xy_map[..., 0] - 0.5, xy_map[..., 1] - 0.5  # COLMAP's rule -> OpenCV's indices (boundary)
     warped = cv2.remap(gray_j, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
     warped[~valid] = 0
@@ -247,7 +284,7 @@ def track_pair(
     r1, c1 = np.minimum(r0 + 1, h - 1), np.minimum(c0 + 1, w - 1)
     inside = valid[r0, c0] & valid[r0, c1] & valid[r1, c0] & valid[r1, c1]
     keep = inside & (_ncc(gray_i, warped, start, end, options.window_px) >= options.min_ncc)
-    return index[keep], _sample(xy_map, end[keep])
+    return index[keep], _sample(xy_map, end[keep]), warped
 
 
 def frame_corners(gray: np.ndarray, options: DenseOptions) -> np.ndarray:

@@ -179,12 +179,18 @@ class PhotometricCheck:
             f"theirs: {self.reference:.2f})"
         )
 
-    def poor(self, name: str) -> bool:
+    def poor(self, name: str, *, near: bool = False) -> bool:
         """Whether the frame fits at its camera clearly worse than the confirmed frames do at theirs: what is left
         to correlate at least ``options.poor_factor`` times theirs. Not enough alone (a frame the neighbours cover
-        in part scores low too), only beside another sign (:mod:`ffrecon.sfm.verify.evidence`)."""
+        in part scores low too), only beside another sign (:mod:`ffrecon.sfm.verify.evidence`).
+
+        With ``near``, even its best fit within ``options.near_deg`` of its camera (where the search ran): a camera
+        a few degrees off, the model's noise, fits poorly at itself where the scene is near and the view wide, and
+        well turned a little (room seed 323, fov 85 deg: a frame 2.3 deg off fitted 0.63 at its camera and 0.84
+        within 5 deg, the confirmed frames 0.91 at theirs); a camera 25 deg off fits poorly there too."""
         s = self.scores.get(name)
-        left, theirs = (1 - s.score, 1 - self.reference) if s is not None else (np.nan, np.nan)
+        at = s.near if s is not None and near and np.isfinite(s.near) else s.score if s is not None else np.nan
+        left, theirs = (1 - at, 1 - self.reference) if s is not None else (np.nan, np.nan)
         return bool(np.isfinite(left) and left >= self.options.poor_factor * theirs)
 
     def fits(self, name: str, factor: float | None = None) -> bool:
@@ -199,12 +205,17 @@ class PhotometricCheck:
         factor = self.options.fit_factor if factor is None else factor
         return bool(left <= max(factor * theirs, self.options.fit_floor))
 
-    def describe_poor(self, name: str) -> str:
+    def describe_poor(self, name: str, *, near: bool = False) -> str:
         s = self.scores[name]
+        at, where = (
+            (s.near, f"at best within {self.options.near_deg:g} deg of its camera")
+            if near and np.isfinite(s.near)
+            else (s.score, "")
+        )
         return (
-            f"the confirmed frames seen from its camera match its photo at {s.score:.2f}, against {self.reference:.2f} "
-            f"for the confirmed frames at theirs (what is left {(1 - s.score) / max(1 - self.reference, 1e-9):.1f} "
-            "times theirs)"
+            f"the confirmed frames seen from its camera match its photo at {at:.2f}{' ' * bool(where)}{where}, against "
+            f"{self.reference:.2f} for the confirmed frames at theirs (what is left "
+            f"{(1 - at) / max(1 - self.reference, 1e-9):.1f} times theirs)"
         )
 
     def describe(self, name: str) -> str:

@@ -82,8 +82,8 @@ def _photometric(
         said = (
             check.describe(e.name)
             if check.contradicts(e.name)
-            else check.describe_poor(e.name)
-            if disputed and check.poor(e.name)
+            else check.describe_poor(e.name, near=True)
+            if disputed and check.poor(e.name, near=True)
             else check.describe_turned(e.name, e.correction_deg)
             if disputed and not _lookalike(refine) and check.turned_like(e.name, e.correction_deg)
             else _doubt_text(check, e.name)
