@@ -249,7 +249,7 @@ def require_checked(evidence: EvidenceResult, colmap: ColmapResult | Skipped, re
     kept = [e for e in evidence.per_image if e.status.kept]
     # a frame refined on guided matches (look-alike surfaces), in a part placed by the model or loosely held is
     # unchecked, but adjusted on matches that fit
-    fitted = (CameraStatus.GUIDED, CameraStatus.PART, CameraStatus.LOOSE)
+    fitted = (CameraStatus.GUIDED, CameraStatus.PART, CameraStatus.LOOSE, CameraStatus.COLMAP_NEAR)
     held = any(e.verdict is not FrameVerdict.UNCHECKED or e.status in fitted for e in kept)
     if evidence.model_unsuited or evidence.refinement_set_aside or not kept or held:
         return evidence

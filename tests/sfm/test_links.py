@@ -42,7 +42,10 @@ def _run(tmp_path, seed: int, bad: tuple[int, ...], links: LinkOptions, evidence
     sim = SimulationOptions(seed=seed, bad_frames=bad, bad_rotation_deg=25.0)
     truth, _ = simulate(scene, sim)
     pred = prediction_from_truth(scene, truth, sim)
-    options = dataclasses.replace(RefineOptions.quick(), links=links)
+    # Without the prediction moved by the photos' consensus (sfm/refine/prealign.py): with it, seed 6's dense
+    # tracks no longer leave a weak link (every frame within 0.35 deg without the check), and the check is not tested
+    quick = RefineOptions.quick()
+    options = dataclasses.replace(quick, links=links, dense=dataclasses.replace(quick.dense, prealign=False))
     result = run_refine(RefineInputs(images), pred, options, tmp_path / f"refine_{links.enabled}")
     ev = judge_final_cameras(scene.names, pred.cam_from_world, result, None, GatesResult((), False), evidence)
     errors = aligned_rotation_errors_deg(result.cam_from_world[:, :, :3], scene.cam_from_world[:, :, :3])

@@ -2,6 +2,8 @@
 case, two real photos of a motorcycle (not planar) on one pair, stays confirmed:
 tests/sfm/test_stereo_motorcycle.py."""
 
+import dataclasses
+
 from ffrecon.geometry.metrics import aligned_rotation_errors_deg
 from ffrecon.sfm.crosscheck.gate_types import GatesResult
 from ffrecon.sfm.refine.options import RefineInputs, RefineOptions
@@ -26,7 +28,11 @@ def test_a_frame_on_one_planar_pair_is_not_confirmed(tmp_path):
     sim = SimulationOptions(seed=5)
     truth, _ = simulate(scene, sim)
     pred = prediction_from_truth(scene, truth, sim)
-    result = run_refine(RefineInputs(write_scene(scene, tmp_path / "s")), pred, RefineOptions.quick(), tmp_path / "r")
+    # Without the prediction moved by the photos' consensus (sfm/refine/prealign.py): with it, dense tracks hold frame
+    # 6 by 269 observations over several pairs (every frame within 0.3 deg), and the planar rule is not tested
+    quick = RefineOptions.quick()
+    options = dataclasses.replace(quick, dense=dataclasses.replace(quick.dense, prealign=False))
+    result = run_refine(RefineInputs(write_scene(scene, tmp_path / "s")), pred, options, tmp_path / "r")
     ev = judge_final_cameras(scene.names, pred.cam_from_world, result, None, GatesResult((), False))
     errors = aligned_rotation_errors_deg(result.cam_from_world[:, :, :3], scene.cam_from_world[:, :, :3])
     assert ev.per_image[6].status is CameraStatus.PLANAR_PAIR and ev.per_image[6].status.kept

@@ -237,7 +237,7 @@ def _guide(
 
 def _on_lookalikes(options: RefineOptions, guidance: GuidanceStats | None) -> RefineOptions:
     """The options for the adjustment once the matching is known. On look-alike surfaces (the matching was
-    guided):
+    guided) the dense tracking does not move the model's prediction first (``DenseOptions.prealign``), and:
 
     - no frame is relocalised. Its renderings are matched by SIFT alone, and a pattern's period off is a pose the
       dense evidence then agrees with: on the repeated-texture room (seed 101, ``--quick``) a frame the model had
@@ -250,6 +250,10 @@ def _on_lookalikes(options: RefineOptions, guidance: GuidanceStats | None) -> Re
     """
     if guidance is None or not guidance.lookalike:
         return options
+    # nor is the dense tracking's prediction moved by the photos' consensus (sfm/refine/prealign.py): the patches
+    # agree on a period as well as on the truth (held-out street seed 327, repeated tiles: the second adjustment,
+    # on such tracks, kept no frame and the run failed its gates)
+    options = dataclasses.replace(options, dense=dataclasses.replace(options.dense, prealign=False))
     bundle = options.bundle
     if options.guidance.two_view_tracks:
         bundle = dataclasses.replace(bundle, ignore_two_view_tracks=False, robust_fine=True)

@@ -13,7 +13,9 @@ pixels is estimated by consensus: for a sample of frame i's corners, the patch a
 searched for in the warped image within the tracking's largest shift (normalised cross-correlation,
 ``cv2.matchTemplate``); each peak above the correlation bar gives, through the map, the offset in
 frame j that would have put the corner there; the offset most of them agree on (within a tolerance)
-is the consensus. A lone match on a repeated pattern votes alone and loses.
+is the consensus. A peak that another place in the window matches nearly as well does not vote: on a
+repeated pattern every period fits, and the corners would agree on a period off (held-out street seed
+327, repeated tiles: the second adjustment, on such tracks, kept no frame).
 
 This is written here rather than taken from a library because it is a vote over template matches on
 the warped image (OpenCV does each search); OpenCV's ``phaseCorrelate`` was not used because it
@@ -25,6 +27,12 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+
+# A patch's peak must beat the best correlation elsewhere in its window (beyond a patch's width from it) by this
+# much: on a repeated pattern (tiles, windows of a facade) every period fits about as well, and a consensus of such
+# peaks can be a period off. Small: on a smooth texture the correlation falls slowly around the peak (room seed 323,
+# a floor strip: 0.1 left the frame without a consensus)
+_UNIQUE_MARGIN = 0.02
 
 
 def offset_in_other_frame(
@@ -65,8 +73,10 @@ def offset_in_other_frame(
             continue
         score = cv2.matchTemplate(region, patch, cv2.TM_CCOEFF_NORMED)
         _, peak, _, (px, py) = cv2.minMaxLoc(score)
+        if peak < min_ncc or _second_peak(score, (px, py), window_px) >= peak - _UNIQUE_MARGIN:
+            continue  # too weak, or a look-alike elsewhere in the window fits nearly as well (a repeated pattern)
         px, py = x0 + px + half, y0 + py + half
-        if peak < min_ncc or xy_map[py, px, 0] < 0:
+        if xy_map[py, px, 0] < 0:
             continue
         offsets.append(xy_map[py, px].astype(np.float64) - xy_map[y, x])
     if len(offsets) < min_votes:
@@ -77,6 +87,14 @@ def offset_in_other_frame(
     if agree[best].sum() < min_votes:
         return None
     return offsets[agree[best]].mean(0)
+
+
+def _second_peak(score: np.ndarray, at: tuple[int, int], radius: int) -> float:
+    """The best correlation of ``score`` outside ``radius`` of the peak ``at`` (x, y): -1 when nothing is left."""
+    rest = score.copy()
+    x, y = at
+    rest[max(0, y - radius) : y + radius + 1, max(0, x - radius) : x + radius + 1] = -1.0
+    return float(rest.max())
 
 
 def shifted_map(xy_map: np.ndarray, offset: np.ndarray, size_wh: tuple[int, int]) -> np.ndarray:

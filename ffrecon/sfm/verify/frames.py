@@ -65,7 +65,11 @@ def _per_image(
     for k, name in enumerate(names):
         if refine.registered[k]:
             change = _rotation_change_deg(refine.cam_from_world[k], ff_cam_from_world[k])
-            says = _colmap_word(off.get(name), healthy) if comparison is not None and colmap.registered[k] else None
+            says = (
+                _colmap_word(off.get(name), healthy, float(comparison.per_image_rotation_deg[k]), options)
+                if comparison is not None and colmap.registered[k]
+                else None
+            )
             out.append(_refined_frame(k, name, change, refine, colmap, says, options))
         elif model_vs_colmap is not None and colmap.registered[k]:
             change = float(model_vs_colmap.per_image_rotation_deg[k])
@@ -90,12 +94,21 @@ class _ColmapWord:
 
     agrees: bool
     why: str
+    near: bool = False  # agrees, but more than EvidenceOptions.max_confirm_gap_deg from it: not a confirmation
 
 
-def _colmap_word(off: str | None, healthy: bool) -> _ColmapWord:
-    """``off``: why COLMAP's pose disagrees (None: it agrees)."""
+def _colmap_word(off: str | None, healthy: bool, gap_deg: float, options: EvidenceOptions) -> _ColmapWord:
+    """``off``: why COLMAP's pose disagrees (None: it agrees); ``gap_deg``: COLMAP's rotation against the refined
+    one, after the alignment over the frames both hold."""
     if off is not None:
         return _ColmapWord(False, off)
+    if np.isfinite(gap_deg) and gap_deg > options.max_confirm_gap_deg:
+        why = (
+            f"COLMAP registered it {gap_deg:.1f} deg from its refined rotation (> {options.max_confirm_gap_deg:g}, "
+            "too little to disagree): one of the two is off by more than their noise; its refined pose is kept, "
+            "not confirmed"
+        )
+        return _ColmapWord(True, why, near=True)
     return _ColmapWord(
         True, "COLMAP's pose agrees" if healthy else "COLMAP's rotation agrees (its centres not compared)"
     )
@@ -113,7 +126,7 @@ def _refined_frame(
     if change > options.max_correction_deg:
         return _correction(refine, name, change, options)
     if says is not None:
-        return CameraEvidence(name, CameraStatus.CONFIRMED, says.why, change)
+        return CameraEvidence(name, CameraStatus.COLMAP_NEAR if says.near else CameraStatus.CONFIRMED, says.why, change)
     n_obs = refine.observations[k] if refine.observations is not None else 0
     if (single := _planar_pair(refine, name, options)) is not None:  # judged by the photos (_photometric)
         why = single.describe() + "; its refined pose is kept, unconfirmed"

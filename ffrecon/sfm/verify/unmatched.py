@@ -19,7 +19,13 @@ from ffrecon.types import Prediction
 
 # Refined frames that are not confirmed but judge others: held by guided matches or by one planar pair, a few
 # degrees off at worst (the frame judged is compared with itself turned, so a reference's small error only blurs)
-_PHOTO_REFERENCE = (CameraStatus.GUIDED, CameraStatus.PLANAR_PAIR, CameraStatus.PART, CameraStatus.LOOSE)
+_PHOTO_REFERENCE = (
+    CameraStatus.GUIDED,
+    CameraStatus.PLANAR_PAIR,
+    CameraStatus.PART,
+    CameraStatus.LOOSE,
+    CameraStatus.COLMAP_NEAR,
+)
 
 
 def _photo_references(per_image, refine: RefineResult) -> list[int]:
