@@ -203,7 +203,7 @@ def _voxel_means(xyz: np.ndarray, rgb: np.ndarray, voxel: float) -> tuple[np.nda
     span = index.max(0) + 1
     if float(span[0]) * float(span[1]) * float(span[2]) < 2.0**62:  # one int64 key per voxel, ordered as (x, y, z)
         keys = (index[:, 0] * span[1] + index[:, 1]) * span[2] + index[:, 2]
-        _, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
+        inverse, counts = _sorted_groups(keys)
     else:  # a grid too wide for one key (far outliers): the rows themselves
         _, inverse, counts = np.unique(index, axis=0, return_inverse=True, return_counts=True)
     inverse = inverse.reshape(-1)
@@ -213,6 +213,29 @@ def _voxel_means(xyz: np.ndarray, rgb: np.ndarray, voxel: float) -> tuple[np.nda
         return np.stack(sums, 1) / counts[:, None]
 
     return means(xyz), means(rgb).astype(np.float32)
+
+
+def _sorted_groups(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``np.unique(keys, return_inverse=True, return_counts=True)`` without the unique values: each key's group
+    (groups in increasing key order) and each group's size.
+
+    By hand because numpy's unique sorts with quicksort, where a stable sort (timsort: runs) is 3 times faster on
+    these keys: a frame's pixels, in row order, fall into the same or neighbouring voxels, and the frames' reduced
+    points are each already in key order when they are merged (10.6 against 3.6 ms for 100,000 points).
+
+    >>> inverse, counts = _sorted_groups(np.array([5, 2, 5, 9, 2, 2]))
+    >>> inverse.tolist(), counts.tolist()
+    ([1, 0, 1, 2, 0, 0], [3, 2, 1])
+    """
+    order = np.argsort(keys, kind="stable")
+    ordered = keys[order]
+    starts = np.empty(len(keys), bool)
+    starts[:1] = True
+    np.not_equal(ordered[1:], ordered[:-1], out=starts[1:])
+    group = np.cumsum(starts) - 1
+    inverse = np.empty(len(keys), np.int64)
+    inverse[order] = group
+    return inverse, np.bincount(group)
 
 
 def write_point_cloud(path: Path, xyz: np.ndarray, rgb: np.ndarray) -> Path:
