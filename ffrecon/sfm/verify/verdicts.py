@@ -160,7 +160,7 @@ class EvidenceOptions:
         check_number("EvidenceOptions.min_view_share", self.min_view_share, low=0)
         check_number("EvidenceOptions.decisive_pair_inliers", self.decisive_pair_inliers, low=1, integer=True)
         check_number("EvidenceOptions.max_rotation_spread_deg", self.max_rotation_spread_deg, low=0, low_open=True)
-        for name in ("max_correction_deg", "max_lookalike_dense_change_deg"):
+        for name in ("max_correction_deg", "max_lookalike_dense_change_deg", "max_confirm_gap_deg"):
             check_number(f"EvidenceOptions.{name}", getattr(self, name), low=0, low_open=True, high=180)
 
 
