@@ -59,11 +59,13 @@ def offset_in_other_frame(
             over the list); tolerance_px: how close two offsets must be to agree; min_votes: the
             fewest agreeing offsets that make a consensus.
     """
+    if not len(corners) or not samples:
+        return None
     h, w = gray_i.shape
     half = window_px // 2
-    pick = np.unique(np.linspace(0, len(corners) - 1, min(samples, len(corners))).astype(int)) if len(corners) else []
+    pick = np.unique(np.linspace(0, len(corners) - 1, min(samples, len(corners))).astype(int))
     offsets = []
-    for x, y in np.rint(corners[pick]).astype(int) if len(pick) else ():
+    for x, y in np.rint(corners[pick]).astype(int):
         if not (half <= x < w - half and half <= y < h - half) or xy_map[y, x, 0] < 0:
             continue
         x0, y0 = max(0, x - radius_px - half), max(0, y - radius_px - half)
@@ -79,7 +81,7 @@ def offset_in_other_frame(
         if xy_map[py, px, 0] < 0:
             continue
         offsets.append(xy_map[py, px].astype(np.float64) - xy_map[y, x])
-    if len(offsets) < min_votes:
+    if len(offsets) < max(1, min_votes):
         return None
     offsets = np.asarray(offsets)
     agree = np.linalg.norm(offsets[:, None] - offsets[None], axis=2) <= tolerance_px

@@ -189,9 +189,17 @@ class PhotometricCheck:
         well turned a little (room seed 323, fov 85 deg: a frame 2.3 deg off fitted 0.63 at its camera and 0.84
         within 5 deg, the confirmed frames 0.91 at theirs); a camera 25 deg off fits poorly there too."""
         s = self.scores.get(name)
-        at = s.near if s is not None and near and np.isfinite(s.near) else s.score if s is not None else np.nan
-        left, theirs = (1 - at, 1 - self.reference) if s is not None else (np.nan, np.nan)
-        return bool(np.isfinite(left) and left >= self.options.poor_factor * theirs)
+        if s is None:
+            return False
+        left = 1 - self._poor_fit(s, near)[0]
+        return bool(np.isfinite(left) and left >= self.options.poor_factor * (1 - self.reference))
+
+    def _poor_fit(self, s: PhotometricScore, near: bool) -> tuple[float, str]:
+        """The fit :meth:`poor` judges (its best within ``near_deg`` with ``near`` where searched, else at its
+        camera) and the words that say which."""
+        if near and np.isfinite(s.near):
+            return s.near, f" at best within {self.options.near_deg:g} deg of its camera"
+        return s.score, ""
 
     def fits(self, name: str, factor: float | None = None) -> bool:
         """Whether the frame fits at its camera about as well as the confirmed frames do at theirs (what is left to
@@ -206,14 +214,9 @@ class PhotometricCheck:
         return bool(left <= max(factor * theirs, self.options.fit_floor))
 
     def describe_poor(self, name: str, *, near: bool = False) -> str:
-        s = self.scores[name]
-        at, where = (
-            (s.near, f"at best within {self.options.near_deg:g} deg of its camera")
-            if near and np.isfinite(s.near)
-            else (s.score, "")
-        )
+        at, where = self._poor_fit(self.scores[name], near)
         return (
-            f"the confirmed frames seen from its camera match its photo at {at:.2f}{' ' * bool(where)}{where}, against "
+            f"the confirmed frames seen from its camera match its photo at {at:.2f}{where}, against "
             f"{self.reference:.2f} for the confirmed frames at theirs (what is left "
             f"{(1 - at) / max(1 - self.reference, 1e-9):.1f} times theirs)"
         )
