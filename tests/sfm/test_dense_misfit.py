@@ -67,3 +67,18 @@ def test_only_unchecked_frames_are_judged():
     evidence[0] = CameraEvidence(NAMES[0], CameraStatus.GUIDED, "refined on guided matches", 1.0)
     out = _dense_misfits(tuple(evidence), _refine(FRAME_0_OFF), EvidenceOptions())
     assert out[0].status is CameraStatus.GUIDED
+
+
+def test_a_frame_whose_dense_tracks_found_few_corners_is_doubted():
+    """The weak dense sign counted beside a photometric one (unmatched._dense_doubted): held-out room 337 (frames
+    renumbered 0-4), frame 3 (25 deg off) verified 84 of 1,810 corners (5 %), the others' median 11 %. A frame whose
+    only pair is with it is doubted too (the photometric sign must then single out which)."""
+    import dataclasses
+
+    from ffrecon.sfm.verify.unmatched import _dense_doubted
+
+    refine = _refine([(0, 1, 619, 356), (1, 2, 1345, 1116), (2, 3, 1260, 84), (3, 4, 550, 0), (0, 4, 206, 23)])
+    assert _dense_doubted(refine, EvidenceOptions()) == frozenset({NAMES[3], NAMES[4]})
+    fewer = dataclasses.replace(EvidenceOptions(), min_dense_doubt_predicted=2000)  # none tried that many
+    assert _dense_doubted(refine, fewer) == frozenset()
+    assert _dense_doubted(_refine(WORKING), EvidenceOptions()) == frozenset()  # 31-44 %: none under half of 38 %

@@ -42,6 +42,7 @@ from ffrecon.sfm.crosscheck.run import ColmapResult
 from ffrecon.sfm.refine.options import RefineResult
 from ffrecon.sfm.verify.frames import _per_image, _period_off
 from ffrecon.sfm.verify.unmatched import (
+    _dense_doubted,
     _dense_misfits,
     _depth_doubted,
     _depth_misfits,
@@ -111,13 +112,7 @@ def judge_final_cameras(
         if set_aside:
             per_image = _set_aside_misfits(per_image, ff_cam_from_world, photos, depth, options.photometric, doubted)
         else:
-            per_image = _photometric(
-                per_image, ff_cam_from_world, refine, photos, depth, options.photometric, limit, doubted
-            )
-            per_image = _guided_misfits(per_image, ff_cam_from_world, refine, photos, depth, options.photometric)
-            per_image = _model_camera_kept(
-                per_image, ff_cam_from_world, refine, colmap, photos, depth, options.photometric, doubted
-            )
+            per_image = _photo_rules(per_image, ff_cam_from_world, refine, colmap, photos, depth, options, doubted)
     verdicts = _verdicts(len(names), refine, colmap, per_image, comparison is not None, options, healthy)
     if colmap is None:
         why = f"COLMAP cross-check not run: {colmap_skipped}" if colmap_skipped else "COLMAP cross-check not run"
@@ -142,6 +137,17 @@ def judge_final_cameras(
             GateVerdict("model_suited", GateStatus.FAIL, None, options.unsuited_share, unsuited, blocking=False)
         ]
     return EvidenceResult(GatesResult(tuple(verdicts), force), per_image, bool(unsuited), unsuited, set_aside)
+
+
+def _photo_rules(per_image, ff_cam_from_world, refine, colmap, photos, depth, options: EvidenceOptions, doubted):
+    """The photometric rules on the refined cameras, in their order (:mod:`ffrecon.sfm.verify.unmatched`)."""
+    photometric, limit = options.photometric, options.max_correction_deg
+    dense_doubted = _dense_doubted(refine, options)
+    per_image = _photometric(
+        per_image, ff_cam_from_world, refine, photos, depth, photometric, limit, doubted, dense_doubted
+    )
+    per_image = _guided_misfits(per_image, ff_cam_from_world, refine, photos, depth, photometric)
+    return _model_camera_kept(per_image, ff_cam_from_world, refine, colmap, photos, depth, photometric, doubted)
 
 
 def _verdicts(

@@ -103,6 +103,12 @@ class EvidenceOptions:
     # dense tracking reached, 0.00-0.06 in half the cases (the rest are judged by the other rules).
     min_dense_predicted: int = 200
     dense_misfit_ratio: float = 0.1
+    # A weaker dense sign, counted only beside a photometric one (sfm/verify/unmatched.py, _photometric): at least
+    # min_dense_doubt_predicted corners tried, a share verified at most dense_doubt_ratio times the others' median.
+    # Held-out room seeds 333 and 337 (session 55): frames 25 deg off tracked 0 of 122 and 84 of 1,810 (0.0 and 0.42
+    # times the others' median) where nothing else covered them.
+    min_dense_doubt_predicted: int = 100
+    dense_doubt_ratio: float = 0.5
     # A frame nothing checks (no verified pair agrees with its camera) is contradicted when the model's own depth,
     # placed with its camera, disagrees with the other frames' depth where they look at the same space
     # (geometry.overlap.view_agreement): its points land in the other frames' views (at least min_view_share of
@@ -155,6 +161,8 @@ class EvidenceOptions:
         check_number("EvidenceOptions.min_pair_inliers", self.min_pair_inliers, low=5, integer=True)
         check_number("EvidenceOptions.min_dense_predicted", self.min_dense_predicted, low=1, integer=True)
         check_number("EvidenceOptions.dense_misfit_ratio", self.dense_misfit_ratio, low=0, high=1)
+        check_number("EvidenceOptions.min_dense_doubt_predicted", self.min_dense_doubt_predicted, low=1, integer=True)
+        check_number("EvidenceOptions.dense_doubt_ratio", self.dense_doubt_ratio, low=0, high=1)
         check_number("EvidenceOptions.depth_misfit_ratio", self.depth_misfit_ratio, low=0, high=1)
         check_number("EvidenceOptions.depth_doubt_ratio", self.depth_doubt_ratio, low=0, high=1)
         check_number("EvidenceOptions.min_view_share", self.min_view_share, low=0)
