@@ -1,4 +1,5 @@
-"""``reconstruction_from_cameras``'s points (issue 40: the loop that adds them, made cheaper, gives the same model)."""
+"""``reconstruction_from_cameras``'s points (issue 40: added through pycolmap's PLY import, not one call per point;
+COLMAP's reader keeps float32 coordinates)."""
 
 from __future__ import annotations
 
@@ -19,7 +20,8 @@ def test_points_keep_their_order_position_colour_and_an_empty_track_of_their_own
     assert sorted(rec.points3D) == list(range(1, 51))
     got = np.array([rec.points3D[k].xyz for k in range(1, 51)])
     colours = np.array([rec.points3D[k].color for k in range(1, 51)])
-    assert np.array_equal(got, xyz) and np.array_equal(colours, np.clip(np.round(rgb * 255), 0, 255).astype(np.uint8))
+    assert np.array_equal(got, xyz.astype(np.float32)) and got.dtype == np.float64
+    assert np.array_equal(colours, np.clip(np.round(rgb * 255), 0, 255).astype(np.uint8))
     assert all(p.track.length() == 0 for p in rec.points3D.values())
     rec.points3D[1].track.add_element(1, 0)  # each point's track is its own copy, not one shared object
     assert rec.points3D[1].track.length() == 1 and rec.points3D[2].track.length() == 0
