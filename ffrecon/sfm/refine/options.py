@@ -25,7 +25,9 @@ from ffrecon.timing import Timings
 from ffrecon.types import PinholeCamera
 
 # Quick mode's refinement (RefineOptions.quick); measured in docs/pipeline.md, "Quick mode".
-QUICK_SIFT = SiftOptions(first_octave=0, upsample_below_px=500, max_image_size=1600, max_num_features=4096)
+QUICK_SIFT = SiftOptions(
+    first_octave=0, upsample_below_px=500, coarse_from_images=48, max_image_size=1600, max_num_features=4096
+)
 QUICK_OVERLAP = OverlapOptions(max_pairs_per_image=4)
 QUICK_BUNDLE = BundleOptions(max_refinements=1, fine_function_tolerance=1e-6)
 
