@@ -68,7 +68,7 @@ def _status(scene, seed: int, frame: int, bad: bool, *, corrected: bool = False)
         refined[frame] = refined[frame] if bad else _turned(refined[frame], 20.0, rng)
     else:
         refined[frame] = _turned(prediction.cam_from_world[frame] if bad else refined[frame], 8.0, rng)
-    refine = SimpleNamespace(registered=np.ones(8, bool), cam_from_world=refined)
+    refine = SimpleNamespace(registered=np.ones(8, bool), cam_from_world=refined, relocalized=())
     per_image = [CameraEvidence(n, CameraStatus.REFINED, "refined") for n in scene.names]
     per_image[frame] = (
         CameraEvidence(scene.names[frame], CameraStatus.CORRECTED, "refined far: the refined pose is used", 20.0)
@@ -145,7 +145,7 @@ def test_a_frame_refined_on_guided_matches_far_off_is_left_out():
             refined = np.array([_turned(p, 0.5, rng) for p in np.asarray(scene.cam_from_world, np.float64)])
             toward = prediction.cam_from_world[frame]
             refined[frame] = _turned(toward, 5.0, rng)
-            refine = SimpleNamespace(registered=np.ones(8, bool), cam_from_world=refined)
+            refine = SimpleNamespace(registered=np.ones(8, bool), cam_from_world=refined, relocalized=())
             guided = (frame - 1, frame, frame + 1)  # the others are confirmed, the references
             per_image = tuple(
                 CameraEvidence(n, CameraStatus.GUIDED if k in guided else CameraStatus.REFINED, GUIDED, 1.0)
@@ -160,6 +160,55 @@ def test_a_frame_refined_on_guided_matches_far_off_is_left_out():
             left_good += [(layout.value, seed, k) for k in left if k != frame]
     assert len(left_good) <= 1, left_good
     assert len(left_bad) >= 5, left_bad
+
+
+def _relocated_status(scene, seed: int, frame: int, bad: bool) -> CameraStatus:
+    """The frame's status when its neighbours' renderings placed it far from the model's camera and the adjustment
+    did not keep it (left out on that alone): a good frame placed 11.7 deg from the truth (as held-out object 335's
+    frame 1), a frame 25 deg off placed within 1 deg of the truth."""
+    sim = SimulationOptions(seed=seed, bad_frames=(frame,) if bad else (), bad_rotation_deg=25.0)
+    truth, _ = simulate(scene, sim)
+    prediction = prediction_from_truth(scene, truth, sim)
+    rng = np.random.default_rng(seed)
+    refined = np.array(scene.cam_from_world, np.float64)
+    placed = _turned(refined[frame], 1.0 if bad else 11.7, rng)
+    registered = np.ones(8, bool)
+    registered[frame] = False
+    relocalized = (SimpleNamespace(index=frame, cam_from_world=placed),)
+    refine = SimpleNamespace(registered=registered, cam_from_world=refined, relocalized=relocalized)
+    per_image = [CameraEvidence(n, CameraStatus.REFINED, "refined") for n in scene.names]
+    why = "not refined; its neighbours' renderings placed it far, but the adjustment did not keep it there: left out"
+    per_image[frame] = CameraEvidence(scene.names[frame], CameraStatus.CONTRADICTED, why, 12.0, matches_only=True)
+    photos = [np.asarray(im) for im in scene.images]
+    out = _model_camera_kept(
+        tuple(per_image),
+        prediction.cam_from_world,
+        refine,
+        None,
+        photos.__getitem__,
+        prediction,
+        PhotometricOptions(),
+        frozenset(),
+    )
+    return out[frame].status
+
+
+def test_a_relocalisation_the_adjustment_did_not_keep_yields_to_the_model_camera_the_photos_fit():
+    """Seeds 41-43 of each family. Measured: the good frame keeps the model's camera in 8 of 9 scenes; the frame 25 deg
+    off, placed near the truth by the renderings, never does (it stays left out)."""
+    kept_good, kept_bad = [], []
+    for layout in (Layout.STREET, Layout.OBJECT, Layout.ROOM):
+        for seed in range(41, 44):
+            frame = [1, 6][seed % 2]
+            scene = make_scene(
+                _options(layout, [Texture.REPEATED, Texture.PHOTOS, Texture.PHOTOS_PLAIN_WALLS][seed % 3], seed)
+            )
+            for bad, kept in ((False, kept_good), (True, kept_bad)):
+                status = _relocated_status(scene, seed, frame, bad)
+                assert status in (CameraStatus.MODEL_FITS, CameraStatus.CONTRADICTED)
+                kept += [(layout.value, seed)] if status is CameraStatus.MODEL_FITS else []
+    assert kept_bad == []
+    assert len(kept_good) >= 6, kept_good
 
 
 def test_the_model_camera_fitting_as_well_as_the_references_is_chosen_whatever_fits_further():
