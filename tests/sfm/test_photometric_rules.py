@@ -75,15 +75,3 @@ def test_a_far_fit_where_nothing_covers_the_frame_counts_only_as_good_as_the_ref
     assert not _against(PhotometricScore(NAN, NAN, 0.86, 32.0), 0.922).uncovered_far_fit("frame.png")
     assert not _against(PhotometricScore(NAN, NAN, 0.97, 15.0), 0.922).uncovered_far_fit("frame.png")  # turned little
     assert not _against(PhotometricScore(0.5, 0.6, 0.97, 30.0), 0.922).uncovered_far_fit("frame.png")  # covered
-
-
-def test_a_far_fit_as_good_as_the_references_contradicts_without_a_poor_fit():
-    """PhotometricCheck.far_fit_as_good (frames refined on guided matches): held-out room 338, frame 6 refined 29 deg
-    off, 0.85 at its camera (not poor: 2 times what the references leave, under 3), 0.87 near it, 0.97 turned 27 deg,
-    the references 0.93 at theirs."""
-    check = _against(PhotometricScore(0.854, 0.869, 0.971, 27.0), 0.926)
-    assert check.far_fit_as_good("frame.png") and not check.poor("frame.png")
-    # the same far fit, worse than the references': contradicted, but not as good as them
-    assert not _against(PhotometricScore(0.5, 0.6, 0.9, 30.0), 0.95).far_fit_as_good("frame.png")
-    # a frame fitting near its camera as the references do is never contradicted
-    assert not _against(PhotometricScore(0.95, 0.95, 0.99, 30.0), 0.95).far_fit_as_good("frame.png")

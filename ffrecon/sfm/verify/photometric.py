@@ -184,12 +184,6 @@ class PhotometricCheck:
         turned = s.best_turn_deg > self.options.min_turn_deg
         return bool(turned and s.best >= max(self.reference, self.options.min_best))
 
-    def far_fit_as_good(self, name: str) -> bool:
-        """Whether the photos contradict the frame (:meth:`contradicts`) with a far fit at least as good as the
-        references' at theirs: the scene is there, as clearly as the references show theirs."""
-        s = self.scores.get(name)
-        return bool(s is not None and self.contradicts(name) and s.best >= self.reference)
-
     def describe_turned(self, name: str, gap_deg: float) -> str:
         s = self.scores[name]
         return (
