@@ -189,9 +189,13 @@ def _model_camera_kept(
 
 def _model_fits_text(s: PhotometricScore, there: float, relocated: bool, reference: float, options) -> str:
     """Why the photos keep the model's camera (:func:`_model_camera_kept`)."""
-    fit = f"({s.near:.2f}) than there ({there:.2f})" if np.isfinite(there) else f"({s.near:.2f}), nothing there"
-    if relocated:
-        fit = f"({s.near:.2f}) about as well as where the renderings put it ({there:.2f})"
+    fit = (
+        f"({s.near:.2f}) about as well as where the renderings put it ({there:.2f})"
+        if relocated
+        else f"({s.near:.2f}) than there ({there:.2f})"
+        if np.isfinite(there)
+        else f"({s.near:.2f}), nothing there"
+    )
     further = (
         f"no camera turned further fits clearly better ({s.best:.2f} turned {s.best_turn_deg:.0f} deg)"
         if (1 - s.near) <= options.model_far_gain * (1 - s.best)
@@ -269,14 +273,17 @@ def _guided_misfits(per_image, ff_cam_from_world, refine: RefineResult, photos, 
     return tuple(out)
 
 
+_DEPTH_DOUBT = "the model's depth of it agrees with the others' less than most frames'"
+
+
 def _sign_text(name: str, doubted: frozenset[str]) -> str:
     if name in doubted:
-        return "the model's depth of it agrees with the others' less than most frames'"
+        return _DEPTH_DOUBT
     return "dense tracking from the model's prediction verified few of the corners it put in the frames it overlaps"
 
 
 def _doubt_text(check: PhotometricCheck, name: str) -> str:
-    return check.describe_poor(name) + ", and the model's depth of it agrees with the others' less than most frames'"
+    return f"{check.describe_poor(name)}, and {_DEPTH_DOUBT}"
 
 
 def _set_aside_misfits(per_image, ff_cam_from_world, photos, depth: Prediction, options, doubted: frozenset[str]):
@@ -422,8 +429,7 @@ def _dense_misfits(per_image, refine: RefineResult, options: EvidenceOptions):
             break
         k = min(judged, key=lambda k: (shares[out[k].name][0], -shares[out[k].name][1]))  # ties: the most tried
         e, (share, tried, kept) = out[k], shares[out[k].name]
-        others = [v[0] for name, v in shares.items() if name != e.name]
-        typical = float(np.median(others)) if len(others) >= 2 else 0.0
+        typical = _others_median(shares, e.name)
         if typical <= 0 or share > options.dense_misfit_ratio * typical:
             break
         said = e.why.removesuffix("the model's camera is kept").rstrip(":; ")
@@ -444,13 +450,17 @@ def _dense_doubted(refine: RefineResult, options: EvidenceOptions) -> frozenset[
     if refine.dense is None or not refine.dense.pairs:
         return frozenset()
     shares = _dense_shares(refine.dense.pairs, set(), options.min_dense_doubt_predicted)
-    doubted = set()
-    for name, (share, _, _) in shares.items():
-        others = [v[0] for n, v in shares.items() if n != name]
-        typical = float(np.median(others)) if len(others) >= 2 else 0.0
-        if typical > 0 and share <= options.dense_doubt_ratio * typical:
-            doubted.add(name)
-    return frozenset(doubted)
+    return frozenset(
+        name
+        for name, (share, _, _) in shares.items()
+        if (typical := _others_median(shares, name)) > 0 and share <= options.dense_doubt_ratio * typical
+    )
+
+
+def _others_median(shares: dict[str, tuple[float, int, int]], name: str) -> float:
+    """The median share verified of the frames in ``shares`` other than ``name`` (0 with fewer than two)."""
+    others = [v[0] for n, v in shares.items() if n != name]
+    return float(np.median(others)) if len(others) >= 2 else 0.0
 
 
 def _dense_shares(pairs, left: set[str], min_predicted: int) -> dict[str, tuple[float, int, int]]:
