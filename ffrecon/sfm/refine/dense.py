@@ -43,6 +43,7 @@ import pycolmap
 
 from ffrecon.checks import check_number
 from ffrecon.geometry.projection import pixel_centers
+from ffrecon.geometry.rotations import rotation_angle_deg
 from ffrecon.sfm.refine.prealign import offset_in_other_frame, shifted_map
 from ffrecon.types import Prediction
 
@@ -74,6 +75,13 @@ class DenseOptions:
     prealign_window_px: int = 15  # side of the searched patch
     prealign_min_votes: int = 4  # agreeing offsets that make a consensus
     prealign_tolerance: float = 0.0075  # offsets within this fraction of the image diagonal (at least 2 px) agree
+    # A pair whose verified rotation lies further than this (deg) from the model's is not written; None: every
+    # verified pair is. Set on look-alike surfaces (sfm/refine/matching.py, _on_lookalikes) to the guided pairs'
+    # GuidanceOptions.max_pair_gap_deg: tracks that started from the model's prediction lock on a period of the
+    # pattern where it is more than half a period off, and verify as well as the truth (held-out room 351,
+    # repeated tile: 108 tracks between frames 0 and 1, all 11 px off the true epipolar lines, a rotation 26 deg
+    # from the model's that left out a frame the model had within 2.7 deg).
+    max_model_gap_deg: float | None = None
 
     def __post_init__(self) -> None:
         integers = ("min_sift_matches", "max_pairs_per_image", "max_corners", "corner_spacing_px", "min_inliers")
@@ -86,6 +94,7 @@ class DenseOptions:
         for name in ("max_fb_error_px", "max_shift", "ransac_px", "prealign_tolerance"):
             check_number(f"DenseOptions.{name}", getattr(self, name), low=0, low_open=True)
         check_number("DenseOptions.min_depth_conf", self.min_depth_conf, low=0)
+        check_number("DenseOptions.max_model_gap_deg", self.max_model_gap_deg, low=0, high=180, allow_none=True)
 
 
 @dataclass(frozen=True)
@@ -331,8 +340,9 @@ def add_dense_evidence(
         for i, j in pairs:
             ids = (images[names[i]].image_id, images[names[j]].image_id)
             found = [_found(a, b, views, prediction, options) for a, b in ((i, j), (j, i))]
+            cams = (cameras[names[i]], cameras[names[j]])
             counts.append(
-                _write_pair(db, keypoints, ids, (i, j), found, views, (cameras[names[i]], cameras[names[j]]), options)
+                _write_pair(db, keypoints, ids, (i, j), found, views, cams, _implied(prediction, i, j), options)
             )
         keypoints.write()
     finally:
@@ -356,14 +366,30 @@ def add_dense_evidence(
     return stats
 
 
-def _write_pair(db, keypoints, ids, pair, found, views, cameras, options: DenseOptions) -> tuple[int, int, int]:
+def _implied(prediction: Prediction, i: int, j: int) -> np.ndarray:
+    """``[3, 3]`` the model's relative rotation ``cam_j_from_cam_i``."""
+    rotations = prediction.cam_from_world[:, :, :3]
+    return rotations[j] @ rotations[i].T
+
+
+def _write_pair(
+    db, keypoints, ids, pair, found, views, cameras, implied, options: DenseOptions
+) -> tuple[int, int, int]:
     """Verify one pair's tracked correspondences (``found``: :func:`_found` both ways) and write the inliers;
-    returns (corners predicted inside the other frame, correspondences tracked, verified)."""
+    returns (corners predicted inside the other frame, correspondences tracked, verified). ``implied``: the
+    model's ``cam_j_from_cam_i`` rotation, which the verified one must lie near (``options.max_model_gap_deg``);
+    a pair turned further is not written and counts no predicted corner either: its tracks held, a period of
+    the pattern off, which says nothing against the model's camera."""
     (i, j), (id_i, id_j) = pair, ids
     predicted = found[0][2] + found[1][2]
     xy_i = np.concatenate([views(i)[1][found[0][0]] + 0.5, found[1][1]])  # OpenCV's indices -> COLMAP's rule
     xy_j = np.concatenate([found[0][1], views(j)[1][found[1][0]] + 0.5])
-    inliers = _verify(cameras[0], xy_i, cameras[1], xy_j, options)
+    inliers = _verify(cameras[0], xy_i, cameras[1], xy_j, implied, options)
+    if inliers is None:
+        logger.info(
+            "dense evidence: pair %s-%s turned from the model's cameras (a pattern's period off?)", *views.of(i, j)
+        )
+        return 0, len(xy_i), 0
     if len(inliers) < options.min_inliers:
         return predicted, len(xy_i), 0
     # A corner is one keypoint of its frame in every pair, so that tracks run through it; a
@@ -382,6 +408,9 @@ class _Views:
         self.image_dir, self.names, self.options = image_dir, names, options
         self.gray: dict[int, np.ndarray] = {}
         self.corners: dict[int, np.ndarray] = {}
+
+    def of(self, *frames: int) -> tuple[str, ...]:
+        return tuple(self.names[k] for k in frames)
 
     def __call__(self, k: int) -> tuple[np.ndarray, np.ndarray]:
         if k not in self.gray:
@@ -402,10 +431,9 @@ def _found(a: int, b: int, views: _Views, prediction: Prediction, options: Dense
     return (*track_pair(gray_a, gray_b, corners_a, xy_map, options), int((xy_map[rows, cols, 0] >= 0).sum()))
 
 
-def _verify(
-    camera_i: pycolmap.Camera, xy_i: np.ndarray, camera_j: pycolmap.Camera, xy_j: np.ndarray, options: DenseOptions
-) -> np.ndarray:
-    """Indices of the correspondences COLMAP's essential-matrix RANSAC keeps (none below ``min_inliers``)."""
+def _verify(camera_i, xy_i: np.ndarray, camera_j, xy_j: np.ndarray, implied: np.ndarray, options: DenseOptions):
+    """Indices of the correspondences COLMAP's essential-matrix RANSAC keeps (none below ``min_inliers``); None
+    when the rotation it recovers lies more than ``options.max_model_gap_deg`` from ``implied``."""
     if len(xy_i) < max(options.min_inliers, 5):
         return np.zeros(0, int)
     ransac = pycolmap.RANSACOptions()
@@ -414,7 +442,12 @@ def _verify(
     essential = pycolmap.estimate_essential_matrix(xy_i, xy_j, camera_i, camera_j, ransac)
     if essential is None:
         return np.zeros(0, int)
-    return np.flatnonzero(np.asarray(essential["inlier_mask"], bool))
+    inliers = np.flatnonzero(np.asarray(essential["inlier_mask"], bool))
+    if options.max_model_gap_deg is not None and len(inliers) >= options.min_inliers:
+        measured = np.asarray(essential["cam2_from_cam1"].rotation.matrix(), np.float64)
+        if rotation_angle_deg(measured @ implied.T) > options.max_model_gap_deg:
+            return None
+    return inliers
 
 
 class _Keypoints:

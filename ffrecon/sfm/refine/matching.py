@@ -237,7 +237,8 @@ def _guide(
 
 def _on_lookalikes(options: RefineOptions, guidance: GuidanceStats | None) -> RefineOptions:
     """The options for the adjustment once the matching is known. On look-alike surfaces (the matching was
-    guided) the dense tracking does not move the model's prediction first (``DenseOptions.prealign``), and:
+    guided) the dense tracking does not move the model's prediction first (``DenseOptions.prealign``) nor writes a
+    pair turned further from the model than a guided pair may be (``DenseOptions.max_model_gap_deg``), and:
 
     - no frame is relocalised. Its renderings are matched by SIFT alone, and a pattern's period off is a pose the
       dense evidence then agrees with: on the repeated-texture room (seed 101, ``--quick``) a frame the model had
@@ -253,7 +254,10 @@ def _on_lookalikes(options: RefineOptions, guidance: GuidanceStats | None) -> Re
     # nor is the dense tracking's prediction moved by the photos' consensus (sfm/refine/prealign.py): the patches
     # agree on a period as well as on the truth (held-out street seed 327, repeated tiles: the second adjustment,
     # on such tracks, kept no frame and the run failed its gates)
-    options = dataclasses.replace(options, dense=dataclasses.replace(options.dense, prealign=False))
+    gap = options.guidance.max_pair_gap_deg
+    options = dataclasses.replace(
+        options, dense=dataclasses.replace(options.dense, prealign=False, max_model_gap_deg=gap)
+    )
     bundle = options.bundle
     if options.guidance.two_view_tracks:
         bundle = dataclasses.replace(bundle, ignore_two_view_tracks=False, robust_fine=True)
