@@ -11,7 +11,7 @@ not twice.
 
 Two earlier cases (seed 2, and seed 4 with frame 7 off: 5.7 and 10.4 deg without the check) no longer need
 it: their weak links came from pairs SIFT's verification had failed, whose dense correspondences never
-reached the adjustment (sfm/refine/dense.py, ``_add_matches``); with those in, no link there is weak.
+reached the adjustment (sfm/refine/dense_db.py, ``add_matches``); with those in, no link there is weak.
 """
 
 import dataclasses
