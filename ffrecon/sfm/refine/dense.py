@@ -110,6 +110,8 @@ class DenseStats:
     seconds: float
     # Per pair tracked: (frame, frame, corners predicted inside the other frame in both directions, verified).
     pairs: tuple[tuple[str, str, int, int], ...] = ()
+    # Pairs whose tracks verified turned beyond DenseOptions.max_model_gap_deg from the model: not written.
+    turned: tuple[tuple[str, str], ...] = ()
 
     @property
     def per_frame_predicted(self) -> dict[str, int]:
@@ -135,6 +137,7 @@ class DenseStats:
             per_frame,
             self.seconds + other.seconds,
             self.pairs + other.pairs,
+            self.turned + other.turned,
         )
 
     def to_report(self) -> dict:
@@ -146,6 +149,7 @@ class DenseStats:
             "per_frame": dict(self.per_frame),
             "per_frame_predicted": dict(self.per_frame_predicted),
             "pairs": [list(p) for p in self.pairs],
+            "turned_pairs": [list(p) for p in self.turned],
             "seconds": round(self.seconds, 3),
         }
 
@@ -350,12 +354,15 @@ def add_dense_evidence(
         db.close()
     seconds = time.perf_counter() - start_s
     per_frame = dict.fromkeys((names[k] for k in frames), 0)
-    for (i, j), (_, _, kept) in zip(pairs, counts):
+    for (i, j), (_, _, kept, _) in zip(pairs, counts):
         for name in {names[i], names[j]} & per_frame.keys():
             per_frame[name] += kept
     tracked, verified = sum(c[1] for c in counts), sum(c[2] for c in counts)
     pair_counts = tuple((names[i], names[j], c[0], c[2]) for (i, j), c in zip(pairs, counts))
-    stats = DenseStats(tuple(names[k] for k in frames), len(pairs), tracked, verified, per_frame, seconds, pair_counts)
+    turned = tuple((names[i], names[j]) for (i, j), c in zip(pairs, counts) if c[3])
+    stats = DenseStats(
+        tuple(names[k] for k in frames), len(pairs), tracked, verified, per_frame, seconds, pair_counts, turned
+    )
     logger.info(
         "dense evidence for %d frames SIFT left short: %d pairs tracked, %d of %d correspondences verified (%.1f s)",
         len(frames),
@@ -375,12 +382,13 @@ def _implied(prediction: Prediction, i: int, j: int) -> np.ndarray:
 
 def _write_pair(
     db, keypoints, ids, pair, found, views, cameras, implied, options: DenseOptions
-) -> tuple[int, int, int]:
+) -> tuple[int, int, int, bool]:
     """Verify one pair's tracked correspondences (``found``: :func:`_found` both ways) and write the inliers;
-    returns (corners predicted inside the other frame, correspondences tracked, verified). ``implied``: the
+    returns (corners predicted inside the other frame, correspondences tracked, verified, turned). ``implied``: the
     model's ``cam_j_from_cam_i`` rotation, which the verified one must lie near (``options.max_model_gap_deg``);
     a pair turned further is not written and counts no predicted corner either: its tracks held, a period of
-    the pattern off, which says nothing against the model's camera."""
+    the pattern off or the model's camera as far off, which the photos tell apart (``turned``:
+    :func:`ffrecon.sfm.verify.unmatched._photometric`)."""
     (i, j), (id_i, id_j) = pair, ids
     predicted = found[0][2] + found[1][2]
     xy_i = np.concatenate([views(i)[1][found[0][0]] + 0.5, found[1][1]])  # OpenCV's indices -> COLMAP's rule
@@ -390,16 +398,16 @@ def _write_pair(
         logger.info(
             "dense evidence: pair %s-%s turned from the model's cameras (a pattern's period off?)", *views.of(i, j)
         )
-        return 0, len(xy_i), 0
+        return 0, len(xy_i), 0, True
     if len(inliers) < options.min_inliers:
-        return predicted, len(xy_i), 0
+        return predicted, len(xy_i), 0, False
     # A corner is one keypoint of its frame in every pair, so that tracks run through it; a
     # position it was found at in another frame is a keypoint of that pair only.
     ahead, back = inliers[inliers < len(found[0][0])], inliers[inliers >= len(found[0][0])] - len(found[0][0])
     kp_i = [keypoints.corners(id_i, found[0][0][ahead]), keypoints.add(id_i, found[1][1][back])]
     kp_j = [keypoints.add(id_j, found[0][1][ahead]), keypoints.corners(id_j, found[1][0][back])]
     add_matches(db, id_i, id_j, np.stack([np.concatenate(kp_i), np.concatenate(kp_j)], axis=1))
-    return predicted, len(xy_i), len(inliers)
+    return predicted, len(xy_i), len(inliers), False
 
 
 class _Views:

@@ -143,8 +143,9 @@ def _photo_rules(per_image, ff_cam_from_world, refine, colmap, photos, depth, op
     """The photometric rules on the refined cameras, in their order (:mod:`ffrecon.sfm.verify.unmatched`)."""
     photometric, limit = options.photometric, options.max_correction_deg
     dense_doubted = _dense_doubted(refine, options)
+    turned = frozenset(n for pair in (refine.dense.turned if refine.dense is not None else ()) for n in pair)
     per_image = _photometric(
-        per_image, ff_cam_from_world, refine, photos, depth, photometric, limit, doubted, dense_doubted
+        per_image, ff_cam_from_world, refine, photos, depth, photometric, limit, doubted, dense_doubted, turned
     )
     per_image = _guided_misfits(per_image, ff_cam_from_world, refine, photos, depth, photometric)
     return _model_camera_kept(per_image, ff_cam_from_world, refine, colmap, photos, depth, photometric, doubted)

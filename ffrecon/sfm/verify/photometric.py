@@ -226,6 +226,17 @@ class PhotometricCheck:
         factor = self.options.fit_factor if factor is None else factor
         return bool(left <= max(factor * theirs, self.options.fit_floor))
 
+    def below_reference(self, name: str) -> bool:
+        """Whether the frame's best fit within ``options.near_deg`` of its camera (at its camera where not searched)
+        is worse than the confirmed frames' at theirs. No evidence alone (good frames fit 0.5-0.99 with texture and
+        coverage), only beside a pair that turned far from the model (:func:`ffrecon.sfm.verify.unmatched.
+        _photometric`)."""
+        s = self.scores.get(name)
+        if s is None:
+            return False
+        at = s.near if np.isfinite(s.near) else s.score
+        return bool(np.isfinite(at) and at < self.reference)
+
     def describe_poor(self, name: str, *, near: bool = False) -> str:
         at, where = self._poor_fit(self.scores[name], near)
         return (

@@ -52,6 +52,7 @@ def _photometric(
     limit,
     doubted: frozenset[str] = frozenset(),
     dense_doubted: frozenset[str] = frozenset(),
+    turned: frozenset[str] = frozenset(),
 ):
     """``per_image`` with the unchecked frames that the photos contradict left out
     (:mod:`ffrecon.sfm.verify.photometric`).
@@ -68,7 +69,12 @@ def _photometric(
     repeated tile, ``--quick``: a frame 25 deg off, no verified match, fitting 0.19 against 0.89), and so is a frame
     that nothing covers near its camera but the photos fit far from it (:meth:`PhotometricCheck.uncovered_far_fit`)
     where its depth is doubted or its dense tracks found few of their corners (``dense_doubted``:
-    :func:`_dense_doubted`)."""
+    :func:`_dense_doubted`), and a frame whose dense tracks verified turned far from the model on look-alike
+    surfaces (``turned``: :attr:`~ffrecon.sfm.refine.dense.DenseStats.turned`; a period of the pattern, or its
+    camera that far off) that the photos fit worse near its camera than the references at theirs
+    (:meth:`PhotometricCheck.below_reference`): held-out room 353 (repeated tile, frame 1 25 deg off, no verified
+    match) fitted 0.87 against 0.96 and was exported unchecked; room 351's frame 1, 2.7 deg off, fits 0.91 against
+    0.84."""
     reference = _photo_references(per_image, refine)
     # A frame refined on one planar pair is unchecked too: on the repeated-tile room (held-out seed 214, frame 6
     # 25 deg off) the pair moved it 5 deg, and it was exported 30.8 deg off
@@ -84,28 +90,7 @@ def _photometric(
         if e.status is CameraStatus.DENSE_MOVED:
             out[k] = _dense_moved_judged(e, check)
             continue
-        # its verified pairs disagree with its camera, too weakly to contradict it alone (_pair_verdict): the
-        # median gap, recorded as its correction, is over the limit
-        disputed = np.isfinite(e.correction_deg) and e.correction_deg > limit
-        # the pairs and the photos agreeing on where it turned (room seed 236, plain walls: a frame 26 deg off, one
-        # 37-match pair 26.5 deg from it, nothing covering it near its camera, its photo fitting 0.83 turned 33 deg)
-        # on look-alike surfaces a far fit alone is a period of the pattern, as for guided frames (_guided_misfits):
-        # held-out room 351 (repeated tile, frame 6 25 deg off), frame 2, refined on one planar pair 0.5 deg from the
-        # truth, fitted 0.78 near its camera and 0.88 turned 32 deg (the references 0.86) and was left out
-        far = check.contradicts(e.name) and (not _lookalike(refine) or check.poor(e.name, near=True))
-        said = (
-            check.describe(e.name)
-            if far
-            else check.describe_poor(e.name, near=True)
-            if disputed and check.poor(e.name, near=True)
-            else check.describe_turned(e.name, e.correction_deg)
-            if disputed and not _lookalike(refine) and check.turned_like(e.name, e.correction_deg)
-            else _doubt_text(check, e.name)
-            if e.name in doubted and check.poor(e.name)
-            else f"{check.describe(e.name)}, and {_sign_text(e.name, doubted)}"
-            if check.uncovered_far_fit(e.name) and e.name in doubted | dense_doubted
-            else None
-        )
+        said = _photo_misfit(e, check, _lookalike(refine), limit, doubted, dense_doubted, turned)
         if said is not None:
             unmatched = e.why.removesuffix("the model's camera is kept").removesuffix(
                 "its refined pose is kept, unconfirmed"
@@ -117,6 +102,37 @@ def _photometric(
             why = f"{e.why}; the photos do not contradict it ({score:.2f} against {check.reference:.2f})"
             out[k] = CameraEvidence(e.name, e.status, why, e.correction_deg)
     return tuple(out)
+
+
+def _photo_misfit(e: CameraEvidence, check: PhotometricCheck, lookalike: bool, limit, doubted, dense_doubted, turned):
+    """Why the photos leave out a frame :func:`_photometric` judges, or None where they do not. Among the signs:
+    its verified pairs and the photos agreeing on where it turned (room seed 236, plain walls: a frame 26 deg off,
+    one 37-match pair 26.5 deg from it, nothing covering it near its camera, its photo fitting 0.83 turned 33 deg)."""
+    # its verified pairs disagree with its camera, too weakly to contradict it alone (_pair_verdict): the
+    # median gap, recorded as its correction, is over the limit
+    disputed = np.isfinite(e.correction_deg) and e.correction_deg > limit
+    # on look-alike surfaces a far fit alone is a period of the pattern, as for guided frames (_guided_misfits):
+    # held-out room 351 (repeated tile, frame 6 25 deg off), frame 2, refined on one planar pair 0.5 deg from the
+    # truth, fitted 0.78 near its camera and 0.88 turned 32 deg (the references 0.86) and was left out
+    far = check.contradicts(e.name) and (not lookalike or check.poor(e.name, near=True))
+    return (
+        check.describe(e.name)
+        if far
+        else check.describe_poor(e.name, near=True)
+        if disputed and check.poor(e.name, near=True)
+        else check.describe_turned(e.name, e.correction_deg)
+        if disputed and not lookalike and check.turned_like(e.name, e.correction_deg)
+        else _doubt_text(check, e.name)
+        if e.name in doubted and check.poor(e.name)
+        else f"{check.describe(e.name)}, and {_sign_text(e.name, doubted)}"
+        if check.uncovered_far_fit(e.name) and e.name in doubted | dense_doubted
+        else f"{check.describe_poor(e.name, near=True)}, and its dense tracks verified {_TURNED}"
+        if e.name in turned and check.below_reference(e.name)
+        else None
+    )
+
+
+_TURNED = "turned from the model's camera beyond what its error explains (a period of the pattern, or its camera)"
 
 
 def _model_camera_kept(
