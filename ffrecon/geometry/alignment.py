@@ -153,7 +153,8 @@ def robust_sim3_from_cameras(src_cam_from_world: np.ndarray, dst_cam_from_world:
     each = np.einsum("nji,njk->nik", dst_rot, src_rot)  # R_dst^T R_src, the rotation each camera alone gives
     keep = np.ones(len(each), dtype=bool)
     if len(each) >= 4:
-        between = np.array([[rotation_angle_deg(a @ b.T) for b in each] for a in each])
+        traces = np.einsum("ikl,jkl->ij", each, each)  # trace(each_i each_j^T), every pair at once
+        between = np.degrees(np.arccos(np.clip((traces - 1.0) / 2.0, -1.0, 1.0)))
         medoid = int(np.argmin(np.median(between, axis=1)))
         others = np.delete(between[medoid], medoid)
         keep = between[medoid] <= 3 * np.median(others) + 1e-9
