@@ -1,11 +1,11 @@
 """An unchecked frame whose dense tracks from the model's prediction found almost nothing, where the other frames
-tracked found theirs, is left out (:func:`ffrecon.sfm.verify.unmatched._dense_misfits`, issue 39); a frame the dense
+tracked found theirs, is left out (:func:`ffrecon.sfm.verify.signs._dense_misfits`, issue 39); a frame the dense
 tracking barely tried, or a capture where no frame's tracks held, is not judged by it."""
 
 from types import SimpleNamespace
 
 from ffrecon.sfm.refine.dense import DenseStats
-from ffrecon.sfm.verify.unmatched import _dense_misfits
+from ffrecon.sfm.verify.signs import _dense_misfits
 from ffrecon.sfm.verify.verdicts import CameraEvidence, CameraStatus, EvidenceOptions
 
 NAMES = [f"frame_{k:03d}.png" for k in range(5)]
@@ -70,12 +70,12 @@ def test_only_unchecked_frames_are_judged():
 
 
 def test_a_frame_whose_dense_tracks_found_few_corners_is_doubted():
-    """The weak dense sign counted beside a photometric one (unmatched._dense_doubted): held-out room 337 (frames
+    """The weak dense sign counted beside a photometric one (signs._dense_doubted): held-out room 337 (frames
     renumbered 0-4), frame 3 (25 deg off) verified 84 of 1,810 corners (5 %), the others' median 11 %. A frame whose
     only pair is with it is doubted too (the photometric sign must then single out which)."""
     import dataclasses
 
-    from ffrecon.sfm.verify.unmatched import _dense_doubted
+    from ffrecon.sfm.verify.signs import _dense_doubted
 
     refine = _refine([(0, 1, 619, 356), (1, 2, 1345, 1116), (2, 3, 1260, 84), (3, 4, 550, 0), (0, 4, 206, 23)])
     assert _dense_doubted(refine, EvidenceOptions()) == frozenset({NAMES[3], NAMES[4]})

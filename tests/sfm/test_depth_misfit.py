@@ -1,5 +1,5 @@
 """A frame nothing checks is contradicted where the model's own depth, placed with its camera, disagrees with the
-other frames' depth (issue 39; ``geometry.overlap.view_agreement``, ``sfm.verify.unmatched._depth_misfits``).
+other frames' depth (issue 39; ``geometry.overlap.view_agreement``, ``sfm.verify.signs._depth_misfits``).
 
 On the repeated-tile object of held-out seeds 235-247 a frame 25 deg off had no verified match (the matches guided
 by its camera found none), no dense evidence and no photometric verdict, and was exported unchecked. These scenes
@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from ffrecon.geometry.overlap import view_agreement
-from ffrecon.sfm.verify.unmatched import _depth_misfits, _depth_shares
+from ffrecon.sfm.verify.signs import _depth_misfits, _depth_shares
 from ffrecon.sfm.verify.verdicts import CameraEvidence, CameraStatus, EvidenceOptions
 from ffrecon.synthetic import CameraPath, SceneOptions, Texture, make_scene
 from ffrecon.synthetic.layouts import Layout

@@ -17,7 +17,8 @@ import numpy as np
 
 from ffrecon.geometry.rotations import axis_angle_to_matrix
 from ffrecon.sfm.verify.photometric import PhotometricOptions
-from ffrecon.sfm.verify.unmatched import _depth_doubted, _depth_shares, _guided_misfits, _model_camera_kept
+from ffrecon.sfm.verify.signs import _depth_doubted, _depth_shares
+from ffrecon.sfm.verify.unmatched import _guided_misfits, _model_camera_kept
 from ffrecon.sfm.verify.verdicts import CameraEvidence, CameraStatus, EvidenceOptions
 from ffrecon.synthetic import CameraPath, SceneOptions, Texture, make_scene
 from ffrecon.synthetic.layouts import Layout

@@ -13,7 +13,8 @@ from pathlib import Path
 import numpy as np
 
 from ffrecon.sfm.verify.photometric import PhotometricOptions
-from ffrecon.sfm.verify.unmatched import _depth_doubted, _depth_shares, _set_aside_misfits
+from ffrecon.sfm.verify.signs import _depth_doubted, _depth_shares
+from ffrecon.sfm.verify.unmatched import _set_aside_misfits
 from ffrecon.sfm.verify.verdicts import CameraEvidence, CameraStatus, EvidenceOptions
 from ffrecon.synthetic import CameraPath, SceneOptions, Texture, make_scene
 from ffrecon.synthetic.layouts import Layout

@@ -41,12 +41,8 @@ from ffrecon.sfm.crosscheck.gate_types import GatesResult, GateStatus, GateVerdi
 from ffrecon.sfm.crosscheck.run import ColmapResult
 from ffrecon.sfm.refine.options import RefineResult
 from ffrecon.sfm.verify.frames import _per_image, _period_off
+from ffrecon.sfm.verify.signs import _dense_doubted, _dense_misfits, _depth_doubted, _depth_misfits, _depth_shares
 from ffrecon.sfm.verify.unmatched import (
-    _dense_doubted,
-    _dense_misfits,
-    _depth_doubted,
-    _depth_misfits,
-    _depth_shares,
     _guided_misfits,
     _model_camera_kept,
     _photometric,
@@ -147,7 +143,9 @@ def _photo_rules(per_image, ff_cam_from_world, refine, colmap, photos, depth, op
     per_image = _photometric(
         per_image, ff_cam_from_world, refine, photos, depth, photometric, limit, doubted, dense_doubted, turned
     )
-    per_image = _guided_misfits(per_image, ff_cam_from_world, refine, photos, depth, photometric)
+    per_image = _guided_misfits(
+        per_image, ff_cam_from_world, refine, photos, depth, photometric, doubted, dense_doubted
+    )
     return _model_camera_kept(per_image, ff_cam_from_world, refine, colmap, photos, depth, photometric, doubted)
 
 
