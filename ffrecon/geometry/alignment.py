@@ -138,26 +138,30 @@ def sim3_from_cameras(src_cam_from_world: np.ndarray, dst_cam_from_world: np.nda
     return Sim3(scale, rot, dst_c.mean(0) - scale * rot @ src_c.mean(0))
 
 
-def robust_sim3_from_cameras(src_cam_from_world: np.ndarray, dst_cam_from_world: np.ndarray) -> Sim3:
+def robust_sim3_from_cameras(
+    src_cam_from_world: np.ndarray, dst_cam_from_world: np.ndarray, max_angle_deg: float | None = None
+) -> Sim3:
     """:func:`sim3_from_cameras` without the cameras whose orientation is more than three times the median angle
     from the fit (a frame the model turned far off must not tilt the rest), then its scale and translation
     refitted without the centres far from a median-based fit (:func:`_robust_centres`).
 
     The cameras kept are first those near the medoid of the cameras' own rotation differences (``R_dst^T R_src``
-    of the camera whose median angle to the others' is least), and then those near the fit to them. Started from
+    of the camera whose median angle to the others' is least): within three times the others' median angle to it
+    (four cameras or more), and within ``max_angle_deg`` of it (three or more; None: no such bound). Started from
     the mean of all, one frame 25 deg off among four tilts the mean 6 deg, the good frames end 5-7 deg from it
     and the bad one 18, inside three times their median (held-out room 356: a part of four frames placed 6 deg
-    off by it).
+    off by it); among three, no median tells one camera 25 deg off from two that agree (held-out room 364: a part
+    placed 8 deg off), a bound in degrees does.
     """
     src_rot, dst_rot = src_cam_from_world[:, :, :3], dst_cam_from_world[:, :, :3]
     each = np.einsum("nji,njk->nik", dst_rot, src_rot)  # R_dst^T R_src, the rotation each camera alone gives
     keep = np.ones(len(each), dtype=bool)
-    if len(each) >= 4:
+    if len(each) >= 3:
         traces = np.einsum("ikl,jkl->ij", each, each)  # trace(each_i each_j^T), every pair at once
         between = np.degrees(np.arccos(np.clip((traces - 1.0) / 2.0, -1.0, 1.0)))
         medoid = int(np.argmin(np.median(between, axis=1)))
-        others = np.delete(between[medoid], medoid)
-        keep = between[medoid] <= 3 * np.median(others) + 1e-9
+        bar = 3 * np.median(np.delete(between[medoid], medoid)) + 1e-9 if len(each) >= 4 else np.inf
+        keep = between[medoid] <= min(bar, np.inf if max_angle_deg is None else max_angle_deg)
     sim = sim3_from_cameras(src_cam_from_world[keep], dst_cam_from_world[keep])
     moved = np.einsum("nij,kj->nik", src_rot, sim.rotation)  # R_src rot^T, as R_dst
     angles = np.array([rotation_angle_deg(m @ d.T) for m, d in zip(moved, dst_rot)])
@@ -243,7 +247,9 @@ def orientation_fit_rotation_std_deg(
     return float(np.sqrt(np.sum(angles[keep] ** 2) / (3 * (n - 1)) / n))
 
 
-def camera_sim3(src_cam_from_world: np.ndarray, dst_cam_from_world: np.ndarray) -> Sim3:
+def camera_sim3(
+    src_cam_from_world: np.ndarray, dst_cam_from_world: np.ndarray, max_angle_deg: float | None = None
+) -> Sim3:
     """``dst_from_src`` for two sets of the same ``[N, 3, 4]`` cameras, robust to a few cameras far off.
 
     Two fits: Umeyama on the camera centres (:func:`robust_umeyama`) and the cameras' orientations
@@ -251,11 +257,12 @@ def camera_sim3(src_cam_from_world: np.ndarray, dst_cam_from_world: np.ndarray) 
     near one plane hold its tilt weakly, so those take the orientations. Otherwise the fit whose rotation
     its own residuals say is held better wins: centres bunched up relative to their noise (a room
     photographed from its middle: on a synthetic furnished room the centre fit turned 9.5 degrees where
-    the orientations were 1.6 off) take the orientations too.
+    the orientations were 1.6 off) take the orientations too. ``max_angle_deg``: see
+    :func:`robust_sim3_from_cameras`.
     """
     src = -np.einsum("nji,nj->ni", src_cam_from_world[:, :, :3], src_cam_from_world[:, :, 3])
     dst = -np.einsum("nji,nj->ni", dst_cam_from_world[:, :, :3], dst_cam_from_world[:, :, 3])
-    by_orientation = robust_sim3_from_cameras(src_cam_from_world, dst_cam_from_world)
+    by_orientation = robust_sim3_from_cameras(src_cam_from_world, dst_cam_from_world, max_angle_deg)
     if len(src) < 4 or collinear(src) or collinear(dst) or flat(src) or flat(dst):
         return by_orientation
     by_centres = robust_umeyama(src, dst)

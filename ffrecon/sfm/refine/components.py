@@ -34,6 +34,11 @@ logger = logging.getLogger(__name__)
 
 # Frames sharing fewer 3D points than this are not held together: three points not on a line fix a similarity.
 MIN_SHARED_POINTS = 3
+# A part is placed on the model's cameras of its frames within this of their medoid (camera_sim3's max_angle_deg):
+# the model's errors are a few degrees (2.5 per frame: two frames ~3.5 apart, ~7 at worst); a frame further from
+# the others is one the model turned far off, and it must not tilt its part (held-out room 364: a part of three
+# frames, one 25 deg off, placed 8 deg off; every final camera 3.2-6.3 deg off, the model's median 2.0)
+MAX_PLACING_ANGLE_DEG = 10.0
 
 
 def parts(rec: pycolmap.Reconstruction) -> list[list[int]]:
@@ -72,7 +77,7 @@ def place_parts(rec: pycolmap.Reconstruction, names: Sequence[str], ff_cam_from_
     for p, group in enumerate(groups):
         group_names = [rec.image(i).name for i in group]
         refined, _ = cam_from_world_by_name(rec, group_names)
-        sim = camera_sim3(refined, ff_cam_from_world[[index[n] for n in group_names]])
+        sim = camera_sim3(refined, ff_cam_from_world[[index[n] for n in group_names]], MAX_PLACING_ANGLE_DEG)
         if p > 0 and (len(group) < 2 or not (np.isfinite(sim.scale) and sim.scale > 0)):
             sim = sims[0]  # one frame, or centres that fix no scale: it moves with the largest part
         _move(rec, group, [q for q, part in point_part.items() if part == p], sim)
