@@ -254,9 +254,7 @@ def _chooses_model(
     return bool((1 - s.near) <= max(options.model_far_gain * (1 - s.best), good))
 
 
-def _guided_misfits(
-    per_image, ff_cam_from_world, refine: RefineResult, photos, depth: Prediction, options, doubted=(), dense_doubted=()
-):
+def _guided_misfits(per_image, ff_cam_from_world, refine: RefineResult, photos, depth: Prediction, options):
     """``per_image`` with the frames refined on guided matches (look-alike surfaces, ``GUIDED``) that the photos
     contradict twice left out: they fit it clearly better with its camera turned far (:meth:`PhotometricCheck.
     contradicts`) and poorly where it is (:meth:`PhotometricCheck.poor`). Guided matches lock onto the period of a
@@ -275,30 +273,21 @@ def _guided_misfits(
     # off, a reference of its neighbours, makes them fit poorly too (bounded: each round leaves one frame out)
     for _ in range(len(judged)):
         check = photometric_check(photos, depth, poses, reference, judged, options)
-        signs = frozenset(doubted) | frozenset(dense_doubted)
-        flagged = [] if check is None else [k for k in judged if _guided_misfit(check, out[k].name, signs)]
+        flagged = (
+            [] if check is None else [k for k in judged if check.contradicts(out[k].name) and check.poor(out[k].name)]
+        )
         if not flagged:
             break
         k = min(flagged, key=lambda k: check.scores[out[k].name].score)
         e = out[k]
         said = e.why.removesuffix(": its refined pose is kept, not confirmed")
-        sign = check.describe(e.name) if check.contradicts(e.name) else _sign_text(e.name, frozenset(doubted))
-        why = f"{said}; but {sign}, and {check.describe_poor(e.name)}: left out"
+        why = f"{said}; but {check.describe(e.name)}, and {check.describe_poor(e.name)}: left out"
         out[k] = CameraEvidence(e.name, CameraStatus.PHOTO_MISFIT, why, e.correction_deg)
         if len(flagged) == 1:
             break
         judged = [j for j in flagged if j != k]
         reference = [j for j in reference if j != k]
     return tuple(out)
-
-
-def _guided_misfit(check: PhotometricCheck, name: str, signs: frozenset[str]) -> bool:
-    """A guided frame the photos fit poorly (:meth:`PhotometricCheck.poor`) beside a second sign: they fit it far
-    from its camera (:meth:`PhotometricCheck.contradicts`), or its depth or dense tracks are doubted (``signs``).
-    Held-out street 362 (repeated tile, ``--quick``): frame 1, 25 deg off, was refined on 85 observations of guided
-    matches 29 deg from the truth; its photo fitted 0.83 against the references' 0.99, best turned 15 deg (under
-    ``min_turn_deg``), and its dense tracks verified few of their corners: exported unchecked."""
-    return check.poor(name) and (check.contradicts(name) or name in signs)
 
 
 _DEPTH_DOUBT = "the model's depth of it agrees with the others' less than most frames'"
