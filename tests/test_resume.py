@@ -26,6 +26,7 @@ from ffrecon.sfm.crosscheck.gate_types import GateOptions
 from ffrecon.splat.optimize import OptimizeOptions
 from ffrecon.splat.stage import SplatOptions
 from ffrecon.workspace import staging_path
+from tests.conftest import ctrl_c_default
 
 FIXED_CHUNKS = FeedForwardOptions(multiview=MultiviewOptions(chunk_size=8))
 BEFORE_SPLAT = ["capture", "feedforward", "colmap_matching", "colmap", "refine", "gates", "evidence", "comparisons"]
@@ -151,7 +152,9 @@ def test_ctrl_c_prints_one_line_and_keeps_out(demo12, tmp_path):
     for sig in (signal.SIGINT, signal.SIGTERM):
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
         (records / "comparisons.json").unlink(missing_ok=True)  # its return marks the splat's start
-        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+        proc = subprocess.Popen(
+            cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, preexec_fn=ctrl_c_default
+        )
         deadline = time.monotonic() + 300
         while not (records / "comparisons.json").is_file() and time.monotonic() < deadline and proc.poll() is None:
             time.sleep(0.2)

@@ -19,6 +19,7 @@ from ffrecon.gaussians import SH_C0
 from ffrecon.view import Estimate, ViewOptions, load_scene
 from ffrecon.view.scene import FLAG_COLOR, image_flags, splat_layer
 from ffrecon.view.server import _camera_markdown
+from tests.conftest import ctrl_c_default
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -158,6 +159,7 @@ def _start_viewer(out: Path, port: int, *extra: str) -> tuple[subprocess.Popen, 
         stderr=subprocess.PIPE,
         text=True,
         cwd=REPO,
+        preexec_fn=ctrl_c_default,
     )
     lines: list[str] = []
     reader = threading.Thread(target=lambda: lines.append(proc.stdout.readline()), daemon=True)
