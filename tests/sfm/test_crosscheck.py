@@ -10,7 +10,7 @@ from ffrecon.colmap_io import cam_from_world_by_name, reconstruction_from_camera
 from ffrecon.errors import InputError
 from ffrecon.geometry.metrics import pose_errors
 from ffrecon.sfm.compare.poses import compare_models
-from ffrecon.sfm.crosscheck.mapping import drop_weak_images
+from ffrecon.sfm.crosscheck.mapping import drop_weak_images, map_images
 from ffrecon.sfm.crosscheck.matching import resolve_camera_sharing, resolve_pairing
 from ffrecon.sfm.crosscheck.options import CameraSharing, ColmapOptions, MapperKind, PairingMode
 from ffrecon.sfm.crosscheck.run import ColmapStatus, run_colmap
@@ -147,3 +147,10 @@ def test_sequential_pairing_and_global_mapper(orbit24, tmp_path):
     poses, registered = cam_from_world_by_name(pycolmap.Reconstruction(str(tmp_path / "sparse" / "0")), names)
     errors = pose_errors(poses, orbit24.scene.cam_from_world[:8], registered)
     assert errors.median_rotation_deg < 0.5
+    # The global mapper writes to the database it is given; the refinement reads this one beside the mapping
+    # (a write there failed its open, "database is locked"), so the mapper gets a copy and this one stays as it was.
+    database = result.database_path
+    before = database.read_bytes()
+    kept, _, _ = map_images(database, orbit24.image_dir, tmp_path / "again", options, len(names))
+    assert kept is not None and kept.num_reg_images() == 8
+    assert database.read_bytes() == before

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 import shutil
+import sqlite3
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -100,7 +101,8 @@ def _run_mapper(
         built = pycolmap.incremental_mapping(str(db_path), str(image_dir), str(work_dir), mapping)
     else:
         mapping = _global_options(options, num_images)
-        built = pycolmap.global_mapping(str(db_path), str(image_dir), str(work_dir), mapping)
+        private = _private_copy(db_path, work_dir / "database.db")
+        built = pycolmap.global_mapping(str(private), str(image_dir), str(work_dir), mapping)
     seconds = time.perf_counter() - start
     shutil.rmtree(work_dir, ignore_errors=True)
     dropped = sum(drop_weak_images(rec, options.min_points_per_image) for rec in built.values())
@@ -118,6 +120,22 @@ def _run_mapper(
         seconds=seconds,
     )
     return models, run
+
+
+def _private_copy(db_path: Path, copy_path: Path) -> Path:
+    """A copy of the database for COLMAP's global mapper, which writes to the database it is given (its view-graph
+    steps rewrite two-view geometries): the refinement reads the same matches in the thread beside the mapping, and
+    a write there made the refinement's open fail ("database is locked", reported by pycolmap as "No registered
+    database factory succeeded": 2 of about 1,100 sweep runs, exit 1) and could change what it read. SQLite's own
+    backup makes the copy, a consistent snapshot however the database is journaled."""
+    source = sqlite3.connect(f"{Path(db_path).resolve().as_uri()}?mode=ro", uri=True)
+    copy = sqlite3.connect(copy_path)
+    try:
+        source.backup(copy)
+    finally:
+        source.close()
+        copy.close()
+    return copy_path
 
 
 def drop_weak_images(rec: pycolmap.Reconstruction, min_points: int) -> int:
