@@ -155,11 +155,8 @@ def test_a_weak_link_that_alone_joins_two_groups_must_agree_as_a_typical_link_do
     """Held-out object seed 384 (scale errors): frames 0 and 5 joined the other six by one link of 34 points, 7.1
     deg from the model's relative rotation where the links' median was 4.1, under the 2.5-times limit; the pair
     ended 7.5 deg turned against the rest, both called confirmed 5.7 and 5.8 deg off. The same hinge as above, 7.3
-    deg from a model whose links disagree by 4.3 at the median: trusted when 100 points hold it, not when 50 do
-    (fewer than twice ``min_shared_points``)."""
-    pycolmap.set_random_seed(0)
-    strong, names, model, _, _ = _two_groups_and_a_hinge(5.0, hinge_every=4)
-    assert judge_links(strong, names, _noisy(model)) == LinkVerdict()
+    deg from a model whose links disagree by 4.3 at the median: trusted when 100 points hold it (the test above),
+    not when 50 do (fewer than twice ``min_shared_points``)."""
     pycolmap.set_random_seed(0)
     weak, names, model, _, _ = _two_groups_and_a_hinge(5.0, hinge_every=8)
     assert judge_links(weak, names, _noisy(model)).split == (tuple(names[:3]), tuple(names[3:]))
