@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.collections import PolyCollection
 from matplotlib.figure import Figure
 from PIL import Image
 
@@ -111,21 +112,36 @@ def error_bars_png(
         for k, (label, values) in enumerate(data.items()):
             values = np.asarray(values, float)
             offset = (k - (len(data) - 1) / 2) * width
-            ax.bar(x + offset, np.nan_to_num(values, nan=0.0), width, color=_COLOURS[k % len(_COLOURS)], label=label)
+            _bars(ax, x + offset, np.nan_to_num(values, nan=0.0), width, _COLOURS[k % len(_COLOURS)], label)
             missing = ~np.isfinite(values)
             if missing.any():
                 ax.plot(x[missing] + offset, np.zeros(missing.sum()), "x", color="red", ms=6)
         if threshold is not None:
             ax.axhline(threshold, color="red", lw=1, ls="--", label="disagreement threshold")
         ax.set_ylabel(ylabel, fontsize=8)
-        ax.set_xticks(x)
-        ax.set_xticklabels(names if row == 2 else [""] * n, rotation=90, fontsize=6)
+        ax.set_xlim(-0.5, n - 0.5)
+        # names under the lower panel only: a tick is a costly artist, and a 96-frame run has 96 of them a panel
+        ax.set_xticks(x if row == 2 else [])
+        if row == 2:
+            ax.set_xticklabels(names, rotation=90, fontsize=6)
         ax.grid(axis="y", alpha=0.3)
         if row == 1:
             ax.set_title(title, fontsize=10)
-            ax.legend(fontsize=7)
+            ax.legend(fontsize=7, loc="upper right")  # "best" tests every bar: 0.3 s
     fig.tight_layout()
     return _to_png(fig)
+
+
+def _bars(ax, x: np.ndarray, heights: np.ndarray, width: float, colour: str, label: str) -> None:
+    """Bars from 0 to ``heights`` centred at ``x``, drawn as one collection: ``Axes.bar`` makes an artist per bar
+    (a 96-frame chart of three camera sets: 1.47 CPU s with them, 0.75 with collections, on a loaded 2-core machine)."""
+    left, right = x - width / 2, x + width / 2
+    rects = np.stack(
+        [np.stack([left, left, right, right], -1), np.stack([0 * heights, heights, heights, 0 * heights], -1)], -1
+    )
+    ax.add_collection(PolyCollection(rects, facecolors=colour, edgecolors="none", label=label))
+    ax.update_datalim(np.stack([np.concatenate([left, right]), np.concatenate([0 * heights, heights])], -1))
+    ax.autoscale_view()
 
 
 def thumbnail_png(image: np.ndarray, *, max_side: int = 160) -> bytes:
