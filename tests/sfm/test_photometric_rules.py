@@ -75,3 +75,21 @@ def test_a_far_fit_where_nothing_covers_the_frame_counts_only_as_good_as_the_ref
     assert not _against(PhotometricScore(NAN, NAN, 0.86, 32.0), 0.922).uncovered_far_fit("frame.png")
     assert not _against(PhotometricScore(NAN, NAN, 0.97, 15.0), 0.922).uncovered_far_fit("frame.png")  # turned little
     assert not _against(PhotometricScore(0.5, 0.6, 0.97, 30.0), 0.922).uncovered_far_fit("frame.png")  # covered
+
+
+def test_a_frame_no_match_checks_on_look_alike_surfaces_must_fit_about_as_the_references_do():
+    """Frames with no verified pair on repeated tile (the sweeps' logs, sessions 57-58; the model's camera is all that
+    places them): the frames 25 deg off fitted worse near their camera than the references at theirs, clearly, or
+    with a camera turned well beyond the model's noise fitting as well as the references."""
+    room_394 = _against(PhotometricScore(0.78, 0.79, 0.92, 19.0), 0.85)  # frame 6, 24.5 deg off
+    street_407 = _against(PhotometricScore(0.78, 0.79, 0.87, 33.0), 0.99)  # frame 6, 26.0 deg off
+    assert room_394.below_without_match("frame.png") and street_407.below_without_match("frame.png")
+    assert "0.79 within 5 deg of its camera, 0.92 turned 19 deg, against 0.85" in room_394.describe_below("frame.png")
+    # good frames: street 394 frame 1 (1.1 deg off) above the references; room 351 frame 1 (2.7 deg off), 0.91
+    # against 0.84; a good frame a little below them with nothing turned fitting as well as they do
+    assert not _against(PhotometricScore(0.95, 0.96, 0.98, 21.0), 0.93).below_without_match("frame.png")
+    assert not _against(PhotometricScore(0.91, 0.91, 0.91, 0.0), 0.84).below_without_match("frame.png")
+    assert not _against(PhotometricScore(0.90, 0.92, 0.94, 25.0), 0.96).below_without_match("frame.png")
+    # a better fit turned within twice near_deg is the model's noise, not a wrong camera
+    assert not _against(PhotometricScore(0.78, 0.79, 0.92, 10.0), 0.85).below_without_match("frame.png")
+    assert not _against(PhotometricScore(NAN, NAN, 0.92, 25.0), 0.85).below_without_match("frame.png")  # uncovered

@@ -108,6 +108,8 @@ def _photo_misfit(e: CameraEvidence, check: PhotometricCheck, lookalike: bool, l
     # its verified pairs disagree with its camera, too weakly to contradict it alone (_pair_verdict): the
     # median gap, recorded as its correction, is over the limit
     disputed = np.isfinite(e.correction_deg) and e.correction_deg > limit
+    # no verified pair with a refined frame: the model's camera alone places it
+    unmatched = e.status is CameraStatus.UNCHECKED and not np.isfinite(e.correction_deg)
     # on look-alike surfaces a far fit alone is a period of the pattern, as for guided frames (_guided_misfits):
     # held-out room 351 (repeated tile, frame 6 25 deg off), frame 2, refined on one planar pair 0.5 deg from the
     # truth, fitted 0.78 near its camera and 0.88 turned 32 deg (the references 0.86) and was left out
@@ -125,6 +127,8 @@ def _photo_misfit(e: CameraEvidence, check: PhotometricCheck, lookalike: bool, l
         if check.uncovered_far_fit(e.name) and e.name in doubted | dense_doubted
         else f"{check.describe_poor(e.name, near=True)}, and its dense tracks verified {_TURNED}"
         if e.name in turned and check.below_reference(e.name)
+        else check.describe_below(e.name)
+        if lookalike and unmatched and check.below_without_match(e.name)
         else None
     )
 
@@ -192,9 +196,19 @@ def _model_camera_kept(
             continue
         said = e.why.removesuffix(": left out").removesuffix(": neither pose can be trusted, left out")
         said = said.removesuffix(": the refined pose is used").removesuffix(": its pose is used")
-        if _chooses_model(s, bar, options, model.reference) and (np.isfinite(there) or not corrected):
-            why = f"{said}; but {_model_fits_text(s, there, bar != there, model.reference, options)}"
+        # where nothing covers the pose the matches gave, nothing is compared: the model's camera must fit about as
+        # the references do (PhotometricOptions.unseen_margin)
+        unseen = not np.isfinite(there)
+        chooses = _chooses_model(s, bar, options, model.reference)
+        if chooses and not (unseen and (corrected or s.near < model.reference - options.unseen_margin)):
+            why = f"{said}; but {_model_fits_text(s, there, k in relocated, model.reference, options)}"
             out[k] = CameraEvidence(e.name, CameraStatus.MODEL_FITS, why, e.correction_deg)
+        elif chooses and unseen and not corrected:
+            why = (
+                f"{said}; no reference frame sees it where the matches put it, and near the model's camera the photos "
+                f"fit it at {s.near:.2f}, below the references' {model.reference:.2f} at theirs{e.why[len(said) :]}"
+            )
+            out[k] = CameraEvidence(e.name, e.status, why, e.correction_deg)
         elif corrected:
             why = (
                 f"{said}; but the photos of the frames around it fit its photo there at {there:.2f}, against "
