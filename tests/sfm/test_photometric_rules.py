@@ -90,6 +90,7 @@ def test_a_frame_no_match_checks_on_look_alike_surfaces_must_fit_about_as_the_re
     assert not _against(PhotometricScore(0.95, 0.96, 0.98, 21.0), 0.93).below_without_match("frame.png")
     assert not _against(PhotometricScore(0.91, 0.91, 0.91, 0.0), 0.84).below_without_match("frame.png")
     assert not _against(PhotometricScore(0.90, 0.92, 0.94, 25.0), 0.96).below_without_match("frame.png")
-    # a better fit turned within twice near_deg is the model's noise, not a wrong camera
-    assert not _against(PhotometricScore(0.78, 0.79, 0.92, 10.0), 0.85).below_without_match("frame.png")
+    # a better fit turned within three times near_deg is not a wrong camera: object 411's frame 4 (2.5 deg off)
+    assert not _against(PhotometricScore(0.54, 0.70, 0.76, 11.0), 0.76).below_without_match("frame.png")
+    assert not _against(PhotometricScore(0.78, 0.79, 0.92, 15.0), 0.85).below_without_match("frame.png")
     assert not _against(PhotometricScore(NAN, NAN, 0.92, 25.0), 0.85).below_without_match("frame.png")  # uncovered

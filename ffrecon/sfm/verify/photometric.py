@@ -247,19 +247,21 @@ class PhotometricCheck:
     def below_without_match(self, name: str) -> bool:
         """For a frame no verified match checks, on look-alike surfaces: whether the photos fit it near its camera
         clearly worse than the references at theirs (by ``options.unseen_margin`` of correlation), or worse than them
-        while a camera turned beyond twice ``options.near_deg`` fits it as well as they do and better than near its
-        camera by ``options.min_margin``. There the model's camera is all that places the frame, and guided matching
+        while a camera turned beyond three times ``options.near_deg`` fits it as well as they do and better than near
+        its camera by ``options.min_margin``. There the model's camera is all that places the frame, and guided matching
         found nothing to check it with. Held-out room 394 (repeated tile, session 57): frame 6, 24.5 deg off, no
         verified match, 0.79 near its camera, 0.92 turned 19 deg, the references 0.85; street 407 (session 58): 0.79
         near its camera, the references 0.99; both were exported unchecked. Good frames without a verified match on
-        those sweeps fitted at or above the references near their camera, or nothing covered them there."""
+        those sweeps fitted at or above the references near their camera, or nothing covered them there; held-out
+        object 411's frame 4 (2.5 deg off, left out by its dense tracks) fits 0.70 near its camera and 0.76 turned 11
+        deg, as the references: a turn of 11 deg is not far enough."""
         s = self.scores.get(name)
         if s is None or not np.isfinite(s.near):
             return False
         o = self.options
         if s.near < self.reference - o.unseen_margin:
             return True
-        turned = np.isfinite(s.best) and s.best_turn_deg > 2 * o.near_deg and s.best - s.near >= o.min_margin
+        turned = np.isfinite(s.best) and s.best_turn_deg > 3 * o.near_deg and s.best - s.near >= o.min_margin
         return bool(s.near < self.reference and turned and s.best >= self.reference)
 
     def describe_below(self, name: str) -> str:
