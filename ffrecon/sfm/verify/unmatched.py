@@ -204,11 +204,7 @@ def _model_camera_kept(
             why = f"{said}; but {_model_fits_text(s, there, k in relocated, model.reference, options)}"
             out[k] = CameraEvidence(e.name, CameraStatus.MODEL_FITS, why, e.correction_deg)
         elif chooses and unseen and not corrected:
-            why = (
-                f"{said}; no reference frame sees it where the matches put it, and near the model's camera the photos "
-                f"fit it at {s.near:.2f}, below the references' {model.reference:.2f} at theirs{e.why[len(said) :]}"
-            )
-            out[k] = CameraEvidence(e.name, e.status, why, e.correction_deg)
+            out[k] = _unseen_kept_as_was(e, said, s, model.reference)
         elif corrected:
             why = (
                 f"{said}; but the photos of the frames around it fit its photo there at {there:.2f}, against "
@@ -216,6 +212,16 @@ def _model_camera_kept(
             )
             out[k] = CameraEvidence(e.name, CameraStatus.CONTRADICTED, why, e.correction_deg)
     return tuple(out)
+
+
+def _unseen_kept_as_was(e: CameraEvidence, said: str, s: PhotometricScore, reference: float) -> CameraEvidence:
+    """``e`` as it was, its reason saying why the photos did not keep the model's camera (:func:`_model_camera_kept`:
+    nothing sees the pose the matches gave, and the model's camera fits clearly worse than the references)."""
+    why = (
+        f"{said}; no reference frame sees it where the matches put it, and near the model's camera the photos fit it "
+        f"at {s.near:.2f}, below the references' {reference:.2f} at theirs{e.why[len(said) :]}"
+    )
+    return CameraEvidence(e.name, e.status, why, e.correction_deg, e.matches_only)
 
 
 def _model_fits_text(s: PhotometricScore, there: float, relocated: bool, reference: float, options) -> str:
