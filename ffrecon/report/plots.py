@@ -136,12 +136,10 @@ def _bars(ax, x: np.ndarray, heights: np.ndarray, width: float, colour: str, lab
     """Bars from 0 to ``heights`` centred at ``x``, drawn as one collection: ``Axes.bar`` makes an artist per bar
     (tools/bench_report_chart.py: a chart of three camera sets, 96 frames 1.1-1.6 CPU s with them, 0.7-1.0 with
     collections; 250 frames 3.2-4.2 and 2.0-2.1; a loaded 2-core machine)."""
-    left, right = x - width / 2, x + width / 2
-    rects = np.stack(
-        [np.stack([left, left, right, right], -1), np.stack([0 * heights, heights, heights, 0 * heights], -1)], -1
-    )
+    left, right, zero = x - width / 2, x + width / 2, np.zeros_like(heights)
+    rects = np.stack([np.stack([left, left, right, right], -1), np.stack([zero, heights, heights, zero], -1)], -1)
     ax.add_collection(PolyCollection(rects, facecolors=colour, edgecolors="none", label=label))
-    ax.update_datalim(np.stack([np.concatenate([left, right]), np.concatenate([0 * heights, heights])], -1))
+    ax.update_datalim(np.stack([np.concatenate([left, right]), np.concatenate([zero, heights])], -1))
     ax.autoscale_view()
 
 

@@ -203,7 +203,7 @@ def _model_camera_kept(
         if chooses and not (unseen and (corrected or s.near < model.reference - options.unseen_margin)):
             why = f"{said}; but {_model_fits_text(s, there, k in relocated, model.reference, options)}"
             out[k] = CameraEvidence(e.name, CameraStatus.MODEL_FITS, why, e.correction_deg)
-        elif chooses and unseen and not corrected:
+        elif chooses and not corrected:  # unseen, and the model's camera fits clearly worse than the references
             out[k] = _unseen_kept_as_was(e, said, s, model.reference)
         elif corrected:
             why = (
